@@ -1,0 +1,1 @@
+"""snakeloco application layer: the command-line interface and the browser designer."""

@@ -1,0 +1,313 @@
+"""Open-loop simulation of joint commands: the one command rule, batched rollouts, measurement.
+
+Command rule (used identically by data generation, ``replay`` and CSV import):
+
+1. Commands are 20 Hz samples u[n], n = 0..T-1, treated as one period of a periodic gait.
+2. Lead-in: before the record the snake, lying straight and at rest, runs the last ``lead_in``
+   samples of the gait (its periodic continuation), faded in by a raised-cosine ramp over the first
+   ``ramp`` of them; this lets the servos and the body settle before t = 0. Nothing of the lead-in is
+   measured.
+3. Between samples the servo target is linearly interpolated from u[n] to u[n+1] (u[T] = u[0]),
+   updated every physics step (2.5 ms, 20 steps per sample).
+4. Measurements at record sample n are taken at t_n = n / 20 s, at the start of the interval whose
+   target starts at u[n].
+
+Body states (6 channels, in this order): vertical, forward, sideways position (m) and roll, pitch,
+yaw (rad) of the middle link's frame (site ``body_frame`` at the centre of link 5: where an IMU on the
+central module of the real robot would be), expressed in the frame of that link's position and heading
+at t = 0: positions are R_z(-yaw_0) (p(t) - p(0)), angles are the Z-Y-X (yaw, pitch, roll) Euler
+angles of R_z(-yaw_0) R(t). Yaw and roll are unwrapped over time (the snake may roll over and over).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+from pydantic import BaseModel, ConfigDict, Field
+
+from sim.excitation import ExcitationConfig
+from sim.robot import BODY_SITE, N_JOINTS, load_model
+
+BODY_CHANNELS = ("vertical", "forward", "sideways", "roll", "pitch", "yaw")
+"""Order of the 6 body channels: 3 positions (m), then 3 angles (rad)."""
+
+_STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
+
+
+class SimConfig(BaseModel):
+    """How commands are applied and when a simulation counts as broken."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    lead_in: int = Field(60, ge=0, description="Lead-in samples before the record (3 s at 20 Hz).")
+    ramp: int = Field(40, ge=1, description="Raised-cosine fade-in over this many lead-in samples.")
+    max_com_height: float = Field(
+        1.0,
+        gt=0,
+        description="Centre-of-mass height (m) above which the snake counts as thrown. A 0.9 m snake "
+        "standing on its end has it at 0.48 m; healthy 100 s runs peaked at 0.58 m (128 samples).",
+    )
+    max_com_speed: float = Field(
+        10.0,
+        gt=0,
+        description="Centre-of-mass speed (m/s) above which the run counts as diverged; healthy runs "
+        "peaked at 3.0 m/s (128 samples).",
+    )
+
+
+class SimulationError(RuntimeError):
+    """A simulation diverged or threw the snake; the message says how and when."""
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    """Measured response to one record of commands at the command rate."""
+
+    commands: np.ndarray
+    """(T, 8) commands actually applied (rad, float64)."""
+    joint_angles: np.ndarray
+    """(T, 8) measured joint angles (rad)."""
+    body: np.ndarray
+    """(T, 6) body states, channels as in ``BODY_CHANNELS``."""
+    times: np.ndarray
+    """(T,) sample times (s), 0 at the start of the record."""
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """Measurements of a batch; rows whose ``failures`` entry is not None are invalid."""
+
+    joint_angles: np.ndarray  # (B, T, 8) rad
+    body: np.ndarray  # (B, T, 6)
+    failures: list[str | None]
+
+
+def lead_in_window(cfg: SimConfig) -> np.ndarray:
+    """Fade-in weights of the lead-in samples, shape (lead_in,), from 0 up to 1."""
+    j = np.arange(cfg.lead_in)
+    return np.where(j < cfg.ramp, 0.5 - 0.5 * np.cos(np.pi * j / cfg.ramp), 1.0)
+
+
+def expand_commands(commands: np.ndarray, substeps: int, cfg: SimConfig) -> np.ndarray:
+    """Per-physics-step servo targets for a batch of records (the command rule above).
+
+    Args:
+        commands: (B, T, 8) rad.
+        substeps: physics steps per command sample.
+        cfg: lead-in settings.
+
+    Returns:
+        (B, (lead_in + T) * substeps, 8) float64 servo targets (rad).
+    """
+    if cfg.lead_in > commands.shape[1]:
+        raise ValueError(f"lead-in of {cfg.lead_in} samples exceeds the record ({commands.shape[1]})")
+    pre = commands[:, commands.shape[1] - cfg.lead_in :] * lead_in_window(cfg)[None, :, None]
+    held = np.concatenate([pre, commands], axis=1)  # (B, lead+T, 8)
+    nxt = np.concatenate([held[:, 1:], commands[:, :1]], axis=1)  # u[n+1], periodic at the end
+    frac = (np.arange(substeps) / substeps)[None, None, :, None]  # (1, 1, S, 1)
+    ctrl = held[:, :, None] + (nxt - held)[:, :, None] * frac  # (B, lead+T, S, 8)
+    return ctrl.reshape(commands.shape[0], -1, N_JOINTS)
+
+
+def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(..., 4) unit quaternions wxyz -> (..., 3, 3) rotation matrices (frame to world)."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def body_states(pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """Body channels in the initial heading frame.
+
+    Args:
+        pos: (B, T, 3) world position of the body frame (m).
+        quat: (B, T, 4) world orientation of the body frame, wxyz.
+
+    Returns:
+        (B, T, 6): vertical, forward, sideways (m), roll, pitch, yaw (rad), yaw and roll unwrapped.
+    """
+    rot = _quat_to_matrix(quat)  # (B, T, 3, 3)
+    yaw0 = np.arctan2(rot[:, 0, 1, 0], rot[:, 0, 0, 0])  # (B,) heading of the link's x axis at t=0
+    c, s = np.cos(yaw0), np.sin(yaw0)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    undo = np.stack(
+        [np.stack([c, s, zero], -1), np.stack([-s, c, zero], -1), np.stack([zero, zero, one], -1)], -2
+    )  # (B, 3, 3) = R_z(-yaw0)
+    rel_pos = np.einsum("bij,btj->bti", undo, pos - pos[:, :1])  # (B, T, 3) x fwd, y side, z up
+    rel_rot = np.einsum("bij,btjk->btik", undo, rot)  # (B, T, 3, 3)
+    yaw = np.arctan2(rel_rot[..., 1, 0], rel_rot[..., 0, 0])
+    pitch = np.arcsin(np.clip(-rel_rot[..., 2, 0], -1.0, 1.0))
+    roll = np.arctan2(rel_rot[..., 2, 1], rel_rot[..., 2, 2])
+    return np.stack(
+        [
+            rel_pos[..., 2],
+            rel_pos[..., 0],
+            rel_pos[..., 1],
+            np.unwrap(roll, axis=1),
+            pitch,
+            np.unwrap(yaw, axis=1),
+        ],
+        axis=-1,
+    )
+
+
+class Simulator:
+    """Batched open-loop rollouts of the snake on ``workers`` native threads (``mujoco.rollout``).
+
+    One Simulator is not for concurrent use from several Python threads; make one per thread.
+    """
+
+    def __init__(
+        self,
+        workers: int = 1,
+        excitation: ExcitationConfig | None = None,
+        config: SimConfig | None = None,
+    ) -> None:
+        self.excitation = excitation or ExcitationConfig()
+        self.config = config or SimConfig()
+        self.model = load_model()
+        self.workers = max(1, int(workers))
+        self._datas = [mujoco.MjData(self.model) for _ in range(self.workers)]
+        self._pool = mj_rollout.Rollout(nthread=self.workers) if self.workers > 1 else None
+        self._lock = threading.Lock()
+        dt = self.model.opt.timestep
+        self.substeps = round(1.0 / (self.excitation.sample_rate * dt))
+        if abs(self.substeps * dt * self.excitation.sample_rate - 1.0) > 1e-9:
+            raise ValueError(f"timestep {dt} s does not divide the command period")
+        self.n_steps = (self.config.lead_in + self.excitation.n_samples) * self.substeps
+        data = mujoco.MjData(self.model)  # reset state: straight snake resting on the floor
+        self.initial_state = np.empty(mujoco.mj_stateSize(self.model, _STATE_SPEC))
+        mujoco.mj_getState(self.model, data, self.initial_state, _STATE_SPEC)
+        sensor = {self.model.sensor(i).name: i for i in range(self.model.nsensor)}
+        adr = self.model.sensor_adr
+        self._q_cols = np.array([adr[sensor[f"q{k + 1}"]] for k in range(N_JOINTS)])
+        self._pos_cols = adr[sensor["body_pos"]] + np.arange(3)
+        self._quat_cols = adr[sensor["body_quat"]] + np.arange(4)
+        self._com_cols = adr[sensor["com_pos"]] + np.arange(3)
+        self._vel_cols = adr[sensor["com_vel"]] + np.arange(3)
+        assert self.model.site(BODY_SITE).id >= 0
+
+    def rollout(self, ctrl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Raw rollouts from the resting state: ctrl (B, n_steps, 8) -> (state, sensordata).
+
+        state is (B, n_steps, nstate) after each step; sensordata (B, n_steps, nsensordata) is
+        measured at the start of each step.
+        """
+        batch = ctrl.shape[0]
+        initial = np.broadcast_to(self.initial_state, (batch, self.initial_state.size))
+        # A zero warm start for every rollout, as mj_resetData leaves it: results then do not depend
+        # on which thread ran the previous rollout.
+        warm = np.zeros((batch, self.model.nv))
+        with self._lock:
+            if self._pool is None:
+                return mj_rollout.rollout(self.model, self._datas[0], initial, ctrl, initial_warmstart=warm)
+            return self._pool.rollout(self.model, self._datas, initial, ctrl, initial_warmstart=warm)
+
+    def simulate(self, commands: np.ndarray) -> BatchResult:
+        """Simulate a batch of records under the command rule and measure them.
+
+        Args:
+            commands: (B, T, 8) rad.
+
+        Returns:
+            BatchResult with (B, T, 8) joint angles and (B, T, 6) body states; a failed row's
+            ``failures`` entry names the problem (its measurements are then meaningless).
+        """
+        commands = np.asarray(commands, dtype=np.float64)
+        expected = (self.excitation.n_samples, N_JOINTS)
+        if commands.ndim != 3 or commands.shape[1:] != expected:
+            raise ValueError(f"expected (B, {expected[0]}, {expected[1]}) commands, got {commands.shape}")
+        ctrl = expand_commands(commands, self.substeps, self.config)
+        state, sens = self.rollout(ctrl)
+        failures = self._diagnose(state, sens)
+        record = self.config.lead_in * self.substeps + self.substeps * np.arange(expected[0])
+        sampled = sens[:, record]  # (B, T, nsensordata)
+        joint_angles = sampled[..., self._q_cols]
+        quat = sampled[..., self._quat_cols]
+        quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True).clip(min=1e-12)
+        with np.errstate(invalid="ignore"):
+            body = body_states(sampled[..., self._pos_cols], quat)
+        return BatchResult(joint_angles=joint_angles, body=body, failures=failures)
+
+    def _diagnose(self, state: np.ndarray, sens: np.ndarray) -> list[str | None]:
+        dt = self.model.opt.timestep
+        failures: list[str | None] = []
+        for b in range(state.shape[0]):
+            failures.append(self._diagnose_one(state[b], sens[b], dt))
+        return failures
+
+    def _diagnose_one(self, state: np.ndarray, sens: np.ndarray, dt: float) -> str | None:
+        t0 = self.config.lead_in / self.excitation.sample_rate  # record time = sim time - t0
+
+        def at(step: int) -> str:
+            return f"t = {step * dt - t0:.2f} s"
+
+        bad = ~np.isfinite(state).all(axis=1)
+        if bad.any():
+            return f"non-finite physics state at {at(int(np.argmax(bad)))}"
+        time = state[:, 0]
+        expected = (np.arange(1, state.shape[0] + 1)) * dt
+        off = np.abs(time - expected) > 0.5 * dt
+        if off.any():
+            return (
+                f"MuJoCo reset the unstable simulation (time stopped advancing) at {at(int(np.argmax(off)))}"
+            )
+        height = sens[:, self._com_cols[2]]
+        if height.max() > self.config.max_com_height:
+            step = int(np.argmax(height > self.config.max_com_height))
+            return (
+                f"snake thrown into the air: centre of mass {height.max():.2f} m high "
+                f"(limit {self.config.max_com_height} m) at {at(step)}"
+            )
+        speed = np.linalg.norm(sens[:, self._vel_cols], axis=1)
+        if speed.max() > self.config.max_com_speed:
+            step = int(np.argmax(speed > self.config.max_com_speed))
+            return (
+                f"simulation diverged: centre of mass moving at {speed.max():.1f} m/s "
+                f"(limit {self.config.max_com_speed} m/s) at {at(step)}"
+            )
+        return None
+
+    def replay(self, commands: np.ndarray) -> ReplayResult:
+        """Simulate one record exactly as data generation does; raise SimulationError if it breaks."""
+        commands = np.asarray(commands, dtype=np.float64)
+        result = self.simulate(commands[None])
+        if result.failures[0] is not None:
+            raise SimulationError(result.failures[0])
+        return ReplayResult(
+            commands=commands,
+            joint_angles=result.joint_angles[0],
+            body=result.body[0],
+            times=self.excitation.times,
+        )
+
+
+_default_lock = threading.Lock()
+_default_simulator: Simulator | None = None
+
+
+def replay(commands: np.ndarray) -> ReplayResult:
+    """Replay one record of joint commands (T, 8) rad through the snake; see ``Simulator.replay``.
+
+    Raises:
+        ValueError: commands of the wrong shape or not finite.
+        SimulationError: the simulation diverged or threw the snake (the message says how and when).
+    """
+    global _default_simulator
+    commands = np.asarray(commands, dtype=np.float64)
+    if not np.isfinite(commands).all():
+        raise ValueError("commands contain NaN or Inf")
+    with _default_lock:
+        if _default_simulator is None:
+            _default_simulator = Simulator(workers=1)
+        return _default_simulator.replay(commands)

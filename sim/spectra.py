@@ -1,0 +1,77 @@
+"""Topological joint shape (paper 3.2.1) and its inverse: the one place the FFT convention lives.
+
+Convention: for a record x(n), n = 0..T-1 at ``sample_rate``, the coefficient of excited bin b_l is
+c_l = 2 X[b_l] / T with X = numpy.fft.rfft(x). |c_l| is then the amplitude (rad) of that sinusoid and
+x(t) = sum_l Re(c_l exp(i 2 pi f_l t)) for a signal made only of the excited components. A shape
+stores c as (real, imag) in its last axis: shape (..., 8, L, 2).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.excitation import ExcitationConfig
+from sim.robot import COMMAND_LIMIT, N_JOINTS
+
+DEFAULT_EXCITATION = ExcitationConfig()
+
+
+def joint_shape(angles: np.ndarray, cfg: ExcitationConfig = DEFAULT_EXCITATION) -> np.ndarray:
+    """Single-sided spectrum of joint signals at the excited bins.
+
+    Args:
+        angles: (..., T, 8) joint angles or commands (rad) at ``cfg.sample_rate``.
+        cfg: the excitation whose bins to keep.
+
+    Returns:
+        (..., 8, L, 2) float64: real and imaginary parts of c_kl (rad).
+    """
+    angles = np.asarray(angles, dtype=np.float64)
+    if angles.shape[-2:] != (cfg.n_samples, N_JOINTS):
+        raise ValueError(f"expected (..., {cfg.n_samples}, {N_JOINTS}) angles, got {angles.shape}")
+    spectrum = np.fft.rfft(angles, axis=-2)  # (..., T//2+1, 8)
+    c = 2.0 * spectrum[..., cfg.bins, :] / cfg.n_samples  # (..., L, 8)
+    c = np.swapaxes(c, -1, -2)  # (..., 8, L)
+    return np.stack([c.real, c.imag], axis=-1)  # (..., 8, L, 2)
+
+
+def shape_to_commands(
+    shape: np.ndarray,
+    freqs: np.ndarray | None = None,
+    *,
+    n_samples: int = DEFAULT_EXCITATION.n_samples,
+    sample_rate: float = DEFAULT_EXCITATION.sample_rate,
+    limit: float = COMMAND_LIMIT,
+) -> np.ndarray:
+    """Resynthesise joint commands from a joint shape by inverse FFT (the inverse of ``joint_shape``).
+
+    u_k(t_n) = sum_l Re(c_kl exp(i 2 pi f_l t_n)), t_n = n / sample_rate, clipped to +/- ``limit`` rad.
+
+    Args:
+        shape: (..., 8, L, 2) real and imaginary parts of c_kl (rad).
+        freqs: (L,) frequencies of the components (Hz); default: the standard excitation's.
+        n_samples: samples to synthesise (T).
+        sample_rate: command rate (Hz).
+        limit: clip bound (rad).
+
+    Returns:
+        (..., T, 8) float64 commands (rad).
+    """
+    shape = np.asarray(shape, dtype=np.float64)
+    freqs = DEFAULT_EXCITATION.freqs if freqs is None else np.asarray(freqs, dtype=np.float64)
+    if shape.ndim < 3 or shape.shape[-3:] != (N_JOINTS, freqs.shape[0], 2):
+        raise ValueError(f"expected (..., {N_JOINTS}, {freqs.shape[0]}, 2) shape, got {shape.shape}")
+    # Snap to the record's FFT grid: float32 round-off in stored frequencies would otherwise grow
+    # into a phase error of 2 pi t df over the 100 s record.
+    bins = freqs * n_samples / sample_rate
+    if np.abs(bins - np.round(bins)).max() > 1e-3:
+        raise ValueError(
+            f"frequencies {freqs.tolist()} Hz are not on the {sample_rate / n_samples} Hz FFT grid"
+        )
+    n = np.arange(n_samples)  # (T,)
+    arg = 2.0 * np.pi * np.outer(n, np.round(bins)) / n_samples  # (T, L) = 2 pi f_l t_n
+    # Re(c e^{i w t}) = re cos(w t) - im sin(w t); contract over L for every joint.
+    commands = np.cos(arg) @ np.swapaxes(shape[..., 0], -1, -2) - np.sin(arg) @ np.swapaxes(
+        shape[..., 1], -1, -2
+    )  # (..., T, 8)
+    return np.clip(commands, -limit, limit)
