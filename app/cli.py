@@ -7,6 +7,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import tyro
 
@@ -26,6 +27,70 @@ class Generate:
 
 
 @dataclass
+class Train:
+    """Train the hierarchical VAE; writes the best-on-validation checkpoint and metrics.jsonl to OUT."""
+
+    data: Path
+    """Dataset .npz from `snakeloco generate`."""
+    out: Path
+    """Checkpoint directory (model.safetensors, config.json, metrics.jsonl)."""
+    epochs: int = 300
+    """Training epochs."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Torch device; cuda only when present."""
+    seed: int = 0
+    """Seed of the split, initialisation and batches."""
+    batch_size: int = 128
+    """Samples per step."""
+
+
+@dataclass
+class Evaluate:
+    """Evaluate a checkpoint: reconstruction R^2, latent health, and generated-gait consistency vs physics."""
+
+    data: Path
+    """Held-out dataset .npz (generate it with a seed not used for training)."""
+    checkpoint: Path | None = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    prior_samples: int = 256
+    """z_B drawn from the prior for the consistency check (0 skips it)."""
+    ensemble: int = 8
+    """Replays per generated gait: the commands plus ensemble-1 copies with 1e-3 relative noise."""
+    seed: int = 0
+    """Seed of the prior draws and noise."""
+    workers: int | None = None
+    """Simulation threads (default: all cores)."""
+    json: bool = False
+    """Print the figures as one JSON object on the last line."""
+
+
+@dataclass
+class Figures:
+    """Write PNG figures like the paper's Figs. 5-8 (fit, prior sweep, z_k samples, joint shapes)."""
+
+    data: Path
+    """Dataset .npz for the fit figure."""
+    out: Path
+    """Output directory."""
+    checkpoint: Path | None = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    seed: int = 0
+    """Seed of the sample choice and latent draws."""
+
+
+@dataclass
+class BenchModel:
+    """Benchmark decoding: latency of one z_B (the slider path) p50/p95 and batch throughput."""
+
+    json: bool = False
+    """Print the figures as one JSON object on the last line."""
+    checkpoint: Path | None = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    calls: int = 200
+    """Timed single decodes."""
+
+
+@dataclass
 class BenchSim:
     """Benchmark the simulator: raw mujoco.rollout vs the generator, replay vs a bare mj_step loop."""
 
@@ -41,11 +106,17 @@ class BenchSim:
 
 @dataclass
 class Bench:
-    """Benchmarks that print ratios measured side by side in one run: `snakeloco bench {sim} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model} --help`."""
 
 
-COMMANDS: dict[str, type] = {"generate": Generate, "bench": Bench}
-BENCHES: dict[str, type] = {"sim": BenchSim}
+COMMANDS: dict[str, type] = {
+    "generate": Generate,
+    "train": Train,
+    "evaluate": Evaluate,
+    "figures": Figures,
+    "bench": Bench,
+}
+BENCHES: dict[str, type] = {"sim": BenchSim, "model": BenchModel}
 
 
 def run_generate(cmd: Generate) -> Path:
@@ -61,6 +132,63 @@ def run_generate(cmd: Generate) -> Path:
     size = path.stat().st_size / 2**20
     print(f"wrote {path} ({cfg.num_samples} samples, {size:.1f} MiB) in {time.perf_counter() - t0:.1f} s")
     return path
+
+
+def run_train(cmd: Train):
+    """Train with the paper's schedule (model/train.py documents it)."""
+
+    from model import TrainConfig, train
+
+    cfg = TrainConfig(epochs=cmd.epochs, device=cmd.device, seed=cmd.seed, batch_size=cmd.batch_size)
+    return train(cmd.data, cmd.out, cfg)
+
+
+def run_evaluate(cmd: Evaluate) -> dict:
+    """Evaluate and print the report."""
+    from tqdm import tqdm
+
+    from model.evaluate import evaluate, format_report
+
+    with tqdm(
+        total=2 * cmd.prior_samples, unit="gait", desc="consistency", disable=cmd.prior_samples == 0
+    ) as bar:
+        report = evaluate(
+            cmd.checkpoint,
+            cmd.data,
+            cmd.prior_samples,
+            cmd.ensemble,
+            cmd.seed,
+            cmd.workers,
+            progress=bar.update,
+        )
+    print(format_report(report))
+    if cmd.json:
+        print(jsonlib.dumps(report))
+    return report
+
+
+def run_figures(cmd: Figures) -> list[Path]:
+    """Write the figures and list them."""
+    from model.figures import figures
+
+    paths = figures(cmd.checkpoint, cmd.data, cmd.out, cmd.seed)
+    for p in paths:
+        print(p)
+    return paths
+
+
+def run_bench_model(cmd: BenchModel) -> dict:
+    """Run and print the decode benchmark."""
+    from model.bench import bench_model
+
+    r = bench_model(cmd.checkpoint, n=cmd.calls)
+    print(
+        f"decode one z_B: p50 {r['decode_p50_ms']:.2f} ms, p95 {r['decode_p95_ms']:.2f} ms; "
+        f"batch of {r['batch']}: {r['batch_decodes_per_s']:.0f} decodes/s"
+    )
+    if cmd.json:
+        print(jsonlib.dumps(r))
+    return r
 
 
 def run_bench_sim(cmd: BenchSim) -> dict:
@@ -93,8 +221,16 @@ def main(args: list[str] | None = None) -> None:
         cmd = tyro.extras.subcommand_cli_from_dict(COMMANDS, args=args, prog="snakeloco")
     if isinstance(cmd, Generate):
         run_generate(cmd)
+    elif isinstance(cmd, Train):
+        run_train(cmd)
+    elif isinstance(cmd, Evaluate):
+        run_evaluate(cmd)
+    elif isinstance(cmd, Figures):
+        run_figures(cmd)
     elif isinstance(cmd, BenchSim):
         run_bench_sim(cmd)
+    elif isinstance(cmd, BenchModel):
+        run_bench_model(cmd)
 
 
 if __name__ == "__main__":

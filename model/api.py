@@ -1,0 +1,127 @@
+"""``GaitModel``: the trained VAE in physical units, numpy in and numpy out, no gradients.
+
+Shapes: shape (B, 8, L, 2) rad (single-sided FFT coefficients, ``sim.joint_shape`` convention);
+body_ds (B, 500, 6) at 5 Hz, channels vertical, forward, sideways (m), roll, pitch, yaw (rad);
+z_b (B, z_b_dim); z_j (B, 8, z_j_dim).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint
+from model.network import HierarchicalVAE
+
+
+class GaitModel:
+    """A loaded checkpoint ready for encoding and decoding. Thread-safe (calls are serialised)."""
+
+    def __init__(self, net: HierarchicalVAE, config: CheckpointConfig, path: Path | None = None) -> None:
+        self.net = net.eval()
+        self.config = config
+        self.path = path
+        norm = config.normalization.arrays()
+        self._shape_mean, self._shape_std = norm["shape_mean"], norm["shape_std"]  # (L, 2)
+        self._body_mean, self._body_std = norm["body_mean"], norm["body_std"]  # (6,)
+        self._lock = threading.Lock()
+
+    @property
+    def z_b_dim(self) -> int:
+        return self.config.model.z_b_dim
+
+    @property
+    def z_j_dim(self) -> int:
+        return self.config.model.z_j_dim
+
+    @property
+    def freqs(self) -> np.ndarray:
+        """(L,) excited frequencies (Hz) the model was trained on."""
+        return np.asarray(self.config.freqs, dtype=np.float64)
+
+    @property
+    def hash(self) -> str:
+        """sha256 of the weights file (identifies the checkpoint in exported gaits)."""
+        if self.path is None:
+            return ""
+        return hashlib.sha256((self.path / WEIGHTS).read_bytes()).hexdigest()
+
+    # --- normalisation ---------------------------------------------------------------------------
+
+    def _norm_shape(self, shape: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor((shape - self._shape_mean) / self._shape_std, dtype=torch.float32)
+
+    def _norm_body(self, body: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor((body - self._body_mean) / self._body_std, dtype=torch.float32)
+
+    def _phys(self, shape: torch.Tensor, body: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        return (
+            shape.numpy().astype(np.float64) * self._shape_std + self._shape_mean,
+            body.numpy().astype(np.float64) * self._body_std + self._body_mean,
+        )
+
+    # --- API -------------------------------------------------------------------------------------
+
+    def encode(self, shape: np.ndarray, body_ds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior means: shape (B, 8, L, 2), body_ds (B, 500, 6) -> z_b (B, Db), z_j (B, 8, Dj)."""
+        shape, body_ds = np.asarray(shape, np.float64), np.asarray(body_ds, np.float64)
+        cfg = self.config.model
+        if shape.ndim != 4 or shape.shape[1:] != (cfg.n_joints, cfg.n_components, 2):
+            raise ValueError(f"shape must be (B, {cfg.n_joints}, {cfg.n_components}, 2), got {shape.shape}")
+        if body_ds.shape != (shape.shape[0], cfg.body_steps, cfg.body_channels):
+            raise ValueError(
+                f"body_ds must be ({shape.shape[0]}, {cfg.body_steps}, {cfg.body_channels}), got {body_ds.shape}"
+            )
+        with self._lock, torch.inference_mode():
+            mu, _ = self.net.encode_body(self._norm_body(body_ds))
+            joints = self.net.run_joints(mu, self._norm_shape(shape), sample_posterior=False)
+        return mu.numpy().astype(np.float64), joints["z_j"].numpy().astype(np.float64)
+
+    def decode(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """z_b (B, Db) and z_j (B, 8, Dj) (None: zeros, the paper's setting (a)) -> shape, body_ds."""
+        z_b = np.atleast_2d(np.asarray(z_b, np.float32))
+        if z_b.shape[1] != self.z_b_dim:
+            raise ValueError(f"z_b must be (B, {self.z_b_dim}), got {z_b.shape}")
+        zj = None
+        if z_j is not None:
+            zj = torch.as_tensor(np.asarray(z_j, np.float32).reshape(z_b.shape[0], -1, self.z_j_dim))
+        with self._lock, torch.inference_mode():
+            shape, body = self.net.generate(torch.as_tensor(z_b), zj)
+        return self._phys(shape, body)
+
+    def sample_joint_latents(
+        self, z_b: np.ndarray, n: int = 1, seed: int = 0, temperature: float = 1.0
+    ) -> np.ndarray:
+        """n draws of z_{1:8} from the learned prior given z_b (Db,) -> (n, 8, Dj); (B, Db) -> (B, n, 8, Dj).
+
+        ``temperature`` scales the prior's standard deviation (0: its mean).
+        """
+        z = np.asarray(z_b, np.float32)
+        single = z.ndim == 1
+        z = np.atleast_2d(z)
+        gen = torch.Generator().manual_seed(int(seed))
+        eps = (
+            torch.randn(z.shape[0], n, self.config.model.n_joints, self.z_j_dim, generator=gen) * temperature
+        )
+        with self._lock, torch.inference_mode():
+            zb = torch.as_tensor(z).repeat_interleave(n, dim=0)  # (B n, Db)
+            out = self.net.sample_joints(zb, eps.flatten(0, 1)).view(z.shape[0], n, -1, self.z_j_dim)
+        out = out.numpy().astype(np.float64)
+        return out[0] if single else out
+
+
+def load_pretrained(path: str | Path | None = None) -> GaitModel:
+    """Load a checkpoint directory (None: the shipped pretrained model) as a ``GaitModel``.
+
+    Raises:
+        CheckpointError: the checkpoint is missing, corrupt or mismatched (the message says which).
+    """
+    from model.checkpoint import PRETRAINED_DIR
+
+    directory = PRETRAINED_DIR if path is None else Path(path)
+    net, config = load_checkpoint(directory)
+    return GaitModel(net, config, directory)

@@ -1,0 +1,156 @@
+"""Checkpoints: ``model.safetensors`` (weights) + ``config.json`` (pydantic-validated). No pickle.
+
+``config.json`` holds the schema version, the model config, the normalisation statistics, the
+dataset's excited frequencies and meta hash, the MJCF hash, the training config and a summary of
+the run. Loading validates all of it and names the problem when something is off.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from model.network import HierarchicalVAE, ModelConfig
+
+SCHEMA_VERSION = 1
+WEIGHTS = "model.safetensors"
+CONFIG = "config.json"
+PRETRAINED_DIR = Path(__file__).with_name("pretrained")
+"""The shipped checkpoint, trained on the full 4096-sample dataset (README: how to reproduce it)."""
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, corrupt or does not match this code; the message says which."""
+
+
+class Normalization(BaseModel):
+    """Per-feature statistics: normalised = (physical - mean) / std."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    shape_mean: list[list[float]] = Field(description="(L, 2) rad")
+    shape_std: list[list[float]] = Field(description="(L, 2) rad")
+    body_mean: list[float] = Field(description="(6,) m and rad")
+    body_std: list[float] = Field(description="(6,) m and rad")
+
+    @model_validator(mode="after")
+    def _positive(self) -> Normalization:
+        if min(min(r) for r in self.shape_std) <= 0 or min(self.body_std) <= 0:
+            raise ValueError("normalisation std must be positive")
+        return self
+
+    @classmethod
+    def fit(cls, shape: np.ndarray, body: np.ndarray) -> Normalization:
+        """Statistics of a training set: shape (N, K, L, 2), body (N, T, 6)."""
+        return cls(
+            shape_mean=shape.mean(axis=(0, 1)).tolist(),
+            shape_std=np.maximum(shape.std(axis=(0, 1)), 1e-6).tolist(),
+            body_mean=body.mean(axis=(0, 1)).tolist(),
+            body_std=np.maximum(body.std(axis=(0, 1)), 1e-6).tolist(),
+        )
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {k: np.asarray(v, dtype=np.float32) for k, v in self.model_dump().items()}
+
+
+class TrainSummary(BaseModel):
+    """What the run that made the checkpoint did."""
+
+    model_config = ConfigDict(extra="allow")
+
+    best_epoch: int = -1
+    epochs_run: int = 0
+    best_val_loss: float = float("nan")
+    wall_time_s: float = 0.0
+    device: str = "cpu"
+
+
+class CheckpointConfig(BaseModel):
+    """Contents of ``config.json``."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    schema_version: int
+    model: ModelConfig
+    normalization: Normalization
+    freqs: list[float] = Field(description="(L,) excited frequencies of the training data (Hz)")
+    dataset_meta_sha256: str
+    mjcf_sha256: str
+    train: dict = Field(default_factory=dict, description="The resolved training config.")
+    summary: TrainSummary = TrainSummary()
+
+    @model_validator(mode="after")
+    def _consistent(self) -> CheckpointConfig:
+        n_l = self.model.n_components
+        if len(self.freqs) != n_l:
+            raise ValueError(f"{len(self.freqs)} freqs for a model with {n_l} components")
+        if np.asarray(self.normalization.shape_mean).shape != (n_l, 2):
+            raise ValueError("shape_mean is not (L, 2)")
+        if len(self.normalization.body_mean) != self.model.body_channels:
+            raise ValueError("body_mean does not match body_channels")
+        return self
+
+
+def save_checkpoint(directory: str | Path, net: HierarchicalVAE, config: CheckpointConfig) -> Path:
+    """Write weights and config to ``directory`` (created if needed); returns the directory."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
+    tmp_w, tmp_c = directory / (WEIGHTS + ".tmp"), directory / (CONFIG + ".tmp")
+    save_file(state, str(tmp_w), metadata={"schema_version": str(SCHEMA_VERSION)})
+    tmp_c.write_text(json.dumps(config.model_dump(mode="json"), indent=2))
+    tmp_w.replace(directory / WEIGHTS)
+    tmp_c.replace(directory / CONFIG)
+    return directory
+
+
+def load_checkpoint(directory: str | Path | None = None) -> tuple[HierarchicalVAE, CheckpointConfig]:
+    """Load and validate a checkpoint directory (None: the shipped pretrained model).
+
+    Raises:
+        CheckpointError: missing files, invalid or mismatched config, wrong schema version, corrupt or
+            mismatched weights.
+    """
+    directory = PRETRAINED_DIR if directory is None else Path(directory)
+    cfg_path, w_path = directory / CONFIG, directory / WEIGHTS
+    for p in (cfg_path, w_path):
+        if not p.is_file():
+            raise CheckpointError(f"checkpoint {directory}: missing {p.name}")
+    try:
+        raw = json.loads(cfg_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CheckpointError(f"checkpoint {directory}: {CONFIG} is not valid JSON ({exc})") from exc
+    version = raw.get("schema_version") if isinstance(raw, dict) else None
+    if version != SCHEMA_VERSION:
+        raise CheckpointError(
+            f"checkpoint {directory}: schema version {version!r}, this snakeloco reads {SCHEMA_VERSION}"
+        )
+    try:
+        config = CheckpointConfig.model_validate(raw)
+    except ValidationError as exc:
+        raise CheckpointError(f"checkpoint {directory}: invalid {CONFIG}: {exc}") from exc
+    try:
+        state = load_file(str(w_path))
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"checkpoint {directory}: corrupt {WEIGHTS} ({exc})") from exc
+    net = HierarchicalVAE(config.model)
+    expected = net.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    wrong = sorted(k for k in set(expected) & set(state) if expected[k].shape != state[k].shape)
+    if missing or unexpected or wrong:
+        raise CheckpointError(
+            f"checkpoint {directory}: weights do not match its config "
+            f"(missing {missing[:5]}, unexpected {unexpected[:5]}, wrong shape {wrong[:5]})"
+        )
+    if any(not torch.isfinite(v).all() for v in state.values() if v.is_floating_point()):
+        raise CheckpointError(f"checkpoint {directory}: weights contain NaN or Inf")
+    net.load_state_dict(state)
+    net.eval()
+    return net, config

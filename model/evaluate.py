@@ -1,0 +1,187 @@
+"""``snakeloco evaluate``: reconstruction, latent health and the consistency of generated gaits.
+
+Consistency is judged against the physics' own predictability: each generated gait's commands are
+replayed as an ensemble (the commands plus K-1 copies with 1e-3 relative noise), and the decoded
+body path is scored beside the ensemble's spread (``sim.consistency``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from model.api import GaitModel, load_pretrained
+from model.metrics import mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
+from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, Simulator, load_dataset, shape_to_commands
+from sim.consistency import PREDICTABLE, compare, perturbed_commands
+
+MODEL_RATE = 20.0 / BODY_DOWNSAMPLE
+"""Sample rate of the model's body series (Hz)."""
+
+
+def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, batch: int = 512) -> dict:
+    """R^2 of encode -> decode (posterior means) per channel and overall, in physical units."""
+    z_b, z_j = [], []
+    for i in range(0, len(shape), batch):
+        a, b = model.encode(shape[i : i + batch], body_ds[i : i + batch])
+        z_b.append(a)
+        z_j.append(b)
+    z_b, z_j = np.concatenate(z_b), np.concatenate(z_j)
+    s_hat, b_hat = model.decode(z_b, z_j)
+    n_l = shape.shape[2]
+    shape_by_freq = shape.transpose(0, 1, 3, 2).reshape(-1, n_l)  # (N K 2, L)
+    hat_by_freq = s_hat.transpose(0, 1, 3, 2).reshape(-1, n_l)
+    return {
+        "r2_shape": r2_overall(
+            shape.reshape(len(shape), -1)[..., None], s_hat.reshape(len(shape), -1)[..., None]
+        ),
+        "r2_shape_per_freq": dict(
+            zip(
+                map(str, model.freqs.round(3)),
+                r2_per_channel(shape_by_freq, hat_by_freq).tolist(),
+                strict=True,
+            )
+        ),
+        "r2_body": r2_overall(body_ds, b_hat),
+        "r2_body_per_channel": dict(zip(BODY_CHANNELS, r2_per_channel(body_ds, b_hat).tolist(), strict=True)),
+        "z_b": z_b,
+        "z_j": z_j,
+    }
+
+
+def latent_health(model: GaitModel, z_b: np.ndarray, z_j: np.ndarray, shape, body_ds, seed: int = 0) -> dict:
+    """MMD(q(z_B) || N(0, I)) with its null 95th percentile, active units, inter/intra body variance."""
+    rng = np.random.default_rng(seed)
+    n = min(len(z_b), 1024)
+    # Samples of the aggregate posterior q(z_B): posterior means plus their own noise.
+    import torch
+
+    with model._lock, torch.inference_mode():
+        _, logvar = model.net.encode_body(model._norm_body(body_ds[:n]))
+    std = np.exp(0.5 * logvar.numpy())
+    q = z_b[:n] + std * rng.standard_normal(std.shape)
+    mmd = mmd_numpy(q, rng.standard_normal(q.shape))
+    null95 = mmd_null_quantile(n, q.shape[1], 0.95, seed=seed)
+    active_b = int((z_b.var(axis=0) > 0.01).sum())
+    active_j = int((z_j.reshape(-1, z_j.shape[-1]).var(axis=0) > 0.01).sum())
+    # Body path variance across z_k draws with z_B fixed (intra) vs across z_B (inter).
+    m, s = 32, 8
+    zb = rng.standard_normal((m, model.z_b_dim))
+    _, body0 = model.decode(zb)
+    inter = body0.var(axis=0).mean()
+    zj = model.sample_joint_latents(zb, s, seed=seed)  # (m, s, K, Dj)
+    _, bodies = model.decode(np.repeat(zb, s, axis=0), zj.reshape(m * s, *zj.shape[2:]))
+    intra = bodies.reshape(m, s, *bodies.shape[1:]).var(axis=1).mean()
+    return {
+        "mmd_zb": mmd,
+        "mmd_zb_null95": null95,
+        "active_units_zb": active_b,
+        "active_units_zj": active_j,
+        "inter_intra_ratio": float(inter / max(intra, 1e-12)),
+    }
+
+
+def consistency(
+    model: GaitModel,
+    n_prior: int = 256,
+    ensemble: int = 8,
+    seed: int = 0,
+    workers: int | None = None,
+    temperature: float = 1.0,
+    progress=None,
+) -> dict:
+    """Decode n_prior z_B from the prior (z_k = 0 and z_k sampled), replay each as an ensemble, score.
+
+    Returns per mode: medians of each figure over the gaits that simulated cleanly, and the count
+    of gaits whose replay broke.
+    """
+    rng = np.random.default_rng(seed)
+    simulator = Simulator(workers or os.cpu_count() or 1)
+    z_b = rng.standard_normal((n_prior, model.z_b_dim))
+    modes = {
+        "zk_zero": None,
+        "zk_sampled": model.sample_joint_latents(z_b, 1, seed=seed + 1, temperature=temperature)[:, 0],
+    }
+    report = {}
+    per_batch = max(1, (4 * simulator.workers) // ensemble + 1)
+    for name, z_j in modes.items():
+        shapes, bodies = model.decode(z_b, z_j)
+        rows, broken = [], 0
+        for start in range(0, n_prior, per_batch):
+            idx = range(start, min(n_prior, start + per_batch))
+            cmds = np.concatenate(
+                [
+                    perturbed_commands(shape_to_commands(shapes[i], model.freqs), ensemble, seed=seed + i)
+                    for i in idx
+                ]
+            )  # (b K, T, 8)
+            result = simulator.simulate(cmds)
+            for j, i in enumerate(idx):
+                members = slice(j * ensemble, (j + 1) * ensemble)
+                if any(f is not None for f in result.failures[members]):
+                    broken += 1
+                    continue
+                sim_body = result.body[members, ::BODY_DOWNSAMPLE]  # (K, 500, 6) at the model's rate
+                rows.append(compare(bodies[i], sim_body, MODEL_RATE))
+            if progress is not None:
+                progress(len(idx))
+        keys = rows[0].keys() if rows else []
+        summary = {k: float(np.median([r[k] for r in rows])) for k in keys}
+        summary["final_inside_fraction"] = float(np.mean([r["final_inside"] for r in rows])) if rows else 0.0
+        summary["n_gaits"] = len(rows)
+        summary["n_broken"] = broken
+        report[name] = summary
+    return report
+
+
+def evaluate(
+    checkpoint: str | Path | None,
+    data: str | Path,
+    n_prior: int = 256,
+    ensemble: int = 8,
+    seed: int = 0,
+    workers: int | None = None,
+    progress=None,
+) -> dict:
+    """All evaluation figures for a checkpoint on a (held-out) dataset."""
+    model = load_pretrained(checkpoint)
+    ds = load_dataset(data)
+    shape, body_ds = ds.shape.astype(np.float64), ds.body_ds.astype(np.float64)
+    rec = reconstruction(model, shape, body_ds)
+    z_b, z_j = rec.pop("z_b"), rec.pop("z_j")
+    out = {"checkpoint": str(model.path), "data": str(data), "n_samples": len(ds), **rec}
+    out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=seed))
+    if n_prior > 0:
+        out["consistency"] = consistency(model, n_prior, ensemble, seed, workers, progress=progress)
+    return out
+
+
+def format_report(r: dict) -> str:
+    """Human-readable evaluation report."""
+    lines = [
+        f"checkpoint {r['checkpoint']} on {r['data']} ({r['n_samples']} samples)",
+        f"R^2 joint shape {r['r2_shape']:.3f}; per frequency: "
+        + ", ".join(f"{k} Hz {v:.3f}" for k, v in r["r2_shape_per_freq"].items()),
+        f"R^2 body {r['r2_body']:.3f}; per channel: "
+        + ", ".join(f"{k} {v:.3f}" for k, v in r["r2_body_per_channel"].items()),
+        f"MMD(q(z_B) || N(0, I)) {r['mmd_zb']:.5f} (null 95th percentile {r['mmd_zb_null95']:.5f})",
+        f"active units: z_B {r['active_units_zb']}, z_j {r['active_units_zj']}; "
+        f"inter/intra body variance {r['inter_intra_ratio']:.2f}",
+    ]
+    for mode, c in r.get("consistency", {}).items():
+        lines.append(f"consistency ({mode}): {c['n_gaits']} gaits, {c['n_broken']} broken replays; medians:")
+        lines.append(
+            f"  physics' spread: final position {c.get('final_spread', float('nan')):.2f} x displacement; "
+            + ", ".join(f"{k} {c.get(k + '_spread', float('nan')):.3f}" for k in PREDICTABLE)
+        )
+        lines.append(
+            "  decoded vs simulated relative error: "
+            + ", ".join(f"{k} {c.get(k + '_err', float('nan')):.3f}" for k in PREDICTABLE)
+        )
+        lines.append(
+            f"  xy-path R^2 {c.get('xy_r2', float('nan')):.3f}; decoded final position inside the ensemble's "
+            f"spread in {100 * c['final_inside_fraction']:.0f}% (median distance {c.get('final_z', float('nan')):.1f} x RMS spread)"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,116 @@
+"""``snakeloco figures``: PNG figures in the manner of the paper's Figs. 5-8."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from model.api import load_pretrained
+from sim import BODY_CHANNELS, load_dataset
+
+_T = np.arange(500) / 5.0  # model body time axis (s)
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def figures(checkpoint: str | Path | None, data: str | Path, out: str | Path, seed: int = 0) -> list[Path]:
+    """Write fit, prior-sweep, z_k-sample and joint-shape figures to ``out``; returns their paths."""
+    plt = _plt()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = load_pretrained(checkpoint)
+    ds = load_dataset(data)
+    rng = np.random.default_rng(seed)
+    paths = []
+    cmap = plt.get_cmap("viridis")
+
+    # Fig. 5: training fit on three samples (joint shape in the complex plane; body channels).
+    idx = rng.choice(len(ds), 3, replace=False)
+    shape, body = ds.shape[idx].astype(np.float64), ds.body_ds[idx].astype(np.float64)
+    z_b, z_j = model.encode(shape, body)
+    s_hat, b_hat = model.decode(z_b, z_j)
+    fig, axes = plt.subplots(3, 7, figsize=(21, 8))
+    for row in range(3):
+        ax = axes[row, 0]
+        for k in range(8):
+            c = cmap(k / 7)
+            ax.scatter(shape[row, k, :, 0], shape[row, k, :, 1], color=c, s=14)
+            ax.scatter(s_hat[row, k, :, 0], s_hat[row, k, :, 1], color=c, s=14, marker="x")
+        ax.set_title(f"sample {idx[row]}: joint shape (o data, x model)")
+        ax.set_xlabel("real (rad)")
+        ax.set_ylabel("imag (rad)")
+        for ch in range(6):
+            ax = axes[row, ch + 1]
+            ax.plot(_T, body[row, :, ch], "k", lw=1, label="data")
+            ax.plot(_T, b_hat[row, :, ch], "r", lw=1, label="model")
+            ax.set_title(BODY_CHANNELS[ch])
+            ax.set_xlabel("t (s)")
+        axes[row, 1].legend()
+    fig.tight_layout()
+    paths.append(out / "fig5_fit.png")
+    fig.savefig(paths[-1], dpi=80)
+    plt.close(fig)
+
+    # Fig. 6: prior sweep of each z_B dimension with z_k = 0 (decoded horizontal paths).
+    d = model.z_b_dim
+    fig, axes = plt.subplots(1, d, figsize=(3.2 * d, 3.4), squeeze=False)
+    values = np.linspace(-2.5, 2.5, 7)
+    for i in range(d):
+        z = np.zeros((len(values), d))
+        z[:, i] = values
+        _, b = model.decode(z)
+        ax = axes[0, i]
+        for j in range(len(values)):
+            ax.plot(b[j, :, 1], b[j, :, 2], color=plt.get_cmap("coolwarm")(j / (len(values) - 1)), lw=1.2)
+        ax.set_title(f"z_B[{i}] from -2.5 to 2.5")
+        ax.set_xlabel("forward (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+    axes[0, 0].set_ylabel("sideways (m)")
+    fig.tight_layout()
+    paths.append(out / "fig6_prior_sweep.png")
+    fig.savefig(paths[-1], dpi=80)
+    plt.close(fig)
+
+    # Figs. 7-8: two z_B, each with 8 z_k drawn from the learned prior: body paths and joint shapes.
+    zb = rng.standard_normal((2, d))
+    zj = model.sample_joint_latents(zb, 8, seed=seed)  # (2, 8, K, Dj)
+    fig7, axes7 = plt.subplots(1, 2, figsize=(10, 4.5))
+    fig8, axes8 = plt.subplots(2, 8, figsize=(24, 6))
+    for r in range(2):
+        shapes, bodies = model.decode(np.repeat(zb[r : r + 1], 8, axis=0), zj[r])
+        _, b0 = model.decode(zb[r : r + 1])
+        ax = axes7[r]
+        for s in range(8):
+            ax.plot(bodies[s, :, 1], bodies[s, :, 2], lw=1, alpha=0.8)
+        ax.plot(b0[0, :, 1], b0[0, :, 2], "k", lw=2, label="z_k = 0")
+        ax.set_title(f"z_B #{r + 1}: 8 draws of z_k")
+        ax.set_xlabel("forward (m)")
+        ax.set_ylabel("sideways (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.legend()
+        for s in range(8):
+            ax = axes8[r, s]
+            for k in range(8):
+                ax.scatter(shapes[s, k, :, 0], shapes[s, k, :, 1], color=cmap(k / 7), s=10)
+            ax.set_title(f"z_B #{r + 1}, z_k draw {s + 1}", fontsize=9)
+            lim = np.abs(shapes[:, :, :, :]).max() * 1.1
+            ax.set_xlim(-lim, lim)
+            ax.set_ylim(-lim, lim)
+            ax.set_aspect("equal")
+    fig7.tight_layout()
+    fig8.tight_layout()
+    paths.append(out / "fig7_zk_samples.png")
+    fig7.savefig(paths[-1], dpi=80)
+    paths.append(out / "fig8_joint_shapes.png")
+    fig8.savefig(paths[-1], dpi=80)
+    plt.close(fig7)
+    plt.close(fig8)
+    return paths

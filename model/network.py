@@ -1,0 +1,304 @@
+"""Hierarchical VAE over a topological joint shape and a body trajectory (paper 3.3-3.4).
+
+Notation (shapes in comments): B batch, K = 8 joints, L spectral components, T = 500 body steps,
+C = 6 body channels, Db = z_b_dim, Dj = z_j_dim, H = root GRU width.
+
+- Body encoder q(z_B | x_B): 1D CNN, 3 layers (the first depthwise-separable), channels doubling,
+  x1/2 average pooling after each, global average pooling, then a linear head to (mu, logvar).
+  A few fixed positional channels (cosines of the record time) are appended to x_B so that
+  the global average can still tell early from late in the record.
+- Root GRU over joints: h_k = GRU(h_{k-1}, [e(X_k), z_k, z_B]); learned prior p(z_k | h_{k-1}, z_B)
+  and posterior q(z_k | e(X_k), h_{k-1}, z_B), both diagonal Gaussians.
+- Child GRU (one set of weights for all joints) over the L components of joint k, started from
+  [h_{k-1}, z_B, z_k] and fed the component's log-frequency, emitting c_kl = (re, im).
+- Body decoder: mirror of the encoder (linear to T/8 steps, three x2 upsamplings with convolutions)
+  from [z_B, z_1..z_K].
+- At generation time the root GRU is fed the decoded shape of joint k in place of X_k.
+
+All tensors here are normalised (model/checkpoint.py holds the statistics); physical units live in
+model/api.py.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
+from torch.nn import functional as F
+
+
+class ModelConfig(BaseModel):
+    """Every dimension and loss weight of the network."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    n_joints: int = 8
+    n_components: int = 8
+    body_channels: int = 6
+    body_steps: int = 500
+    z_b_dim: int = Field(6, ge=1, le=8, description="Body latent: one slider per dimension in the designer.")
+    z_j_dim: int = Field(
+        16,
+        ge=1,
+        description="Per-joint latent. A joint's shape is L = 8 random-phase complex coefficients, so "
+        "16 numbers are needed to carry it without loss.",
+    )
+    cnn_channels: tuple[int, int, int] = Field(
+        (24, 48, 96),
+        description="Body CNN widths. 32-64-128 spent ~75% of an epoch in the CNN on a prototype; "
+        "this is ~0.56x the multiply-adds.",
+    )
+    kernel: int = Field(5, ge=3, description="Temporal kernel of the body convolutions (odd).")
+    positional_channels: int = Field(4, ge=0, description="cos(pi m t / T_rec), m = 1..P, appended to x_B.")
+    root_hidden: int = 128
+    child_hidden: int = 64
+    joint_embed: int = 64
+    alpha: float = Field(1.0, description="Weight of the body reconstruction term.")
+    beta: float = Field(100.0, description="Weight of MMD(q(z_k) || p(z_k)).")
+    gamma: float = Field(100.0, description="Weight of MMD(q(z_B) || N(0, I)).")
+
+
+def gaussian_mmd(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Squared MMD between samples x (N, D) and y (M, D) with a Gaussian kernel (V-statistic).
+
+    The biased estimator (diagonal kept) is used because it is never negative: minimising the
+    unbiased one lets the optimiser chase noise below zero.
+
+    Bandwidth rule: k(a, b) = exp(-||a - b||^2 / (2 D)), i.e. sigma^2 = D, the scale of the squared
+    distance between two draws of a D-dimensional unit Gaussian (the InfoVAE/WAE choice). Fixed, so the
+    loss is comparable across batches and checkpoints.
+    """
+    d = x.shape[1]
+
+    def k(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return torch.exp(-torch.cdist(a, b).pow(2) / (2.0 * d))
+
+    return k(x, x).mean() + k(y, y).mean() - 2.0 * k(x, y).mean()
+
+
+class _SeparableConv(nn.Module):
+    def __init__(self, c_in: int, c_out: int, kernel: int) -> None:
+        super().__init__()
+        self.depthwise = nn.Conv1d(c_in, c_in, kernel, padding=kernel // 2, groups=c_in)
+        self.pointwise = nn.Conv1d(c_in, c_out, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.pointwise(self.depthwise(x))
+
+
+def _gaussian_head(d_in: int, d_out: int, hidden: int) -> nn.Module:
+    return nn.Sequential(nn.Linear(d_in, hidden), nn.GELU(), nn.Linear(hidden, 2 * d_out))
+
+
+@dataclass
+class Output:
+    """Everything a forward pass produces (normalised units)."""
+
+    shape: torch.Tensor  # (B, K, L, 2)
+    body: torch.Tensor  # (B, T, C)
+    z_b: torch.Tensor  # (B, Db) sample
+    z_b_mu: torch.Tensor  # (B, Db)
+    z_j: torch.Tensor  # (B, K, Dj) posterior samples
+    z_j_mu: torch.Tensor  # (B, K, Dj) posterior means
+    prior_sample: torch.Tensor  # (B, K, Dj) samples of the learned prior
+
+
+class HierarchicalVAE(nn.Module):
+    """The generative locomotion model; see the module docstring for the structure."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        c1, c2, c3 = cfg.cnn_channels
+        c_in = cfg.body_channels + cfg.positional_channels
+        pad = cfg.kernel // 2
+        self.encoder = nn.Sequential(
+            _SeparableConv(c_in, c1, cfg.kernel),
+            nn.GELU(),
+            nn.AvgPool1d(2),
+            nn.Conv1d(c1, c2, cfg.kernel, padding=pad),
+            nn.GELU(),
+            nn.AvgPool1d(2),
+            nn.Conv1d(c2, c3, cfg.kernel, padding=pad),
+            nn.GELU(),
+            nn.AvgPool1d(2),
+        )
+        self.enc_head = nn.Linear(c3, 2 * cfg.z_b_dim)
+        self.dec_steps = math.ceil(cfg.body_steps / 8)
+        d_lat = cfg.z_b_dim + cfg.n_joints * cfg.z_j_dim
+        self.dec_in = nn.Linear(d_lat, c3 * self.dec_steps)
+        self.decoder = nn.Sequential(
+            nn.GELU(),
+            nn.Upsample(scale_factor=2),
+            nn.Conv1d(c3, c2, cfg.kernel, padding=pad),
+            nn.GELU(),
+            nn.Upsample(scale_factor=2),
+            nn.Conv1d(c2, c1, cfg.kernel, padding=pad),
+            nn.GELU(),
+            nn.Upsample(scale_factor=2),
+            _SeparableConv(c1, cfg.body_channels, cfg.kernel),
+        )
+        t = torch.linspace(0.0, 1.0, cfg.body_steps)
+        m = torch.arange(1, cfg.positional_channels + 1, dtype=torch.float32)
+        self.register_buffer("positional", torch.cos(math.pi * m[:, None] * t[None, :]), persistent=False)
+
+        n_coef = 2 * cfg.n_components
+        self.joint_embed = nn.Sequential(
+            nn.Linear(n_coef, cfg.joint_embed), nn.GELU(), nn.Linear(cfg.joint_embed, cfg.joint_embed)
+        )
+        self.root_init = nn.Linear(cfg.z_b_dim, cfg.root_hidden)
+        self.root = nn.GRUCell(cfg.joint_embed + cfg.z_j_dim + cfg.z_b_dim, cfg.root_hidden)
+        self.prior = _gaussian_head(cfg.root_hidden + cfg.z_b_dim, cfg.z_j_dim, cfg.root_hidden)
+        self.posterior = _gaussian_head(
+            cfg.joint_embed + cfg.root_hidden + cfg.z_b_dim, cfg.z_j_dim, cfg.root_hidden
+        )
+        d_cond = cfg.root_hidden + cfg.z_b_dim + cfg.z_j_dim
+        self.child_init = nn.Linear(d_cond, cfg.child_hidden)
+        self.child = nn.GRU(1 + d_cond, cfg.child_hidden, batch_first=True)
+        self.child_out = nn.Linear(cfg.child_hidden, 2)
+        # The child GRU's per-step input: the component's position on a log-frequency axis in [-1, 1].
+        self.register_buffer(
+            "component_coord", torch.linspace(-1.0, 1.0, cfg.n_components)[:, None], persistent=False
+        )
+
+    # --- body ------------------------------------------------------------------------------------
+
+    def encode_body(self, body: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """body (B, T, C) -> mu, logvar (B, Db)."""
+        x = body.transpose(1, 2)  # (B, C, T)
+        pos = self.positional.expand(x.shape[0], -1, -1)  # (B, P, T)
+        h = self.encoder(torch.cat([x, pos], dim=1))  # (B, c3, T/8)
+        mu, logvar = self.enc_head(h.mean(dim=2)).chunk(2, dim=1)  # global average pooling
+        return mu, logvar.clamp(-12.0, 6.0)
+
+    def decode_body(self, z_b: torch.Tensor, z_j: torch.Tensor) -> torch.Tensor:
+        """z_b (B, Db), z_j (B, K, Dj) -> body (B, T, C)."""
+        lat = torch.cat([z_b, z_j.flatten(1)], dim=1)  # (B, Db + K Dj)
+        h = self.dec_in(lat).view(lat.shape[0], -1, self.dec_steps)  # (B, c3, T/8)
+        x = self.decoder(h)[:, :, : self.cfg.body_steps]  # (B, C, T)
+        return x.transpose(1, 2)
+
+    # --- joints ----------------------------------------------------------------------------------
+
+    def decode_joint(self, h: torch.Tensor, z_b: torch.Tensor, z_k: torch.Tensor) -> torch.Tensor:
+        """Child GRU: root state h (B, H), z_b (B, Db), z_k (B, Dj) -> coefficients (B, L, 2)."""
+        cond = torch.cat([h, z_b, z_k], dim=1)  # (B, d_cond)
+        steps = torch.cat(
+            [
+                self.component_coord.expand(cond.shape[0], -1, -1),  # (B, L, 1)
+                cond[:, None].expand(-1, self.cfg.n_components, -1),  # (B, L, d_cond)
+            ],
+            dim=2,
+        )
+        out, _ = self.child(steps, torch.tanh(self.child_init(cond))[None])  # (B, L, child_hidden)
+        return self.child_out(out)  # (B, L, 2)
+
+    def run_joints(
+        self,
+        z_b: torch.Tensor,
+        shape: torch.Tensor | None = None,
+        z_j: torch.Tensor | None = None,
+        *,
+        sample_posterior: bool = True,
+        prior_eps: torch.Tensor | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """Run the root GRU over the K joints.
+
+        With ``shape`` (B, K, L, 2) given, z_k comes from the posterior (a sample, or its mean) and
+        the root GRU is fed the true shapes (teacher forcing); the child GRU then decodes all joints
+        in one batched call. Without it, z_k is ``z_j[:, k]`` if given, else a draw from the learned
+        prior using ``prior_eps`` (B, K, Dj) (zeros: its mean), and the root GRU is fed each decoded
+        shape in turn.
+        """
+        n_k = self.cfg.n_joints
+        h = torch.tanh(self.root_init(z_b))  # (B, H)
+        embeds = self.joint_embed(shape.flatten(2)) if shape is not None else None  # (B, K, E)
+        hs, shapes, zs, mus, priors = [], [], [], [], []
+        for k in range(n_k):
+            p_mu, p_logvar = self.prior(torch.cat([h, z_b], dim=1)).chunk(2, dim=1)  # (B, Dj) each
+            p_std = torch.exp(0.5 * p_logvar.clamp(-12.0, 6.0))
+            priors.append(p_mu + p_std * torch.randn_like(p_mu))
+            hs.append(h)
+            if embeds is not None:
+                e_k = embeds[:, k]  # (B, E)
+                q_mu, q_logvar = self.posterior(torch.cat([e_k, h, z_b], dim=1)).chunk(2, dim=1)
+                q_std = torch.exp(0.5 * q_logvar.clamp(-12.0, 6.0))
+                z_k = q_mu + q_std * torch.randn_like(q_mu) if sample_posterior else q_mu
+                mus.append(q_mu)
+            else:
+                if z_j is not None:
+                    z_k = z_j[:, k]
+                else:
+                    eps = prior_eps[:, k] if prior_eps is not None else torch.zeros_like(p_mu)
+                    z_k = p_mu + p_std * eps
+                x_k = self.decode_joint(h, z_b, z_k)  # (B, L, 2)
+                shapes.append(x_k)
+                e_k = self.joint_embed(x_k.flatten(1))
+            zs.append(z_k)
+            h = self.root(torch.cat([e_k, z_k, z_b], dim=1), h)
+        z_all = torch.stack(zs, dim=1)  # (B, K, Dj)
+        if embeds is not None:
+            b = z_b.shape[0]
+            h_all = torch.stack(hs, dim=1)  # (B, K, H): state before each joint
+            x = self.decode_joint(
+                h_all.flatten(0, 1), z_b.repeat_interleave(n_k, dim=0), z_all.flatten(0, 1)
+            )  # (B K, L, 2)
+            shape_hat = x.view(b, n_k, self.cfg.n_components, 2)
+        else:
+            shape_hat = torch.stack(shapes, dim=1)
+        out = {"shape": shape_hat, "z_j": z_all, "prior_sample": torch.stack(priors, dim=1)}
+        if mus:
+            out["z_j_mu"] = torch.stack(mus, dim=1)
+        return out
+
+    # --- whole model -----------------------------------------------------------------------------
+
+    def forward(self, shape: torch.Tensor, body: torch.Tensor, sample: bool = True) -> Output:
+        """Reconstruct normalised shape (B, K, L, 2) and body (B, T, C) through the posteriors."""
+        mu, logvar = self.encode_body(body)
+        z_b = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
+        joints = self.run_joints(z_b, shape, sample_posterior=sample)
+        body_hat = self.decode_body(z_b, joints["z_j"])
+        return Output(
+            shape=joints["shape"],
+            body=body_hat,
+            z_b=z_b,
+            z_b_mu=mu,
+            z_j=joints["z_j"],
+            z_j_mu=joints["z_j_mu"],
+            prior_sample=joints["prior_sample"],
+        )
+
+    def generate(
+        self, z_b: torch.Tensor, z_j: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Decode z_b (B, Db) and joint latents z_j (B, K, Dj) (None: zeros) -> shape, body (normalised)."""
+        if z_j is None:
+            z_j = torch.zeros(z_b.shape[0], self.cfg.n_joints, self.cfg.z_j_dim, device=z_b.device)
+        joints = self.run_joints(z_b, z_j=z_j)
+        return joints["shape"], self.decode_body(z_b, joints["z_j"])
+
+    def sample_joints(self, z_b: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+        """Joint latents drawn from the learned prior given z_b (B, Db), noise eps (B, K, Dj)."""
+        return self.run_joints(z_b, prior_eps=eps)["z_j"]
+
+
+def loss_terms(model: HierarchicalVAE, shape: torch.Tensor, body: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Paper eq. 15 on a normalised batch: rec_joint + alpha rec_body + beta MMD_k + gamma MMD_B."""
+    cfg = model.cfg
+    out = model(shape, body)
+    rec_joint = F.mse_loss(out.shape, shape)
+    rec_body = F.mse_loss(out.body, body)
+    mmd_joint = gaussian_mmd(out.z_j.flatten(0, 1), out.prior_sample.flatten(0, 1))
+    mmd_body = gaussian_mmd(out.z_b, torch.randn_like(out.z_b))
+    total = rec_joint + cfg.alpha * rec_body + cfg.beta * mmd_joint + cfg.gamma * mmd_body
+    return {
+        "loss": total,
+        "rec_joint": rec_joint,
+        "rec_body": rec_body,
+        "mmd_joint": mmd_joint,
+        "mmd_body": mmd_body,
+    }

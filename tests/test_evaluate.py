@@ -1,0 +1,76 @@
+"""Consistency scoring, evaluation, figures and the model benchmark on tiny inputs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from model import TrainConfig, train
+from model.evaluate import evaluate, format_report
+from sim.consistency import compare, ensemble_spread, path_stats, perturbed_commands
+
+from .test_model import SMALL
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tiny_dataset_path, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ckpt_eval")
+    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
+    return out
+
+
+def test_perturbed_commands():
+    rng = np.random.default_rng(0)
+    u = rng.uniform(-2, 2, (2000, 8))
+    ens = perturbed_commands(u, 8, 1e-3, seed=1)
+    assert ens.shape == (8, 2000, 8)
+    np.testing.assert_array_equal(ens[0], u)
+    rel = (ens[1:] - u) / u
+    assert rel.std() == pytest.approx(1e-3, rel=0.05)
+
+
+def test_path_stats_and_compare():
+    t = np.arange(500) / 5.0
+    body = np.zeros((500, 6))
+    body[:, 1] = 0.1 * t  # 0.1 m/s straight ahead
+    body[:, 3] = 0.05 * t  # rolling
+    s = path_stats(body, 5.0)
+    assert s["path_length"] == pytest.approx(0.1 * t[-1])
+    assert s["median_speed"] == pytest.approx(0.1)
+    assert s["net_roll"] == pytest.approx(0.05 * t[-1])
+    ens = np.stack([body, body * 1.01, body * 0.99])
+    c = compare(body, ens, 5.0)
+    assert c["path_length_err"] == pytest.approx(0.0)
+    assert c["xy_r2"] == pytest.approx(1.0)
+    assert c["final_inside"] == 1.0
+    far = body.copy()
+    far[:, 2] = 0.2 * t  # drifts sideways by 20 m: outside the ensemble's spread
+    assert compare(far, ens, 5.0)["final_inside"] == 0.0
+    assert ensemble_spread(ens, 5.0)["final_spread"] == pytest.approx(np.sqrt(0.01**2), rel=1e-6)
+
+
+def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
+    report = evaluate(checkpoint, tiny_dataset_path, n_prior=2, ensemble=2, workers=2)
+    for key in ("r2_shape", "r2_body", "mmd_zb", "mmd_zb_null95", "inter_intra_ratio"):
+        assert np.isfinite(report[key])
+    assert set(report["r2_body_per_channel"]) == {"vertical", "forward", "sideways", "roll", "pitch", "yaw"}
+    for mode in ("zk_zero", "zk_sampled"):
+        c = report["consistency"][mode]
+        assert c["n_gaits"] + c["n_broken"] == 2
+    assert "consistency (zk_zero)" in format_report(report)
+
+
+def test_figures_and_bench_commands(checkpoint, tiny_dataset_path, tmp_path, capsys):
+    main(
+        ["figures", "--data", str(tiny_dataset_path), "--checkpoint", str(checkpoint), "--out", str(tmp_path)]
+    )
+    pngs = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert pngs == ["fig5_fit.png", "fig6_prior_sweep.png", "fig7_zk_samples.png", "fig8_joint_shapes.png"]
+    assert all((tmp_path / p).read_bytes()[:4] == b"\x89PNG" for p in pngs)
+    capsys.readouterr()
+    main(["bench", "model", "--json", "--checkpoint", str(checkpoint), "--calls", "20"])
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert 0 < result["decode_p50_ms"] <= result["decode_p95_ms"]

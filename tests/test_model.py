@@ -1,0 +1,206 @@
+"""The hierarchical VAE: shapes, losses, MMD, scheduler, checkpoints, the GaitModel API."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from model import (
+    CheckpointError,
+    HierarchicalVAE,
+    ModelConfig,
+    TrainConfig,
+    cyclic_lr,
+    gaussian_mmd,
+    load_checkpoint,
+    load_pretrained,
+    loss_terms,
+    save_checkpoint,
+    train,
+)
+from model.metrics import mmd_null_quantile, mmd_numpy, r2_per_channel
+from model.train import make_scheduler
+
+SMALL = ModelConfig(
+    z_b_dim=3,
+    z_j_dim=4,
+    cnn_channels=(4, 8, 8),
+    root_hidden=16,
+    child_hidden=8,
+    joint_embed=8,
+    positional_channels=2,
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tiny_dataset_path, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ckpt")
+    train(
+        tiny_dataset_path,
+        out,
+        TrainConfig(epochs=2, batch_size=2, val_fraction=0.25),
+        SMALL,
+        log=None,
+        progress=False,
+    )
+    return out
+
+
+def test_forward_shapes_and_finite_losses():
+    torch.manual_seed(0)
+    net = HierarchicalVAE(SMALL)
+    shape, body = torch.randn(5, 8, 8, 2), torch.randn(5, 500, 6)
+    out = net(shape, body)
+    assert out.shape.shape == (5, 8, 8, 2)
+    assert out.body.shape == (5, 500, 6)
+    assert out.z_b.shape == (5, 3) and out.z_j.shape == (5, 8, 4)
+    terms = loss_terms(net, shape, body)
+    assert set(terms) == {"loss", "rec_joint", "rec_body", "mmd_joint", "mmd_body"}
+    assert all(torch.isfinite(v) for v in terms.values())
+    g_shape, g_body = net.generate(torch.zeros(2, 3))
+    assert g_shape.shape == (2, 8, 8, 2) and g_body.shape == (2, 500, 6)
+
+
+def test_mmd_estimator():
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(256, 4, generator=gen)
+    y = torch.randn(256, 4, generator=gen)
+    assert gaussian_mmd(x, x).item() == pytest.approx(0.0, abs=1e-6)
+    same = gaussian_mmd(x, y).item()
+    shifted = gaussian_mmd(x, y + 1.0).item()
+    assert 0.0 <= same < 0.02
+    assert shifted > 10 * same
+    # The numpy twin agrees, and the null quantile sits above typical same-distribution values.
+    assert mmd_numpy(x.numpy(), y.numpy()) == pytest.approx(same, rel=1e-4)
+    assert mmd_null_quantile(256, 4, 0.95, repeats=50) > same * 0.5
+
+
+def test_tiny_model_loss_falls():
+    torch.manual_seed(0)
+    net = HierarchicalVAE(SMALL)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    # Learnable data: smooth body series whose amplitude and shape coefficients follow one factor.
+    a = torch.linspace(-1.5, 1.5, 16)
+    t = torch.linspace(0, 1, 500)
+    body = a[:, None, None] * torch.cos(torch.pi * t)[None, :, None].expand(16, 500, 6)
+    shape = a[:, None, None, None] * torch.ones(16, 8, 8, 2)
+    first = None
+    for _ in range(60):
+        terms = loss_terms(net, shape, body)
+        opt.zero_grad()
+        terms["loss"].backward()
+        opt.step()
+        first = first if first is not None else terms["rec_joint"].item() + terms["rec_body"].item()
+    last = terms["rec_joint"].item() + terms["rec_body"].item()
+    assert last < 0.5 * first
+
+
+def test_cyclic_schedule_values():
+    cfg = TrainConfig(lr_min=2e-4, lr_max=4e-3, cycle_epochs=100, peak_decay=0.5)
+    assert cyclic_lr(0, cfg) == pytest.approx(2e-4)
+    assert cyclic_lr(50, cfg) == pytest.approx(4e-3)  # first peak
+    assert cyclic_lr(100, cfg) == pytest.approx(2e-4)
+    assert cyclic_lr(150, cfg) == pytest.approx(2e-4 + 0.5 * (4e-3 - 2e-4))  # decayed once per cycle
+    assert cyclic_lr(25, cfg) == pytest.approx(2e-4 + 0.5 * (4e-3 - 2e-4))
+    # The torch scheduler realises it per step, and Adam's betas stay put.
+    net = torch.nn.Linear(2, 2)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr_max)
+    sched = make_scheduler(opt, steps_per_epoch=10, cfg=cfg)
+    lrs = []
+    for _ in range(1501):
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert lrs[500] == pytest.approx(4e-3) and lrs[1500] == pytest.approx(cyclic_lr(150, cfg))
+    assert opt.param_groups[0]["betas"] == (0.9, 0.999)
+
+
+def test_training_writes_metrics_and_checkpoint(tiny_checkpoint):
+    rows = [json.loads(line) for line in (tiny_checkpoint / "metrics.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [0, 1]
+    for key in ("train_loss", "val_loss", "val_r2_shape", "val_r2_body", "lr"):
+        assert np.isfinite(rows[-1][key])
+    cfg = json.loads((tiny_checkpoint / "config.json").read_text())
+    assert cfg["schema_version"] == 1 and cfg["model"]["z_b_dim"] == 3
+    assert len(cfg["freqs"]) == 8 and cfg["summary"]["epochs_run"] == 2
+
+
+def test_checkpoint_round_trip_is_bit_identical(tiny_checkpoint, tmp_path):
+    net, cfg = load_checkpoint(tiny_checkpoint)
+    save_checkpoint(tmp_path, net, cfg)
+    net2, cfg2 = load_checkpoint(tmp_path)
+    assert cfg2 == cfg
+    for (k, a), (k2, b) in zip(net.state_dict().items(), net2.state_dict().items(), strict=True):
+        assert k == k2 and torch.equal(a, b)
+    assert (tmp_path / "model.safetensors").read_bytes() == (
+        tiny_checkpoint / "model.safetensors"
+    ).read_bytes()
+
+
+def test_gait_model_api_units_and_shapes(tiny_checkpoint, tiny_dataset):
+    model = load_pretrained(tiny_checkpoint)
+    assert model.z_b_dim == 3 and model.z_j_dim == 4
+    np.testing.assert_allclose(model.freqs, tiny_dataset.freqs)
+    z_b, z_j = model.encode(tiny_dataset.shape[:2], tiny_dataset.body_ds[:2])
+    assert z_b.shape == (2, 3) and z_j.shape == (2, 8, 4)
+    shape, body = model.decode(z_b)
+    assert shape.shape == (2, 8, 8, 2) and body.shape == (2, 500, 6)
+    # Physical units: a decode of the normalised origin sits near the training data's mean scale.
+    norm = model.config.normalization.arrays()
+    assert np.abs(body).max() < 10 * (np.abs(norm["body_mean"]).max() + norm["body_std"].max())
+    draws = model.sample_joint_latents(z_b[0], 5, seed=3)
+    assert draws.shape == (5, 8, 4)
+    np.testing.assert_array_equal(draws, model.sample_joint_latents(z_b[0], 5, seed=3))
+    assert not np.array_equal(draws, model.sample_joint_latents(z_b[0], 5, seed=4))
+    assert model.sample_joint_latents(z_b, 2, seed=0).shape == (2, 2, 8, 4)
+    with pytest.raises(ValueError, match="z_b must be"):
+        model.decode(np.zeros((1, 5)))
+
+
+def _copy(src, dst):
+    dst.mkdir()
+    for p in src.iterdir():
+        (dst / p.name).write_bytes(p.read_bytes())
+    return dst
+
+
+def test_bad_checkpoints_are_refused_clearly(tiny_checkpoint, tmp_path):
+    with pytest.raises(CheckpointError, match=r"missing config\.json"):
+        load_checkpoint(tmp_path / "nothing")
+    bad = _copy(tiny_checkpoint, tmp_path / "trunc")
+    data = (bad / "model.safetensors").read_bytes()
+    (bad / "model.safetensors").write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError, match=r"corrupt model\.safetensors"):
+        load_checkpoint(bad)
+    bad = _copy(tiny_checkpoint, tmp_path / "json")
+    (bad / "config.json").write_text("{ not json")
+    with pytest.raises(CheckpointError, match="not valid JSON"):
+        load_checkpoint(bad)
+    bad = _copy(tiny_checkpoint, tmp_path / "schema")
+    cfg = json.loads((bad / "config.json").read_text())
+    (bad / "config.json").write_text(json.dumps(cfg | {"schema_version": 7}))
+    with pytest.raises(CheckpointError, match="schema version 7"):
+        load_checkpoint(bad)
+    bad = _copy(tiny_checkpoint, tmp_path / "mismatch")
+    cfg["model"]["z_b_dim"] = 5
+    (bad / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(CheckpointError, match="weights do not match its config"):
+        load_checkpoint(bad)
+    bad = _copy(tiny_checkpoint, tmp_path / "invalid")
+    cfg["model"]["z_b_dim"] = 3
+    cfg["freqs"] = [1.0]
+    (bad / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(CheckpointError, match=r"invalid config\.json"):
+        load_checkpoint(bad)
+
+
+def test_r2_per_channel():
+    rng = np.random.default_rng(0)
+    t = rng.standard_normal((10, 50, 2))
+    np.testing.assert_allclose(r2_per_channel(t, t), 1.0)
+    np.testing.assert_allclose(
+        r2_per_channel(t, np.broadcast_to(t.mean(axis=(0, 1)), t.shape)), 0.0, atol=1e-12
+    )
