@@ -42,6 +42,12 @@ class Train:
     """Seed of the split, initialisation and batches."""
     batch_size: int = 128
     """Samples per step."""
+    cycle_epochs: float = 50.0
+    """Period of the cyclical learning rate (epochs); the paper's 800 scaled to a shorter run."""
+    beta: float = 10.0
+    """Weight of MMD(q(z_k) || p(z_k))."""
+    gamma: float = 10.0
+    """Weight of MMD(q(z_B) || N(0, I))."""
 
 
 @dataclass
@@ -91,6 +97,20 @@ class BenchModel:
 
 
 @dataclass
+class Serve:
+    """Open the browser gait designer (viser) on a checkpoint. The UI has no authentication."""
+
+    host: str = "127.0.0.1"
+    """Interface to bind; the default keeps the designer on this machine. Use 0.0.0.0 only on a trusted network."""
+    port: int = 8080
+    """TCP port."""
+    checkpoint: Path | None = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    ensemble: int = 8
+    """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
+
+
+@dataclass
 class BenchSim:
     """Benchmark the simulator: raw mujoco.rollout vs the generator, replay vs a bare mj_step loop."""
 
@@ -114,6 +134,7 @@ COMMANDS: dict[str, type] = {
     "train": Train,
     "evaluate": Evaluate,
     "figures": Figures,
+    "serve": Serve,
     "bench": Bench,
 }
 BENCHES: dict[str, type] = {"sim": BenchSim, "model": BenchModel}
@@ -137,10 +158,16 @@ def run_generate(cmd: Generate) -> Path:
 def run_train(cmd: Train):
     """Train with the paper's schedule (model/train.py documents it)."""
 
-    from model import TrainConfig, train
+    from model import ModelConfig, TrainConfig, train
 
-    cfg = TrainConfig(epochs=cmd.epochs, device=cmd.device, seed=cmd.seed, batch_size=cmd.batch_size)
-    return train(cmd.data, cmd.out, cfg)
+    cfg = TrainConfig(
+        epochs=cmd.epochs,
+        device=cmd.device,
+        seed=cmd.seed,
+        batch_size=cmd.batch_size,
+        cycle_epochs=cmd.cycle_epochs,
+    )
+    return train(cmd.data, cmd.out, cfg, ModelConfig(beta=cmd.beta, gamma=cmd.gamma))
 
 
 def run_evaluate(cmd: Evaluate) -> dict:
@@ -223,6 +250,10 @@ def main(args: list[str] | None = None) -> None:
         run_generate(cmd)
     elif isinstance(cmd, Train):
         run_train(cmd)
+    elif isinstance(cmd, Serve):
+        from app.server import serve
+
+        serve(cmd.host, cmd.port, cmd.checkpoint, cmd.ensemble)
     elif isinstance(cmd, Evaluate):
         run_evaluate(cmd)
     elif isinstance(cmd, Figures):

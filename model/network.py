@@ -57,8 +57,8 @@ class ModelConfig(BaseModel):
     child_hidden: int = 64
     joint_embed: int = 64
     alpha: float = Field(1.0, description="Weight of the body reconstruction term.")
-    beta: float = Field(100.0, description="Weight of MMD(q(z_k) || p(z_k)).")
-    gamma: float = Field(100.0, description="Weight of MMD(q(z_B) || N(0, I)).")
+    beta: float = Field(10.0, description="Weight of MMD(q(z_k) || p(z_k)).")
+    gamma: float = Field(10.0, description="Weight of MMD(q(z_B) || N(0, I)).")
 
 
 def gaussian_mmd(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

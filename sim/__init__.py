@@ -23,7 +23,16 @@ from sim.physics import (
     expand_commands,
     replay,
 )
-from sim.robot import BODY_LENGTH, COMMAND_LIMIT, JOINT_RANGE, MJCF_PATH, N_JOINTS, load_model, mjcf_sha256
+from sim.robot import (
+    BODY_LENGTH,
+    COMMAND_LIMIT,
+    JOINT_RANGE,
+    LINK_RADIUS,
+    MJCF_PATH,
+    N_JOINTS,
+    load_model,
+    mjcf_sha256,
+)
 from sim.spectra import joint_shape, shape_to_commands
 
 __all__ = [
@@ -32,6 +41,7 @@ __all__ = [
     "BODY_LENGTH",
     "COMMAND_LIMIT",
     "JOINT_RANGE",
+    "LINK_RADIUS",
     "MJCF_PATH",
     "N_JOINTS",
     "SCHEMA_VERSION",

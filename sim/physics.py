@@ -75,6 +75,8 @@ class ReplayResult:
     """(T, 6) body states, channels as in ``BODY_CHANNELS``."""
     times: np.ndarray
     """(T,) sample times (s), 0 at the start of the record."""
+    qpos: np.ndarray
+    """(T, nq) MuJoCo qpos at the sample times (world frame; for drawing the robot)."""
 
 
 @dataclass(frozen=True)
@@ -84,6 +86,7 @@ class BatchResult:
     joint_angles: np.ndarray  # (B, T, 8) rad
     body: np.ndarray  # (B, T, 6)
     failures: list[str | None]
+    qpos: np.ndarray  # (B, T, nq) at the sample times
 
 
 def lead_in_window(cfg: SimConfig) -> np.ndarray:
@@ -231,13 +234,14 @@ class Simulator:
         state, sens = self.rollout(ctrl)
         failures = self._diagnose(state, sens)
         record = self.config.lead_in * self.substeps + self.substeps * np.arange(expected[0])
-        sampled = sens[:, record]  # (B, T, nsensordata)
+        sampled = sens[:, record]  # (B, T, nsensordata), measured at the start of step `record`
+        qpos = state[:, record - 1, 1 : 1 + self.model.nq]  # state after step record-1: same instant
         joint_angles = sampled[..., self._q_cols]
         quat = sampled[..., self._quat_cols]
         quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True).clip(min=1e-12)
         with np.errstate(invalid="ignore"):
             body = body_states(sampled[..., self._pos_cols], quat)
-        return BatchResult(joint_angles=joint_angles, body=body, failures=failures)
+        return BatchResult(joint_angles=joint_angles, body=body, failures=failures, qpos=qpos)
 
     def _diagnose(self, state: np.ndarray, sens: np.ndarray) -> list[str | None]:
         dt = self.model.opt.timestep
@@ -289,6 +293,7 @@ class Simulator:
             joint_angles=result.joint_angles[0],
             body=result.body[0],
             times=self.excitation.times,
+            qpos=result.qpos[0],
         )
 
 

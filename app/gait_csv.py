@@ -1,0 +1,149 @@
+"""Gait CSV files: what "Export CSV" writes and "Import CSV" accepts.
+
+Format: optional ``#`` comment lines (export writes z_B, the z_k mode and seed, the checkpoint hash
+and the consistency figures there; import ignores them), then the header
+``time_s,joint_1,...,joint_8`` and exactly 2000 rows at a 0.05 s step starting at 0: time (s) and
+the 8 joint commands (rad) within +/-2.2 rad. No other columns. Numbers are written in Python's
+shortest round-trip form, so an exported gait re-imports to the very same float64 commands, and
+is replayed exactly as written under the command rule of ``sim.physics``.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, field_validator
+
+from sim import COMMAND_LIMIT, N_JOINTS
+
+N_ROWS = 2000
+TIME_STEP = 0.05
+HEADER = ["time_s", *[f"joint_{k}" for k in range(1, N_JOINTS + 1)]]
+MAX_BYTES = 2 * 2**20
+"""Largest accepted upload: a 2000-row gait written at full precision is ~0.4 MB."""
+
+
+class GaitCSVError(ValueError):
+    """The file is not a valid gait CSV; the message says what is wrong and where."""
+
+
+class GaitTable(BaseModel):
+    """A parsed gait: validated commands (2000, 8) rad at 20 Hz."""
+
+    model_config = ConfigDict(arbitrary_types_allowed=True, frozen=True)
+
+    time_s: np.ndarray
+    commands: np.ndarray
+
+    @field_validator("time_s")
+    @classmethod
+    def _time_grid(cls, t: np.ndarray) -> np.ndarray:
+        if t.shape != (N_ROWS,):
+            raise ValueError(f"expected {N_ROWS} rows, got {t.shape[0]}")
+        expected = np.arange(N_ROWS) * TIME_STEP
+        bad = np.flatnonzero(np.abs(t - expected) > 1e-6)
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(
+                f"time_s must start at 0 and step by {TIME_STEP} s: row {i + 1} has {float(t[i])!r}, expected {expected[i]:.2f}"
+            )
+        return t
+
+    @field_validator("commands")
+    @classmethod
+    def _range(cls, u: np.ndarray) -> np.ndarray:
+        if u.shape != (N_ROWS, N_JOINTS):
+            raise ValueError(f"expected ({N_ROWS}, {N_JOINTS}) joint commands, got {u.shape}")
+        out = np.flatnonzero(np.abs(u).max(axis=1) > COMMAND_LIMIT + 1e-9)
+        if out.size:
+            i = int(out[0])
+            k = int(np.argmax(np.abs(u[i])))
+            raise ValueError(
+                f"joint_{k + 1} = {u[i, k]:.4g} rad in row {i + 1} is outside the +/-{COMMAND_LIMIT} rad "
+                f"command range ({out.size} rows out of range)"
+            )
+        return u
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+def write_gait_csv(commands: np.ndarray, comments: dict[str, str] | None = None) -> str:
+    """CSV text of commands (2000, 8) rad, with ``# key: value`` comment lines first."""
+    commands = np.asarray(commands, dtype=np.float64)
+    GaitTable(time_s=np.arange(N_ROWS) * TIME_STEP, commands=commands)  # validate before writing
+    out = io.StringIO()
+    for key, value in (comments or {}).items():
+        for line in str(value).splitlines() or [""]:
+            out.write(f"# {key}: {line}\n")
+    out.write(",".join(HEADER) + "\n")
+    for n in range(N_ROWS):
+        out.write(_fmt(round(n * TIME_STEP, 10)) + "," + ",".join(_fmt(v) for v in commands[n]) + "\n")
+    return out.getvalue()
+
+
+def read_gait_csv(data: bytes | str) -> GaitTable:
+    """Parse and validate a gait CSV; raise GaitCSVError naming the problem."""
+    if isinstance(data, bytes):
+        if len(data) > MAX_BYTES:
+            raise GaitCSVError(
+                f"file is {len(data) / 2**20:.1f} MiB; a gait CSV is at most {MAX_BYTES / 2**20:.0f} MiB"
+            )
+        if b"\x00" in data:
+            raise GaitCSVError("file is binary, not a CSV text file")
+        try:
+            text = data.decode("utf-8-sig")
+        except UnicodeDecodeError as exc:
+            raise GaitCSVError(f"file is not UTF-8 text (byte {exc.start})") from exc
+    else:
+        text = data
+    lines = [(i + 1, line.strip()) for i, line in enumerate(text.splitlines())]
+    lines = [(i, line) for i, line in lines if line and not line.startswith("#")]
+    if not lines:
+        raise GaitCSVError("file is empty: expected a header 'time_s,joint_1,...,joint_8' and 2000 rows")
+    header_line, header = lines[0]
+    columns = [c.strip() for c in header.split(",")]
+    if columns != HEADER:
+        if len(columns) == 1 and any(d in header for d in (";", "\t", "|")):
+            raise GaitCSVError(
+                f"line {header_line}: columns must be separated by commas, got '{header[:60]}'"
+            )
+        missing = [c for c in HEADER if c not in columns]
+        extra = [c for c in columns if c not in HEADER]
+        raise GaitCSVError(
+            f"line {header_line}: header must be '{','.join(HEADER)}'"
+            + (f"; missing {missing}" if missing else "")
+            + (f"; unexpected {extra}" if extra else "")
+            + ("; columns out of order" if not missing and not extra else "")
+        )
+    rows = lines[1:]
+    if not rows:
+        raise GaitCSVError(f"header only: expected {N_ROWS} data rows")
+    if len(rows) != N_ROWS:
+        raise GaitCSVError(f"expected {N_ROWS} data rows (100 s at 20 Hz), got {len(rows)}")
+    values = np.empty((N_ROWS, len(HEADER)))
+    for r, (line_no, line) in enumerate(rows):
+        cells = line.split(",")
+        if len(cells) != len(HEADER):
+            raise GaitCSVError(f"line {line_no}: expected {len(HEADER)} values, got {len(cells)}")
+        for c, cell in enumerate(cells):
+            try:
+                v = float(cell)
+            except ValueError:
+                raise GaitCSVError(
+                    f"line {line_no}, column {HEADER[c]}: '{cell.strip()[:30]}' is not a number"
+                ) from None
+            if not math.isfinite(v):
+                raise GaitCSVError(
+                    f"line {line_no}, column {HEADER[c]}: {cell.strip()} is not a finite number"
+                )
+            values[r, c] = v
+    try:
+        return GaitTable(time_s=values[:, 0], commands=values[:, 1:])
+    except ValueError as exc:  # pydantic's ValidationError is a ValueError
+        errors = getattr(exc, "errors", None)
+        msg = "; ".join(e["msg"].removeprefix("Value error, ") for e in errors()) if errors else str(exc)
+        raise GaitCSVError(msg) from None

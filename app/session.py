@@ -1,0 +1,198 @@
+"""One designer's gait pipeline, free of any UI: latents -> decode -> commands -> replay -> figures.
+
+``GaitSession`` is what each browser tab owns; the viser layer (app/server.py) only draws its
+results. ``LatestWorker`` runs a session's jobs on one thread, coalescing bursts of requests so
+that only the newest is computed (latest wins).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from model.api import GaitModel
+from sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape, shape_to_commands
+from sim.consistency import compare, perturbed_commands
+
+MODEL_RATE = 20.0 / BODY_DOWNSAMPLE
+"""Sample rate of decoded body paths (Hz)."""
+
+ZkMode = Literal["zero", "sampled"]
+
+
+@dataclass(frozen=True)
+class Latents:
+    """What a designer set: z_B, how z_1..8 are chosen, and the seed/temperature of a sampled draw."""
+
+    z_b: tuple[float, ...]
+    zk_mode: ZkMode = "zero"
+    seed: int = 0
+    temperature: float = 1.0
+
+
+@dataclass
+class DecodedGait:
+    """The model's view of a gait: shape (8, L, 2) rad, body_ds (500, 6), commands (2000, 8) rad."""
+
+    latents: Latents | None
+    shape: np.ndarray
+    body_ds: np.ndarray
+    commands: np.ndarray
+    decode_ms: float = 0.0
+    source: str = "model"  # or "import: <name>"
+
+
+@dataclass
+class SimulatedGait:
+    """Physics' view: the replay, its ensemble, the re-measured shape and the consistency figures."""
+
+    joint_angles: np.ndarray  # (2000, 8) rad
+    body: np.ndarray  # (2000, 6)
+    qpos: np.ndarray  # (2000, nq)
+    shape: np.ndarray  # (8, L, 2) re-measured from joint_angles
+    ensemble_body: np.ndarray  # (K, 2000, 6); member 0 is the replay itself
+    figures: dict[str, float] = field(default_factory=dict)
+    replay_ms: float = 0.0
+    ensemble_ms: float = 0.0
+    error: str | None = None
+
+
+class GaitSession:
+    """Per-client pipeline state. Not thread-safe on its own: drive it from one ``LatestWorker``."""
+
+    def __init__(self, model: GaitModel, ensemble: int = 8, workers: int | None = None) -> None:
+        self.model = model
+        self.ensemble = ensemble
+        self._replayer = Simulator(workers=1)
+        self._ensembler = Simulator(workers=workers or os.cpu_count() or 1)
+
+    def decode(self, latents: Latents) -> DecodedGait:
+        """Decode latents to a joint shape, a body path and resynthesised commands."""
+        t0 = time.perf_counter()
+        z_b = np.asarray(latents.z_b, dtype=np.float64)[None]
+        z_j = None
+        if latents.zk_mode == "sampled":
+            z_j = self.model.sample_joint_latents(z_b[0], 1, latents.seed, latents.temperature)
+        shape, body = self.model.decode(z_b, z_j)
+        commands = shape_to_commands(shape[0], self.model.freqs)
+        return DecodedGait(latents, shape[0], body[0], commands, 1e3 * (time.perf_counter() - t0))
+
+    def replay(self, gait: DecodedGait) -> SimulatedGait:
+        """Replay the commands (one thread); raises SimulationError if physics breaks."""
+        t0 = time.perf_counter()
+        result = self._replayer.replay(gait.commands)
+        replay_ms = 1e3 * (time.perf_counter() - t0)
+        return SimulatedGait(
+            joint_angles=result.joint_angles,
+            body=result.body,
+            qpos=result.qpos,
+            shape=joint_shape(result.joint_angles, self._replayer.excitation),
+            ensemble_body=result.body[None],
+            replay_ms=replay_ms,
+        )
+
+    def run_ensemble(self, gait: DecodedGait, sim: SimulatedGait, seed: int = 0) -> SimulatedGait:
+        """Replay K-1 perturbed copies in one batched rollout over all cores and score the gait."""
+        t0 = time.perf_counter()
+        members = perturbed_commands(gait.commands, self.ensemble, seed=seed)[1:]
+        result = self._ensembler.simulate(members)
+        ok = [i for i, f in enumerate(result.failures) if f is None]
+        sim.ensemble_body = np.concatenate([sim.body[None], result.body[ok]])
+        sim.ensemble_ms = 1e3 * (time.perf_counter() - t0)
+        decoded = gait.body_ds if gait.source == "model" else None
+        ds = sim.ensemble_body[:, ::BODY_DOWNSAMPLE]
+        if decoded is not None:
+            sim.figures = compare(decoded, ds, MODEL_RATE)
+        else:
+            sim.figures = compare(ds[0], ds, MODEL_RATE)  # imported gait: spread only
+        sim.figures["ensemble_broken"] = float(len(members) - len(ok))
+        return sim
+
+    def encode_commands(self, commands: np.ndarray, body: np.ndarray) -> np.ndarray:
+        """Where a gait (commands (2000, 8), simulated body (2000, 6)) sits in z_B (posterior mean)."""
+        shape = joint_shape(commands)[None]
+        z_b, _ = self.model.encode(shape, body[None, ::BODY_DOWNSAMPLE])
+        return z_b[0]
+
+
+class LatestWorker:
+    """One thread that runs ``fn(version, request, is_current)`` for the newest submitted request.
+
+    Requests submitted while a job runs replace each other; when the job ends only the newest is
+    run. ``is_current()`` tells a job whether a newer request has arrived (then it should stop
+    drawing). Versions increase with every submit.
+    """
+
+    def __init__(
+        self, fn: Callable[[int, object, Callable[[], bool]], None], name: str = "gait-worker"
+    ) -> None:
+        self._fn = fn
+        self._cv = threading.Condition()
+        self._pending: tuple[int, object] | None = None
+        self._version = 0
+        self._busy = False
+        self._closed = False
+        self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
+        self._thread.start()
+
+    @property
+    def version(self) -> int:
+        return self._version
+
+    def submit(self, request: object) -> int:
+        with self._cv:
+            self._version += 1
+            self._pending = (self._version, request)
+            self._cv.notify_all()
+            return self._version
+
+    def idle(self) -> bool:
+        with self._cv:
+            return self._pending is None and not self._busy
+
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Block until no job is pending or running (for tests and benchmarks)."""
+        deadline = time.monotonic() + timeout
+        with self._cv:
+            while self._pending is not None or self._busy:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cv.wait(left)
+            return True
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify_all()
+        self._thread.join(timeout=30)
+
+    def _loop(self) -> None:
+        while True:
+            with self._cv:
+                while self._pending is None and not self._closed:
+                    self._cv.wait()
+                if self._closed:
+                    return
+                version, request = self._pending
+                self._pending = None
+                self._busy = True
+            try:
+                self._fn(version, request, lambda v=version: v == self._version)
+            except Exception:  # a job's failure must never kill the worker
+                import traceback
+
+                traceback.print_exc()
+            finally:
+                with self._cv:
+                    self._busy = False
+                    self._cv.notify_all()
+
+
+__all__ = ["DecodedGait", "GaitSession", "Latents", "LatestWorker", "SimulatedGait", "SimulationError"]

@@ -1,0 +1,177 @@
+"""The designer on a real viser server on a free port, driven from Python through a headless client."""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
+from app.headless import HeadlessClient
+from app.server import DesignerServer
+from app.session import LatestWorker
+from model import TrainConfig, train
+
+from .test_model import SMALL
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tiny_dataset_path, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ckpt_app")
+    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
+    return out
+
+
+@pytest.fixture
+def server(checkpoint):
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False)
+    yield srv
+    srv.stop()
+
+
+def _connect(srv: DesignerServer):
+    before = set(srv.clients)
+    client = HeadlessClient(srv.port)
+    for _ in range(200):
+        new = set(srv.clients) - before
+        if new:
+            designer = srv.clients[new.pop()]
+            assert designer.worker.wait_idle(60)
+            return client, designer
+        time.sleep(0.05)
+    raise AssertionError("the server never registered the client")
+
+
+def _data_rows(text: str) -> list[str]:
+    return [line for line in text.splitlines() if not line.startswith("#")]
+
+
+def test_slider_change_decodes_replays_and_draws(server):
+    client, d = _connect(server)
+    try:
+        first = d.timings[-1]
+        assert np.isfinite([first.decoded, first.replayed, first.ensembled]).all()
+        d.sliders[0].value = 1.5
+        time.sleep(0.2)
+        assert d.worker.wait_idle(60)
+        assert d.decoded.latents.z_b[0] == 1.5
+        last = d.timings[-1]
+        assert last.version > first.version and last.decoded <= last.replayed <= last.ensembled
+        assert d.simulated is not None and d.simulated.ensemble_body.shape == (3, 2000, 6)
+        assert d.gen_path is not None and d.sim_path is not None and d.fan is not None
+        assert set(d.clouds) == {"decoded", "measured"}
+        assert "Predictability" in d.panel.content
+        # The drawn simulated path is this gait's replay.
+        np.testing.assert_allclose(d.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
+    finally:
+        client.close()
+
+
+def test_export_import_export_round_trips_exactly(server):
+    client, d = _connect(server)
+    try:
+        d.sliders[1].value = -0.8
+        time.sleep(0.2)
+        assert d.worker.wait_idle(60)
+        first = d.export_text()
+        assert first.startswith("# snakeloco gait") and "# z_B: [0.0000, -0.8000" in first
+        rows = _data_rows(first)
+        assert rows[0] == "time_s," + ",".join(f"joint_{k}" for k in range(1, 9)) and len(rows) == 2001
+        assert d.import_bytes("gait.csv", first.encode()) is not None
+        assert d.worker.wait_idle(60)
+        time.sleep(0.3)  # let any slider callbacks of the encoding run: they must not replace the gait
+        assert d.worker.wait_idle(60)
+        assert d.decoded.source == "import: gait.csv"
+        second = d.export_text()
+        assert _data_rows(second) == rows
+        np.testing.assert_array_equal(read_gait_csv(second).commands, read_gait_csv(first).commands)
+        assert "# z_B (encoded)" in second
+        # The imported commands were replayed exactly as written.
+        np.testing.assert_array_equal(d.simulated.joint_angles.shape, (2000, 8))
+        # Moving a slider afterwards replaces the imported gait with a decoded one.
+        d.sliders[0].value = 0.5
+        time.sleep(0.2)
+        assert d.worker.wait_idle(60)
+        assert d.decoded.source == "model"
+    finally:
+        client.close()
+
+
+def test_bad_import_keeps_the_current_gait(server):
+    client, d = _connect(server)
+    try:
+        before = d.decoded.commands.copy()
+        assert d.import_bytes("bad.csv", b"time_s,joint_1\n0,0\n") is None
+        assert d.import_bytes("bin.csv", bytes(range(256))) is None
+        assert d.worker.wait_idle(30)
+        np.testing.assert_array_equal(d.decoded.commands, before)
+    finally:
+        client.close()
+
+
+def test_two_clients_are_independent(server):
+    c1, d1 = _connect(server)
+    c2, d2 = _connect(server)
+    try:
+        assert d1 is not d2
+        d1.sliders[0].value = 2.0
+        time.sleep(0.2)
+        assert d1.worker.wait_idle(60) and d2.worker.wait_idle(60)
+        assert d1.decoded.latents.z_b[0] == 2.0
+        assert d2.decoded.latents.z_b[0] == 0.0 and d2.sliders[0].value == 0.0
+        assert not np.array_equal(d1.decoded.commands, d2.decoded.commands)
+    finally:
+        c1.close()
+        c2.close()
+    for _ in range(100):
+        if not server.clients:
+            break
+        time.sleep(0.05)
+    assert not server.clients  # disconnects clean up their designers
+
+
+def test_latest_worker_runs_only_the_newest_request():
+    gate = threading.Event()
+    ran = []
+
+    def job(version, request, is_current):
+        if request == 0:
+            gate.wait(10)
+        ran.append((request, is_current()))
+
+    worker = LatestWorker(job)
+    worker.submit(0)
+    time.sleep(0.1)
+    for r in range(1, 20):
+        worker.submit(r)
+    gate.set()
+    assert worker.wait_idle(10)
+    worker.close()
+    assert ran == [(0, False), (19, True)]
+
+
+def test_gait_csv_round_trip_and_refusals():
+    rng = np.random.default_rng(0)
+    u = rng.uniform(-2.2, 2.2, (2000, 8))
+    text = write_gait_csv(u, {"z_B": "[0.1]"})
+    np.testing.assert_array_equal(read_gait_csv(text.encode()).commands, u)
+    bad = {
+        b"": "empty",
+        b"time_s,joint_1,joint_2,joint_3,joint_4,joint_5,joint_6,joint_7,joint_8\n": "header only",
+        text.replace("joint_8", "joint_9").encode(): "unexpected",
+        text.replace(",", ";").encode(): "separated by commas",
+        text.replace("0.05,", "0.07,", 1).encode(): "step by 0.05",
+        "\n".join(text.splitlines()[:-1]).encode(): "expected 2000 data rows",
+        text.replace(text.splitlines()[5].split(",")[3], "abc", 1).encode(): "not a number",
+        text.replace(text.splitlines()[5].split(",")[3], "nan", 1).encode(): "not a finite number",
+        text.replace(text.splitlines()[5].split(",")[3], "2.5", 1).encode(): "outside the +/-2.2 rad",
+        "caf\u00e9,time_s".encode("latin-1"): "not UTF-8",
+        bytes(range(256)): "binary",
+        b"x" * (3 * 2**20): "at most 2 MiB",
+    }
+    for data, message in bad.items():
+        with pytest.raises(GaitCSVError, match=re.escape(message)):
+            read_gait_csv(data)

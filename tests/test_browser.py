@@ -1,0 +1,96 @@
+"""A real browser (Debian chromium via Playwright) loads the designer, moves a slider, exports and imports.
+
+Skipped with a reason where chromium or Playwright is missing; CI installs both so it runs there.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.gait_csv import read_gait_csv
+from app.server import DesignerServer
+from model import TrainConfig, train
+
+from .test_model import SMALL
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+SCREENSHOT = Path(__file__).resolve().parent.parent / "static" / "designer_test.png"
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(
+        not Path(CHROMIUM).exists() and not shutil.which("chromium"), reason="Debian chromium not installed"
+    ),
+]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tiny_dataset_path, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ckpt_browser")
+    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
+    return out
+
+
+def _wait(predicate, timeout=60.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    try:
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = browser.new_page(viewport={"width": 1400, "height": 900}, accept_downloads=True)
+            page.goto(f"http://127.0.0.1:{srv.port}")
+            assert _wait(lambda: len(srv.clients) == 1), "the page never connected"
+            d = next(iter(srv.clients.values()))
+            assert d.worker.wait_idle(90)
+            # Move the first z_B slider with the keyboard, as a person would.
+            slider = page.get_by_role("slider").first
+            slider.focus()
+            for _ in range(25):
+                slider.press("ArrowRight")
+            assert _wait(lambda: d.sliders[0].value > 0.2), "the slider move never reached the server"
+            assert _wait(lambda: d.worker.idle() and d.decoded.latents.z_b[0] == d.sliders[0].value, 90)
+            assert d.simulated is not None
+            with page.expect_download(timeout=30000) as info:
+                page.get_by_role("button", name="Export CSV").click()
+            path = tmp_path / "gait.csv"
+            info.value.save_as(path)
+            text = path.read_text()
+            assert f"# z_B: [{d.sliders[0].value:.4f}" in text
+            table = read_gait_csv(text.encode())
+            np.testing.assert_array_equal(table.commands, d.decoded.commands)
+            # Import it back through the upload button.
+            page.locator("input[type=file]").first.set_input_files(str(path))
+            assert _wait(lambda: d.decoded.source == "import: gait.csv" and d.worker.idle(), 90)
+            np.testing.assert_array_equal(d.decoded.commands, table.commands)
+            page.wait_for_timeout(1500)
+            SCREENSHOT.parent.mkdir(exist_ok=True)
+            page.screenshot(path=str(tmp_path / "designer.png"))
+            shutil.copy(tmp_path / "designer.png", SCREENSHOT)
+            assert SCREENSHOT.stat().st_size > 10_000
+            browser.close()
+    finally:
+        srv.stop()
