@@ -111,6 +111,18 @@ class Serve:
 
 
 @dataclass
+class BenchApp:
+    """Benchmark the designer through a real server: slider -> decoded view / replay ready, vs bare MuJoCo."""
+
+    json: bool = False
+    """Print the figures as one JSON object on the last line."""
+    checkpoint: Path | None = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    moves: int = 20
+    """Slider moves to time."""
+
+
+@dataclass
 class BenchSim:
     """Benchmark the simulator: raw mujoco.rollout vs the generator, replay vs a bare mj_step loop."""
 
@@ -126,7 +138,7 @@ class BenchSim:
 
 @dataclass
 class Bench:
-    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app} --help`."""
 
 
 COMMANDS: dict[str, type] = {
@@ -137,7 +149,7 @@ COMMANDS: dict[str, type] = {
     "serve": Serve,
     "bench": Bench,
 }
-BENCHES: dict[str, type] = {"sim": BenchSim, "model": BenchModel}
+BENCHES: dict[str, type] = {"sim": BenchSim, "model": BenchModel, "app": BenchApp}
 
 
 def run_generate(cmd: Generate) -> Path:
@@ -262,6 +274,18 @@ def main(args: list[str] | None = None) -> None:
         run_bench_sim(cmd)
     elif isinstance(cmd, BenchModel):
         run_bench_model(cmd)
+    elif isinstance(cmd, BenchApp):
+        from app.bench import bench_app
+
+        r = bench_app(cmd.checkpoint, cmd.moves)
+        print(
+            f"{r['moves']} slider moves: decoded view p50 {r['decoded_p50_ms']:.1f} ms, p95 {r['decoded_p95_ms']:.1f} ms; "
+            f"replay ready p50 {r['replay_ready_p50_ms']:.0f} ms, p95 {r['replay_ready_p95_ms']:.0f} ms; "
+            f"replay_ratio {r['replay_ratio']:.3f} (replay / bare mj_step), "
+            f"ensemble_ratio {r['ensemble_ratio']:.3f} (ensemble / bare mujoco.rollout)"
+        )
+        if cmd.json:
+            print(jsonlib.dumps(r))
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import threading
 import time
@@ -175,3 +176,13 @@ def test_gait_csv_round_trip_and_refusals():
     for data, message in bad.items():
         with pytest.raises(GaitCSVError, match=re.escape(message)):
             read_gait_csv(data)
+
+
+def test_bench_app_json(checkpoint, capsys):
+    from app.cli import main
+
+    main(["bench", "app", "--json", "--checkpoint", str(checkpoint), "--moves", "2"])
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["moves"] >= 1
+    assert 0 < result["decoded_p50_ms"] <= result["replay_ready_p50_ms"]
+    assert result["replay_ratio"] > 0 and result["ensemble_ratio"] > 0
