@@ -430,17 +430,14 @@ class DesignerClient:
     # --- drawing ---------------------------------------------------------------------------------
 
     def _draw_decoded(self, gait: DecodedGait) -> None:
-        scene = self.client.scene
         with self.client.atomic():
             if gait.body_ds is not None:
-                pts = _path_points(gait.body_ds, LINK_RADIUS)
-                self.gen_path = scene.add_line_segments(
-                    "/paths/generated",
-                    _polyline(pts),
+                self.gen_path = self._draw_line(
+                    "generated",
+                    _polyline(_path_points(gait.body_ds, LINK_RADIUS)),
                     GEN_COLOR,
-                    thickness=4.0,
-                    thickness_units="screen",
-                    visible=self.layers["Generated path"].value,
+                    4.0,
+                    "Generated path",
                 )
             elif self.gen_path is not None:
                 self.gen_path.visible = False
@@ -449,14 +446,28 @@ class DesignerClient:
             if self.fan is not None:
                 self.fan.visible = False
             self._draw_cloud("decoded", gait.shape)
-            t = np.arange(500) / 5.0
-            channels = {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}
-            for name, ch in channels.items():
-                gen = gait.body_ds[:, ch] if gait.body_ds is not None else np.full(500, np.nan)
-                self.plots[name].data = (t, gen, np.full(500, np.nan))
+            self._update_plots(gait, None)
             self.plots["commands"].data = (np.arange(2000) / 20.0, *gait.commands.T)
             src = "model decode" if gait.source == "model" else gait.source
             self.panel.content = f"Decoded in {gait.decode_ms:.1f} ms ({src}); simulating..."
+
+    def _draw_line(self, which: str, segments: np.ndarray, color, thickness: float, layer: str):
+        return self.client.scene.add_line_segments(
+            f"/paths/{which}",
+            segments,
+            color,
+            thickness=thickness,
+            thickness_units="screen",
+            visible=self.layers[layer].value,
+        )
+
+    def _update_plots(self, gait: DecodedGait, sim_body_ds: np.ndarray | None) -> None:
+        """Generated vs simulated (500, 6) body channels; a missing series is drawn as NaN (no line)."""
+        t = np.arange(500) / 5.0
+        missing = np.full(500, np.nan)
+        for name, ch in {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}.items():
+            gen = gait.body_ds[:, ch] if gait.body_ds is not None else missing
+            self.plots[name].data = (t, gen, sim_body_ds[:, ch] if sim_body_ds is not None else missing)
 
     def _draw_cloud(self, which: str, shape: np.ndarray) -> None:
         pts, colors = _shape_points(shape)
@@ -465,45 +476,24 @@ class DesignerClient:
         )
 
     def _draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
-        scene = self.client.scene
         # World pose of the body frame at t = 0 defines the scene frame (as the body channels do).
         self._set_origin(sim.qpos[0])
         z0 = self._origin[0][2]
         with self.client.atomic():
-            self.sim_path = scene.add_line_segments(
-                "/paths/simulated",
-                _polyline(_path_points(sim.body, z0)),
-                SIM_COLOR,
-                thickness=4.0,
-                thickness_units="screen",
-                visible=self.layers["Simulated path"].value,
+            self.sim_path = self._draw_line(
+                "simulated", _polyline(_path_points(sim.body, z0)), SIM_COLOR, 4.0, "Simulated path"
             )
             if ensemble and len(sim.ensemble_body) > 1:
                 segs = np.concatenate([_polyline(_path_points(b[::4], z0)) for b in sim.ensemble_body[1:]])
-                self.fan = scene.add_line_segments(
-                    "/paths/ensemble",
-                    segs,
-                    FAN_COLOR,
-                    thickness=1.0,
-                    thickness_units="screen",
-                    visible=self.layers["Ensemble fan"].value,
-                )
+                self.fan = self._draw_line("ensemble", segs, FAN_COLOR, 1.0, "Ensemble fan")
             elif self.fan is not None:
                 self.fan.visible = False
             if self.gen_path is not None and gait.body_ds is not None:
-                self.gen_path = scene.add_line_segments(
-                    "/paths/generated",
-                    _polyline(_path_points(gait.body_ds, z0)),
-                    GEN_COLOR,
-                    thickness=4.0,
-                    thickness_units="screen",
-                    visible=self.layers["Generated path"].value,
+                self.gen_path = self._draw_line(
+                    "generated", _polyline(_path_points(gait.body_ds, z0)), GEN_COLOR, 4.0, "Generated path"
                 )
             self._draw_cloud("measured", sim.shape)
-            t = np.arange(500) / 5.0
-            for name, ch in {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}.items():
-                gen = gait.body_ds[:, ch] if gait.body_ds is not None else np.full(500, np.nan)
-                self.plots[name].data = (t, gen, sim.body[::4, ch])
+            self._update_plots(gait, sim.body[::4])
             self.panel.content = self._panel_text(gait, sim, ensemble)
         self._draw_snake()
 
