@@ -29,7 +29,7 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = 8, seed: int = 0
                 break
             time.sleep(0.05)
         designer = next(iter(server.clients.values()))
-        designer.worker.wait_idle(120)
+        designer.wait_idle(120)
         rng = np.random.default_rng(seed)
         model = load_model()
         data = mujoco.MjData(model)
@@ -40,7 +40,7 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = 8, seed: int = 0
                 np.round(rng.uniform(-2, 2), 2)
             )
             time.sleep(0.05)
-            designer.worker.wait_idle(120)
+            designer.wait_idle(120)
             t = designer.timings[-1]
             if t.failed or not np.isfinite(t.ensembled):
                 continue

@@ -123,6 +123,24 @@ class BenchApp:
 
 
 @dataclass
+class BenchLoad:
+    """Several headless Chromium tabs drag sliders on one server: latency, exceptions, stale draws, RSS."""
+
+    clients: int = 4
+    """Browser tabs in the multi-client phase (a single-client phase runs first, side by side)."""
+    seconds: float = 60.0
+    """Length of each phase."""
+    json: bool = False
+    """Print the figures as one JSON object on the last line."""
+    checkpoint: Path | None = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    ensemble: int = 8
+    """Replays per gait (as in `snakeloco serve`)."""
+    seed: int = 0
+    """Seed of the drag targets."""
+
+
+@dataclass
 class BenchSim:
     """Benchmark the simulator: raw mujoco.rollout vs the generator, replay vs a bare mj_step loop."""
 
@@ -149,7 +167,7 @@ COMMANDS: dict[str, type] = {
     "serve": Serve,
     "bench": Bench,
 }
-BENCHES: dict[str, type] = {"sim": BenchSim, "model": BenchModel, "app": BenchApp}
+BENCHES: dict[str, type] = {"sim": BenchSim, "model": BenchModel, "app": BenchApp, "load": BenchLoad}
 
 
 def run_generate(cmd: Generate) -> Path:
@@ -249,8 +267,56 @@ def run_bench_sim(cmd: BenchSim) -> dict:
     return result
 
 
+def run_bench_load(cmd: BenchLoad) -> dict:
+    """Run and print the multi-client load benchmark."""
+    from app.load import bench_load
+
+    r = bench_load(cmd.clients, cmd.seconds, cmd.checkpoint, cmd.ensemble, cmd.seed)
+    print(
+        f"1 client: decoded view p50 {r['single_decoded_p50_ms']:.1f} ms, p95 {r['single_decoded_p95_ms']:.1f} ms\n"
+        f"{r['clients']} clients: decoded view p95 per client "
+        + ", ".join(f"{v:.1f}" for v in r["multi_decoded_p95_ms"])
+        + f" ms; worst / single p95 = {r['p95_ratio']:.2f} (goal <= 2)\n"
+        f"updates per client {r['updates']}; server exceptions {r['server_exceptions']}, "
+        f"page errors {r['page_errors']}, stale draws {r['stale_draws']}\n"
+        f"server RSS {r['rss_start_mb']:.0f} MB at start, {r['rss_multi_start_mb']:.0f} -> "
+        f"{r['rss_multi_end_mb']:.0f} MB over the {r['clients']}-client phase "
+        f"(slope {r['rss_slope_mb_per_min']:+.1f} MB/min), peak {r['rss_peak_mb']:.0f} MB"
+    )
+    for details in r["stale_details"]:
+        print("stale:", "; ".join(details))
+    for message in r["exception_messages"]:
+        print("exception:", message)
+    if cmd.json:
+        print(jsonlib.dumps(r))
+    return r
+
+
+def run_bench_app(cmd: BenchApp) -> dict:
+    """Run and print the single-client latency benchmark."""
+    from app.bench import bench_app
+
+    r = bench_app(cmd.checkpoint, cmd.moves)
+    print(
+        f"{r['moves']} slider moves: decoded view p50 {r['decoded_p50_ms']:.1f} ms, p95 {r['decoded_p95_ms']:.1f} ms; "
+        f"replay ready p50 {r['replay_ready_p50_ms']:.0f} ms, p95 {r['replay_ready_p95_ms']:.0f} ms; "
+        f"replay_ratio {r['replay_ratio']:.3f} (replay / bare mj_step), "
+        f"ensemble_ratio {r['ensemble_ratio']:.3f} (ensemble / bare mujoco.rollout)"
+    )
+    if cmd.json:
+        print(jsonlib.dumps(r))
+    return r
+
+
 def main(args: list[str] | None = None) -> None:
-    """Entry point of the ``snakeloco`` console script."""
+    """Entry point of the ``snakeloco`` console script.
+
+    A bad input file (dataset, checkpoint) or a port already in use ends the command with a one-line
+    message naming the problem and exit status 2, not a traceback.
+    """
+    from model.checkpoint import CheckpointError
+    from sim import DatasetError
+
     args = list(sys.argv[1:] if args is None else args)
     if args[:1] == ["bench"]:
         cmd = tyro.extras.subcommand_cli_from_dict(
@@ -258,34 +324,29 @@ def main(args: list[str] | None = None) -> None:
         )
     else:
         cmd = tyro.extras.subcommand_cli_from_dict(COMMANDS, args=args, prog="snakeloco")
-    if isinstance(cmd, Generate):
-        run_generate(cmd)
-    elif isinstance(cmd, Train):
-        run_train(cmd)
-    elif isinstance(cmd, Serve):
-        from app.server import serve
+    runners = {
+        Generate: run_generate,
+        Train: run_train,
+        Serve: run_serve,
+        Evaluate: run_evaluate,
+        Figures: run_figures,
+        BenchSim: run_bench_sim,
+        BenchModel: run_bench_model,
+        BenchApp: run_bench_app,
+        BenchLoad: run_bench_load,
+    }
+    try:
+        runners[type(cmd)](cmd)
+    except (CheckpointError, DatasetError) as exc:
+        print(f"snakeloco: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
 
-        serve(cmd.host, cmd.port, cmd.checkpoint, cmd.ensemble)
-    elif isinstance(cmd, Evaluate):
-        run_evaluate(cmd)
-    elif isinstance(cmd, Figures):
-        run_figures(cmd)
-    elif isinstance(cmd, BenchSim):
-        run_bench_sim(cmd)
-    elif isinstance(cmd, BenchModel):
-        run_bench_model(cmd)
-    elif isinstance(cmd, BenchApp):
-        from app.bench import bench_app
 
-        r = bench_app(cmd.checkpoint, cmd.moves)
-        print(
-            f"{r['moves']} slider moves: decoded view p50 {r['decoded_p50_ms']:.1f} ms, p95 {r['decoded_p95_ms']:.1f} ms; "
-            f"replay ready p50 {r['replay_ready_p50_ms']:.0f} ms, p95 {r['replay_ready_p95_ms']:.0f} ms; "
-            f"replay_ratio {r['replay_ratio']:.3f} (replay / bare mj_step), "
-            f"ensemble_ratio {r['ensemble_ratio']:.3f} (ensemble / bare mujoco.rollout)"
-        )
-        if cmd.json:
-            print(jsonlib.dumps(r))
+def run_serve(cmd: Serve) -> None:
+    """Serve the designer until Ctrl-C / SIGTERM."""
+    from app.server import serve
+
+    serve(cmd.host, cmd.port, cmd.checkpoint, cmd.ensemble)
 
 
 if __name__ == "__main__":

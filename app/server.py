@@ -1,9 +1,13 @@
 """``snakeloco serve``: the browser designer on viser.
 
-Each browser tab gets a ``DesignerClient``: its own GUI, scene, ``GaitSession`` and ``LatestWorker``.
-Slider events only *read* the current slider values and submit them, so viser's thread pool may run
-callbacks in any order: the newest submit always carries the newest values, and the worker runs only
-the newest request (stale work is dropped before it is drawn).
+Each browser tab gets a ``DesignerClient``: its own GUI, scene, ``GaitSession`` and two
+``LatestWorker`` threads, one that decodes and one that runs physics. Slider events only *read* the
+current slider values and submit them, so viser's thread pool may run callbacks in any order: the
+newest submit always carries the newest values. Every request gets a version from one per-client
+counter; each worker runs only the newest request it holds, and nothing is drawn unless its version
+is still the newest (a stale result is never drawn over a newer one). Decoding never waits for
+physics: while a replay runs, new slider values are decoded and drawn at once, and the physics
+worker (at a lower OS priority) moves on to the newest gait when its current run ends.
 
 Scene frame: the snake's initial heading frame (x forward, y left, z up; metres), the frame the body
 channels are expressed in, so decoded and simulated paths start at the origin heading +x.
@@ -14,7 +18,9 @@ from __future__ import annotations
 import signal
 import threading
 import time
+import traceback
 from collections import deque
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -53,6 +59,8 @@ SHAPE_SCALE = 1.5
 JOINT_SPACING = 0.12
 """Point-cloud height step between joints (m)."""
 FPS = 20.0
+PHYSICS_NICE = 5
+"""Nice increment of the physics worker threads (and the rollout threads they start)."""
 
 
 def _help_text() -> str:
@@ -95,12 +103,18 @@ class Timing:
 
 
 class DesignerClient:
-    """One browser tab: GUI, scene, session and worker."""
+    """One browser tab: GUI, scene, session, a decode worker and a physics worker."""
 
     def __init__(
-        self, client: viser.ClientHandle, model: GaitModel, ensemble: int = 8, workers: int | None = None
+        self,
+        client: viser.ClientHandle,
+        model: GaitModel,
+        ensemble: int = 8,
+        workers: int | None = None,
+        on_error: Callable[[str], None] | None = None,
     ):
         self.client = client
+        self._on_error = on_error
         self.model = model
         self.session = GaitSession(model, ensemble=ensemble, workers=workers)
         self.decoded: DecodedGait | None = None
@@ -119,9 +133,15 @@ class DesignerClient:
         self._position = 0.0
         self._playing = True
         self._closed = threading.Event()
+        self._version = 0
+        self._version_lock = threading.Lock()
         self._build_gui()
         self._build_scene()
-        self.worker = LatestWorker(self._job, name=f"gait-worker-{client.client_id}")
+        report = lambda exc: self._report(f"{type(exc).__name__}: {exc}")  # noqa: E731
+        self.decoder = LatestWorker(self._decode_job, name=f"decode-{client.client_id}", on_error=report)
+        self.physics = LatestWorker(
+            self._physics_job, name=f"physics-{client.client_id}", on_error=report, nice=PHYSICS_NICE
+        )
         self._animator = threading.Thread(
             target=self._animate, name=f"animate-{client.client_id}", daemon=True
         )
@@ -214,24 +234,43 @@ class DesignerClient:
         with gui.add_folder("Help", expand_by_default=False):
             gui.add_markdown(_help_text())
 
+        g = self._guarded
         for s in self.sliders:
-            s.on_update(lambda _e: self._on_latents_changed())
-        self.zk_mode.on_update(lambda _e: self.request_decode())
-        self.zk_seed.on_update(lambda _e: self.request_decode())
+            s.on_update(g(lambda _e: self._on_latents_changed()))
+        self.zk_mode.on_update(g(lambda _e: self.request_decode()))
+        self.zk_seed.on_update(g(lambda _e: self.request_decode()))
         self.zk_temperature.on_update(
-            lambda _e: self.request_decode() if self.zk_mode.value == "sampled" else None
+            g(lambda _e: self.request_decode() if self.zk_mode.value == "sampled" else None)
         )
-        self.resample_button.on_click(lambda _e: self._resample())
-        self.reset_button.on_click(lambda _e: self._set_z(np.zeros(self.model.z_b_dim)))
+        self.resample_button.on_click(g(lambda _e: self._resample()))
+        self.reset_button.on_click(g(lambda _e: self._set_z(np.zeros(self.model.z_b_dim))))
         self.random_button.on_click(
-            lambda _e: self._set_z(np.random.default_rng().standard_normal(self.model.z_b_dim))
+            g(lambda _e: self._set_z(np.random.default_rng().standard_normal(self.model.z_b_dim)))
         )
-        self.play_button.on_click(lambda _e: self._toggle_play())
-        self.scrubber.on_update(self._on_scrub)
+        self.play_button.on_click(g(lambda _e: self._toggle_play()))
+        self.scrubber.on_update(g(self._on_scrub))
         for layer in self.layers.values():
-            layer.on_update(lambda _e: self._apply_layers())
-        self.export_button.on_click(lambda _e: self.export())
-        self.import_button.on_upload(lambda _e: self._on_upload())
+            layer.on_update(g(lambda _e: self._apply_layers()))
+        self.export_button.on_click(g(lambda _e: self.export()))
+        self.import_button.on_upload(g(lambda _e: self._on_upload()))
+
+    def _report(self, message: str) -> None:
+        if self._on_error is not None:
+            self._on_error(f"client {self.client.client_id}: {message}")
+
+    def _guarded(self, fn: Callable) -> Callable:
+        """A GUI callback that reports instead of raising: one tab's error never reaches viser."""
+
+        def run(event) -> None:
+            try:
+                fn(event)
+            except Exception as exc:
+                if self._closed.is_set():
+                    return  # the tab went away mid-callback
+                traceback.print_exc()
+                self._report(f"{type(exc).__name__}: {exc}")
+
+        return run
 
     def _build_scene(self) -> None:
         scene = self.client.scene
@@ -273,11 +312,33 @@ class DesignerClient:
         )
 
     def request_decode(self) -> int:
-        """Submit the GUI's current latents to the worker (latest wins); returns the request version."""
-        latents = self.current_latents()
-        version = self.worker.submit(("latents", latents))
-        self._record(version)
-        return version
+        """Submit the GUI's current latents (latest wins); returns the request version."""
+        return self._submit(self.decoder, self.current_latents())
+
+    def _submit(self, worker: LatestWorker, request: object) -> int:
+        # Versions are taken and submitted under one lock, so workers always hold the newest request.
+        with self._version_lock:
+            self._version += 1
+            self._record(self._version)
+            worker.submit((self._version, request))
+            return self._version
+
+    def is_current(self, version: int) -> bool:
+        """Whether ``version`` is still this tab's newest request (only then may it be drawn)."""
+        return version == self._version and not self._closed.is_set()
+
+    def idle(self) -> bool:
+        return self.decoder.idle() and self.physics.idle()
+
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Block until neither worker has work (for tests and benchmarks)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            for w in (self.decoder, self.physics):
+                if not w.wait_idle(max(deadline - time.monotonic(), 0.0)):
+                    return False
+            if self.idle():
+                return True
 
     def _record(self, version: int) -> None:
         timing = Timing(version=version, submitted=time.perf_counter())
@@ -345,23 +406,36 @@ class DesignerClient:
             for frame in self.shape_frames.values():
                 frame.visible = self.layers["Joint shapes"].value
 
-    # --- the job: decode -> draw -> replay -> draw -> ensemble -> draw --------------------------
+    # --- the jobs: decode -> draw | replay -> draw -> ensemble -> draw ----------------------------
 
-    def _job(self, version: int, request: tuple, is_current) -> None:
-        timing = self._timing_by_version.get(version) or Timing(version, time.perf_counter())
-        if request[0] == "import":
-            self._import_job(request[1], request[2], timing, is_current)
+    def _timing(self, version: int) -> Timing:
+        return self._timing_by_version.get(version) or Timing(version, time.perf_counter())
+
+    def _decode_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, latents = item
+        if not self.is_current(version):
             return
-        latents: Latents = request[1]
+        timing = self._timing(version)
         decoded = self.session.decode(latents)
         timing.decode_ms = decoded.decode_ms
         with self._draw_lock:
-            if not is_current():
+            if not self.is_current(version):
                 return
             self.decoded, self.simulated = decoded, None
             self._draw_decoded(decoded)
             timing.decoded = time.perf_counter()
-        self._simulate(decoded, timing, is_current)
+            self.physics.submit((version, ("gait", decoded)))
+
+    def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, (kind, *payload) = item
+        if not self.is_current(version):
+            return
+        timing = self._timing(version)
+        is_current = lambda: self.is_current(version)  # noqa: E731
+        if kind == "import":
+            self._import_job(*payload, timing, is_current)
+        else:
+            self._simulate(payload[0], timing, is_current)
 
     def _simulate(self, decoded: DecodedGait, timing: Timing, is_current) -> SimulatedGait | None:
         try:
@@ -633,9 +707,7 @@ class DesignerClient:
                 auto_close_seconds=15.0,
             )
             return None
-        version = self.worker.submit(("import", name, table.commands))
-        self._record(version)
-        return version
+        return self._submit(self.physics, ("import", name, table.commands))
 
     def _on_upload(self) -> None:
         f = self.import_button.value
@@ -648,7 +720,8 @@ class DesignerClient:
 
     def close(self) -> None:
         self._closed.set()
-        self.worker.close()
+        self.decoder.close()
+        self.physics.close()
         self._animator.join(timeout=5)
 
 
@@ -668,6 +741,8 @@ class DesignerServer:
         self.ensemble = ensemble
         self.workers = workers
         self.clients: dict[int, DesignerClient] = {}
+        self.errors: list[str] = []
+        """Every exception a tab's callbacks or workers raised (each also printed); bench load counts them."""
         self._lock = threading.Lock()
         self.server = viser.ViserServer(host=host, port=port, label="snakeloco", verbose=verbose)
         self.server.on_client_connect(self._connect)
@@ -677,8 +752,18 @@ class DesignerServer:
     def port(self) -> int:
         return self.server.get_port()
 
+    def _error(self, message: str) -> None:
+        with self._lock:
+            self.errors.append(message)
+            del self.errors[:-1000]
+
     def _connect(self, client: viser.ClientHandle) -> None:
-        designer = DesignerClient(client, self.model, self.ensemble, self.workers)
+        try:
+            designer = DesignerClient(client, self.model, self.ensemble, self.workers, on_error=self._error)
+        except Exception as exc:  # a tab that could not be set up must not take the server down
+            traceback.print_exc()
+            self._error(f"client {client.client_id}: setup failed: {type(exc).__name__}: {exc}")
+            return
         with self._lock:
             self.clients[client.client_id] = designer
 

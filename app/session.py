@@ -130,9 +130,17 @@ class LatestWorker:
     """
 
     def __init__(
-        self, fn: Callable[[int, object, Callable[[], bool]], None], name: str = "gait-worker"
+        self,
+        fn: Callable[[int, object, Callable[[], bool]], None],
+        name: str = "gait-worker",
+        on_error: Callable[[BaseException], None] | None = None,
+        nice: int = 0,
     ) -> None:
         self._fn = fn
+        self._on_error = on_error
+        self._nice = nice
+        self.errors = 0
+        """Jobs that raised (each is also printed and passed to ``on_error``)."""
         self._cv = threading.Condition()
         self._pending: tuple[int, object] | None = None
         self._version = 0
@@ -174,6 +182,13 @@ class LatestWorker:
         self._thread.join(timeout=30)
 
     def _loop(self) -> None:
+        if self._nice and hasattr(os, "setpriority"):
+            # Lower this thread's priority (Linux: per thread); native threads it starts, such as
+            # mujoco.rollout's pool, inherit it. Keeps slider decoding responsive under physics load.
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self._nice)
+            except OSError:
+                pass
         while True:
             with self._cv:
                 while self._pending is None and not self._closed:
@@ -185,10 +200,16 @@ class LatestWorker:
                 self._busy = True
             try:
                 self._fn(version, request, lambda v=version: v == self._version)
-            except Exception:  # a job's failure must never kill the worker
+            except Exception as exc:  # a job's failure must never kill the worker
                 import traceback
 
+                self.errors += 1
                 traceback.print_exc()
+                if self._on_error is not None:
+                    try:
+                        self._on_error(exc)
+                    except Exception:
+                        traceback.print_exc()
             finally:
                 with self._cv:
                     self._busy = False

@@ -18,7 +18,8 @@ from safetensors.torch import load_file, save_file
 
 from model.network import HierarchicalVAE, ModelConfig
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+"""2: the body decoder gained the signal branch (its weights and inverse-transform buffers)."""
 WEIGHTS = "model.safetensors"
 CONFIG = "config.json"
 PRETRAINED_DIR = Path(__file__).with_name("pretrained")
@@ -152,5 +153,9 @@ def load_checkpoint(directory: str | Path | None = None) -> tuple[HierarchicalVA
     if any(not torch.isfinite(v).all() for v in state.values() if v.is_floating_point()):
         raise CheckpointError(f"checkpoint {directory}: weights contain NaN or Inf")
     net.load_state_dict(state)
+    if config.model.body_signals and not bool(net.signal_ready):
+        raise CheckpointError(
+            f"checkpoint {directory}: the body decoder's signal branch was never initialised"
+        )
     net.eval()
     return net, config

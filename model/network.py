@@ -12,8 +12,14 @@ C = 6 body channels, Db = z_b_dim, Dj = z_j_dim, H = root GRU width.
 - Child GRU (one set of weights for all joints) over the L components of joint k, started from
   [h_{k-1}, z_B, z_k] and fed the component's log-frequency, emitting c_kl = (re, im).
 - Body decoder: mirror of the encoder (linear to T/8 steps, three x2 upsamplings with convolutions)
-  from [z_B, z_1..z_K]; by default the joint latents are zeroed there (``body_sees_joint_latents``),
-  the paper's generation setting (a), because the decoder otherwise memorised training bodies.
+  from z_B, joined at full rate by a *signal branch*: the joint shape (the true one in training, the
+  decoded one in generation) is resynthesised by the inverse transform of ``sim.spectra`` into the
+  8 joint angles and their rates at the body's T time stamps, and a dilated 1D CNN over those
+  16 channels is concatenated with the z_B branch before the last two convolutions. This is how the
+  joint latents reach the body decoder (paper: x_B is reconstructed from z_B and the joint latents):
+  through the shape they decode to, so the body path is predicted from the gait that will actually be
+  replayed. Feeding the raw joint latents instead (``body_sees_joint_latents``, off) memorised
+  training bodies. The z_B branch carries what the commands do not fix: the chaotic drift of the path.
 - At generation time the root GRU is fed the decoded shape of joint k in place of X_k.
 
 All tensors here are normalised (model/checkpoint.py holds the statistics); physical units live in
@@ -63,7 +69,22 @@ class ModelConfig(BaseModel):
         "decoder memorised training bodies through the 128 joint-latent numbers (epoch 21 of the full "
         "run: train body loss 0.75, held-out body R^2 0.04) instead of putting the path into z_B.",
     )
+    body_signals: bool = Field(
+        True, description="Body decoder sees the joint angles and rates resynthesised from the shape."
+    )
+    signal_channels: int = Field(32, ge=1, description="Width of the signal branch.")
+    signal_dilations: tuple[int, ...] = Field(
+        (1, 2, 4, 8),
+        description="Dilations of the signal branch's convolutions (receptive field 61 steps, 12 s).",
+    )
     alpha: float = Field(1.0, description="Weight of the body reconstruction term.")
+    alpha_delta: float = Field(
+        1.0,
+        ge=0.0,
+        description="Weight of the body increment term: MSE of the 0.2 s increments of each body "
+        "channel relative to their mean square in the batch. Path length and speed are sums of "
+        "increments, which the position MSE (dominated by the slow drift) barely weighs.",
+    )
     beta: float = Field(10.0, description="Weight of MMD(q(z_k) || p(z_k)).")
     gamma: float = Field(10.0, description="Weight of MMD(q(z_B) || N(0, I)).")
 
@@ -146,8 +167,29 @@ class HierarchicalVAE(nn.Module):
             nn.Conv1d(c2, c1, cfg.kernel, padding=pad),
             nn.GELU(),
             nn.Upsample(scale_factor=2),
+        )
+        c_sig = cfg.signal_channels if cfg.body_signals else 0
+        self.decoder_out = nn.Sequential(
+            nn.Conv1d(c1 + c_sig, c1, cfg.kernel, padding=pad),
+            nn.GELU(),
             _SeparableConv(c1, cfg.body_channels, cfg.kernel),
         )
+        if cfg.body_signals:
+            layers: list[nn.Module] = []
+            c_prev = 2 * cfg.n_joints  # angle and rate of each joint
+            for d in cfg.signal_dilations:
+                layers += [nn.Conv1d(c_prev, c_sig, cfg.kernel, padding=d * pad, dilation=d), nn.GELU()]
+                c_prev = c_sig
+            self.signal_net = nn.Sequential(*layers)
+            # The inverse transform at the body's time stamps; set by ``set_signal_source`` and saved
+            # with the weights so a checkpoint decodes exactly as it was trained.
+            n_l, n_t = cfg.n_components, cfg.body_steps
+            self.register_buffer("signal_cos", torch.zeros(n_t, n_l))  # (T, L)
+            self.register_buffer("signal_sin", torch.zeros(n_t, n_l))  # (T, L)
+            self.register_buffer("signal_freqs", torch.zeros(n_l))  # (L,) Hz
+            self.register_buffer("shape_mean", torch.zeros(n_l, 2))  # (L, 2) rad
+            self.register_buffer("shape_std", torch.ones(n_l, 2))  # (L, 2) rad
+            self.register_buffer("signal_ready", torch.zeros(()))
         t = torch.linspace(0.0, 1.0, cfg.body_steps)
         m = torch.arange(1, cfg.positional_channels + 1, dtype=torch.float32)
         self.register_buffer("positional", torch.cos(math.pi * m[:, None] * t[None, :]), persistent=False)
@@ -173,6 +215,45 @@ class HierarchicalVAE(nn.Module):
 
     # --- body ------------------------------------------------------------------------------------
 
+    def set_signal_source(
+        self, phase: torch.Tensor, freqs: torch.Tensor, shape_mean: torch.Tensor, shape_std: torch.Tensor
+    ) -> None:
+        """Fix the signal branch's inverse transform.
+
+        Args:
+            phase: (T, L) 2 pi f_l t at the body time stamps (``sim.synthesis_phase(..., stride=4)``).
+            freqs: (L,) Hz.
+            shape_mean, shape_std: (L, 2) the shape normalisation (the branch works in radians).
+        """
+        with torch.no_grad():
+            phase = torch.as_tensor(phase, dtype=torch.float64)
+            self.signal_cos.copy_(torch.cos(phase))
+            self.signal_sin.copy_(torch.sin(phase))
+            self.signal_freqs.copy_(torch.as_tensor(freqs))
+            self.shape_mean.copy_(torch.as_tensor(shape_mean))
+            self.shape_std.copy_(torch.as_tensor(shape_std))
+            self.signal_ready.fill_(1.0)
+
+    def joint_signals(self, shape: torch.Tensor) -> torch.Tensor:
+        """Normalised shape (B, K, L, 2) -> joint angles (rad) and rates / 2 pi (rad/s) (B, 2K, T).
+
+        q_k(t) = sum_l re_kl cos(w_l t) - im_kl sin(w_l t), the convention of ``sim.shape_to_commands``.
+        """
+        if not bool(self.signal_ready):
+            raise RuntimeError(
+                "signal branch not initialised: call set_signal_source (train) or load a checkpoint"
+            )
+        c = shape * self.shape_std + self.shape_mean  # (B, K, L, 2) rad
+        re, im = c[..., 0], c[..., 1]  # (B, K, L)
+        q = torch.einsum("bkl,tl->bkt", re, self.signal_cos) - torch.einsum(
+            "bkl,tl->bkt", im, self.signal_sin
+        )
+        fre, fim = re * self.signal_freqs, im * self.signal_freqs
+        dq = -torch.einsum("bkl,tl->bkt", fre, self.signal_sin) - torch.einsum(
+            "bkl,tl->bkt", fim, self.signal_cos
+        )
+        return torch.cat([q, dq], dim=1)  # (B, 2K, T)
+
     def encode_body(self, body: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """body (B, T, C) -> mu, logvar (B, Db)."""
         x = body.transpose(1, 2)  # (B, C, T)
@@ -181,14 +262,17 @@ class HierarchicalVAE(nn.Module):
         mu, logvar = self.enc_head(h.mean(dim=2)).chunk(2, dim=1)  # global average pooling
         return mu, logvar.clamp(-12.0, 6.0)
 
-    def decode_body(self, z_b: torch.Tensor, z_j: torch.Tensor) -> torch.Tensor:
-        """z_b (B, Db), z_j (B, K, Dj) -> body (B, T, C)."""
+    def decode_body(self, z_b: torch.Tensor, z_j: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
+        """z_b (B, Db), z_j (B, K, Dj), normalised shape (B, K, L, 2) -> body (B, T, C)."""
         if not self.cfg.body_sees_joint_latents:
             z_j = torch.zeros_like(z_j)  # the joint-latent weights then see only zeros
         lat = torch.cat([z_b, z_j.flatten(1)], dim=1)  # (B, Db + K Dj)
         h = self.dec_in(lat).view(lat.shape[0], -1, self.dec_steps)  # (B, c3, T/8)
-        x = self.decoder(h)[:, :, : self.cfg.body_steps]  # (B, C, T)
-        return x.transpose(1, 2)
+        x = self.decoder(h)[:, :, : self.cfg.body_steps]  # (B, c1, T)
+        if self.cfg.body_signals:
+            sig = self.signal_net(self.joint_signals(shape))  # (B, c_sig, T)
+            x = torch.cat([x, sig], dim=1)
+        return self.decoder_out(x).transpose(1, 2)  # (B, T, C)
 
     # --- joints ----------------------------------------------------------------------------------
 
@@ -270,7 +354,7 @@ class HierarchicalVAE(nn.Module):
         mu, logvar = self.encode_body(body)
         z_b = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         joints = self.run_joints(z_b, shape, sample_posterior=sample)
-        body_hat = self.decode_body(z_b, joints["z_j"])
+        body_hat = self.decode_body(z_b, joints["z_j"], shape)  # teacher forcing: the true shape
         return Output(
             shape=joints["shape"],
             body=body_hat,
@@ -288,7 +372,7 @@ class HierarchicalVAE(nn.Module):
         if z_j is None:
             z_j = torch.zeros(z_b.shape[0], self.cfg.n_joints, self.cfg.z_j_dim, device=z_b.device)
         joints = self.run_joints(z_b, z_j=z_j)
-        return joints["shape"], self.decode_body(z_b, joints["z_j"])
+        return joints["shape"], self.decode_body(z_b, joints["z_j"], joints["shape"])
 
     def sample_joints(self, z_b: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
         """Joint latents drawn from the learned prior given z_b (B, Db), noise eps (B, K, Dj)."""
@@ -296,18 +380,29 @@ class HierarchicalVAE(nn.Module):
 
 
 def loss_terms(model: HierarchicalVAE, shape: torch.Tensor, body: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Paper eq. 15 on a normalised batch: rec_joint + alpha rec_body + beta MMD_k + gamma MMD_B."""
+    """Paper eq. 15 on a normalised batch, plus the body increment term:
+    rec_joint + alpha rec_body + alpha_delta rec_delta + beta MMD_k + gamma MMD_B."""
     cfg = model.cfg
     out = model(shape, body)
     rec_joint = F.mse_loss(out.shape, shape)
     rec_body = F.mse_loss(out.body, body)
+    d_hat, d_true = out.body.diff(dim=1), body.diff(dim=1)  # (B, T-1, C)
+    scale = d_true.pow(2).mean(dim=(0, 1)).clamp_min(1e-8)  # (C,)
+    rec_delta = ((d_hat - d_true).pow(2).mean(dim=(0, 1)) / scale).mean()
     mmd_joint = gaussian_mmd(out.z_j.flatten(0, 1), out.prior_sample.flatten(0, 1))
     mmd_body = gaussian_mmd(out.z_b, torch.randn_like(out.z_b))
-    total = rec_joint + cfg.alpha * rec_body + cfg.beta * mmd_joint + cfg.gamma * mmd_body
+    total = (
+        rec_joint
+        + cfg.alpha * rec_body
+        + cfg.alpha_delta * rec_delta
+        + cfg.beta * mmd_joint
+        + cfg.gamma * mmd_body
+    )
     return {
         "loss": total,
         "rec_joint": rec_joint,
         "rec_body": rec_body,
+        "rec_delta": rec_delta,
         "mmd_joint": mmd_joint,
         "mmd_body": mmd_body,
     }

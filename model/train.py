@@ -20,10 +20,10 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from model.checkpoint import CheckpointConfig, Normalization, TrainSummary, save_checkpoint
+from model.checkpoint import SCHEMA_VERSION, CheckpointConfig, Normalization, TrainSummary, save_checkpoint
 from model.metrics import r2_overall, r2_per_channel
 from model.network import HierarchicalVAE, ModelConfig, loss_terms
-from sim import load_dataset, mjcf_sha256
+from sim import BODY_DOWNSAMPLE, load_dataset, mjcf_sha256, synthesis_phase
 
 
 class TrainConfig(BaseModel):
@@ -57,6 +57,25 @@ def make_scheduler(
     """Per-step LambdaLR realising ``cyclic_lr`` (the optimizer's base lr must be ``lr_max``)."""
     return torch.optim.lr_scheduler.LambdaLR(
         opt, lambda step: cyclic_lr(step / steps_per_epoch, cfg) / cfg.lr_max
+    )
+
+
+def init_signal_source(net: HierarchicalVAE, freqs: np.ndarray, norm: Normalization) -> None:
+    """Give the body decoder's signal branch the inverse transform of ``sim.spectra`` at the body
+    series' time stamps (every ``BODY_DOWNSAMPLE``-th command sample) and the shape normalisation."""
+    if not net.cfg.body_signals:
+        return
+    phase = synthesis_phase(np.asarray(freqs, np.float64), stride=BODY_DOWNSAMPLE)  # (T, L)
+    if phase.shape[0] != net.cfg.body_steps:
+        raise ValueError(
+            f"{phase.shape[0]} body time stamps for a model with body_steps={net.cfg.body_steps}"
+        )
+    a = norm.arrays()
+    net.set_signal_source(
+        torch.as_tensor(phase),
+        torch.as_tensor(freqs),
+        torch.as_tensor(a["shape_mean"]),
+        torch.as_tensor(a["shape_std"]),
     )
 
 
@@ -131,12 +150,14 @@ def train(
     s_tr, b_tr = shape_all[train_idx], body_all[train_idx]
     s_va, b_va = shape_all[val_idx], body_all[val_idx]
 
-    net = HierarchicalVAE(model_cfg).to(device)
+    net = HierarchicalVAE(model_cfg)
+    init_signal_source(net, ds.freqs, norm)
+    net = net.to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr_max)
     steps_per_epoch = math.ceil(len(train_idx) / cfg.batch_size)
     sched = make_scheduler(opt, steps_per_epoch, cfg)
     ckpt_cfg = dict(
-        schema_version=1,
+        schema_version=SCHEMA_VERSION,
         model=model_cfg,
         normalization=norm,
         freqs=ds.freqs.tolist(),

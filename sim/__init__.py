@@ -33,7 +33,7 @@ from sim.robot import (
     load_model,
     mjcf_sha256,
 )
-from sim.spectra import joint_shape, shape_to_commands
+from sim.spectra import joint_shape, shape_to_commands, synthesis_phase
 
 __all__ = [
     "BODY_CHANNELS",
@@ -64,4 +64,5 @@ __all__ = [
     "random_phases",
     "replay",
     "shape_to_commands",
+    "synthesis_phase",
 ]

@@ -35,6 +35,33 @@ def joint_shape(angles: np.ndarray, cfg: ExcitationConfig = DEFAULT_EXCITATION) 
     return np.stack([c.real, c.imag], axis=-1)  # (..., 8, L, 2)
 
 
+def synthesis_phase(
+    freqs: np.ndarray,
+    *,
+    n_samples: int = DEFAULT_EXCITATION.n_samples,
+    sample_rate: float = DEFAULT_EXCITATION.sample_rate,
+    stride: int = 1,
+) -> np.ndarray:
+    """Phases 2 pi f_l t_n of the inverse transform at t_n = n / sample_rate, n = 0, stride, ... < T.
+
+    The frequencies are snapped to the record's FFT grid: float32 round-off in stored frequencies
+    would otherwise grow into a phase error of 2 pi t df over the 100 s record. With these phases a
+    joint signal is x(t_n) = sum_l (re_l cos - im_l sin); ``stride`` = ``sim.BODY_DOWNSAMPLE`` gives
+    the body series' time stamps (the model's body decoder uses that).
+
+    Returns:
+        (ceil(T / stride), L) float64 radians.
+    """
+    freqs = np.asarray(freqs, dtype=np.float64)
+    bins = freqs * n_samples / sample_rate
+    if np.abs(bins - np.round(bins)).max() > 1e-3:
+        raise ValueError(
+            f"frequencies {freqs.tolist()} Hz are not on the {sample_rate / n_samples} Hz FFT grid"
+        )
+    n = np.arange(0, n_samples, stride)  # (T',)
+    return 2.0 * np.pi * np.outer(n, np.round(bins)) / n_samples
+
+
 def shape_to_commands(
     shape: np.ndarray,
     freqs: np.ndarray | None = None,
@@ -61,15 +88,7 @@ def shape_to_commands(
     freqs = DEFAULT_EXCITATION.freqs if freqs is None else np.asarray(freqs, dtype=np.float64)
     if shape.ndim < 3 or shape.shape[-3:] != (N_JOINTS, freqs.shape[0], 2):
         raise ValueError(f"expected (..., {N_JOINTS}, {freqs.shape[0]}, 2) shape, got {shape.shape}")
-    # Snap to the record's FFT grid: float32 round-off in stored frequencies would otherwise grow
-    # into a phase error of 2 pi t df over the 100 s record.
-    bins = freqs * n_samples / sample_rate
-    if np.abs(bins - np.round(bins)).max() > 1e-3:
-        raise ValueError(
-            f"frequencies {freqs.tolist()} Hz are not on the {sample_rate / n_samples} Hz FFT grid"
-        )
-    n = np.arange(n_samples)  # (T,)
-    arg = 2.0 * np.pi * np.outer(n, np.round(bins)) / n_samples  # (T, L) = 2 pi f_l t_n
+    arg = synthesis_phase(freqs, n_samples=n_samples, sample_rate=sample_rate)  # (T, L) = 2 pi f_l t_n
     # Re(c e^{i w t}) = re cos(w t) - im sin(w t); contract over L for every joint.
     commands = np.cos(arg) @ np.swapaxes(shape[..., 0], -1, -2) - np.sin(arg) @ np.swapaxes(
         shape[..., 1], -1, -2

@@ -40,7 +40,7 @@ def _connect(srv: DesignerServer):
         new = set(srv.clients) - before
         if new:
             designer = srv.clients[new.pop()]
-            assert designer.worker.wait_idle(60)
+            assert designer.wait_idle(60)
             return client, designer
         time.sleep(0.05)
     raise AssertionError("the server never registered the client")
@@ -57,7 +57,7 @@ def test_slider_change_decodes_replays_and_draws(server):
         assert np.isfinite([first.decoded, first.replayed, first.ensembled]).all()
         d.sliders[0].value = 1.5
         time.sleep(0.2)
-        assert d.worker.wait_idle(60)
+        assert d.wait_idle(60)
         assert d.decoded.latents.z_b[0] == 1.5
         last = d.timings[-1]
         assert last.version > first.version and last.decoded <= last.replayed <= last.ensembled
@@ -76,15 +76,15 @@ def test_export_import_export_round_trips_exactly(server):
     try:
         d.sliders[1].value = -0.8
         time.sleep(0.2)
-        assert d.worker.wait_idle(60)
+        assert d.wait_idle(60)
         first = d.export_text()
         assert first.startswith("# snakeloco gait") and "# z_B: [0.0000, -0.8000" in first
         rows = _data_rows(first)
         assert rows[0] == "time_s," + ",".join(f"joint_{k}" for k in range(1, 9)) and len(rows) == 2001
         assert d.import_bytes("gait.csv", first.encode()) is not None
-        assert d.worker.wait_idle(60)
+        assert d.wait_idle(60)
         time.sleep(0.3)  # let any slider callbacks of the encoding run: they must not replace the gait
-        assert d.worker.wait_idle(60)
+        assert d.wait_idle(60)
         assert d.decoded.source == "import: gait.csv"
         second = d.export_text()
         assert _data_rows(second) == rows
@@ -95,7 +95,7 @@ def test_export_import_export_round_trips_exactly(server):
         # Moving a slider afterwards replaces the imported gait with a decoded one.
         d.sliders[0].value = 0.5
         time.sleep(0.2)
-        assert d.worker.wait_idle(60)
+        assert d.wait_idle(60)
         assert d.decoded.source == "model"
     finally:
         client.close()
@@ -107,7 +107,7 @@ def test_bad_import_keeps_the_current_gait(server):
         before = d.decoded.commands.copy()
         assert d.import_bytes("bad.csv", b"time_s,joint_1\n0,0\n") is None
         assert d.import_bytes("bin.csv", bytes(range(256))) is None
-        assert d.worker.wait_idle(30)
+        assert d.wait_idle(30)
         np.testing.assert_array_equal(d.decoded.commands, before)
     finally:
         client.close()
@@ -120,7 +120,7 @@ def test_two_clients_are_independent(server):
         assert d1 is not d2
         d1.sliders[0].value = 2.0
         time.sleep(0.2)
-        assert d1.worker.wait_idle(60) and d2.worker.wait_idle(60)
+        assert d1.wait_idle(60) and d2.wait_idle(60)
         assert d1.decoded.latents.z_b[0] == 2.0
         assert d2.decoded.latents.z_b[0] == 0.0 and d2.sliders[0].value == 0.0
         assert not np.array_equal(d1.decoded.commands, d2.decoded.commands)
@@ -186,3 +186,108 @@ def test_bench_app_json(checkpoint, capsys):
     assert result["moves"] >= 1
     assert 0 < result["decoded_p50_ms"] <= result["replay_ready_p50_ms"]
     assert result["replay_ratio"] > 0 and result["ensemble_ratio"] > 0
+
+
+def _square_wave_csv() -> bytes:
+    """A gait within every file rule (+/-2.2 rad, 0.05 s step) that makes MuJoCo diverge: 10 Hz bang-bang."""
+    u = np.where(np.arange(2000) % 2 == 0, 2.2, -2.2)[:, None] * np.ones(8)
+    return write_gait_csv(u).encode()
+
+
+def test_diverging_import_is_reported_and_the_server_keeps_serving(server):
+    client, d = _connect(server)
+    try:
+        before = d.decoded.commands.copy()
+        notes = []
+        original = d.client.add_notification
+        d.client.add_notification = lambda title, body, **kw: (
+            notes.append((title, body)),
+            original(title, body, **kw),
+        )
+        assert d.import_bytes("wild.csv", _square_wave_csv()) is not None
+        assert d.wait_idle(60)
+        assert notes and "not loaded" in notes[-1][0] and "unstable" in notes[-1][1]
+        np.testing.assert_array_equal(d.decoded.commands, before)  # the current gait stays
+        # The same tab still designs gaits, and nothing was counted as a server exception.
+        d.sliders[2].value = 0.7
+        time.sleep(0.2)
+        assert d.wait_idle(60)
+        assert d.decoded.latents.z_b[2] == 0.7 and d.simulated is not None
+        assert server.errors == []
+    finally:
+        client.close()
+
+
+def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
+    client, d = _connect(server)
+    try:
+        wild = read_gait_csv(_square_wave_csv()).commands
+        decode = d.session.decode
+
+        def decode_to_wild(latents):  # the decode is real; its commands are swapped for a diverging gait
+            gait = decode(latents)
+            gait.commands = wild
+            return gait
+
+        d.session.decode = decode_to_wild
+        d.sliders[0].value = -1.0
+        time.sleep(0.2)
+        assert d.wait_idle(60)
+        assert d.simulated is None and d.gen_path is not None
+        assert "Replay failed" in d.panel.content and "unstable" in d.panel.content
+        assert d.timings[-1].failed and server.errors == []
+    finally:
+        client.close()
+
+
+def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server):
+    client, d = _connect(server)
+    try:
+        gate = threading.Event()
+        replay = d.session.replay
+        replayed = []
+
+        def gated_replay(gait):  # the real replay, held until the test releases it
+            gate.wait(60)
+            replayed.append(gait.latents.z_b[0])
+            return replay(gait)
+
+        d.session.replay = gated_replay
+        d.sliders[0].value = 1.0
+        time.sleep(0.3)
+        first = d.timings[-1]
+        assert np.isfinite(first.decoded) and not np.isfinite(first.replayed)  # physics is held
+        for v in (1.2, 1.4, 1.6):
+            d.sliders[0].value = v
+            time.sleep(0.3)
+            # Each new value is decoded and drawn while the first replay is still running.
+            assert d.decoded.latents.z_b[0] == v and np.isfinite(d.timings[-1].decoded)
+        gate.set()
+        assert d.wait_idle(60)
+        # The held (stale) replay finished but was never drawn; the newest one was.
+        assert replayed == [1.0, 1.6]
+        assert not np.isfinite(first.replayed) and np.isfinite(d.timings[-1].ensembled)
+        np.testing.assert_allclose(d.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
+        assert d.decoded.latents.z_b[0] == 1.6
+    finally:
+        client.close()
+
+
+def test_server_stop_leaves_no_threads(checkpoint):
+    def ours():
+        return [
+            t.name
+            for t in threading.enumerate()
+            if t.name.startswith(("decode-", "physics-", "animate-", "headless-viser-client"))
+        ]
+
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=1, verbose=False)
+    client, _designer = _connect(srv)
+    assert ours()
+    srv.stop()
+    client.close()
+    for _ in range(100):
+        if not ours():
+            break
+        time.sleep(0.05)
+    assert ours() == []

@@ -65,14 +65,14 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
             page.goto(f"http://127.0.0.1:{srv.port}")
             assert _wait(lambda: len(srv.clients) == 1), "the page never connected"
             d = next(iter(srv.clients.values()))
-            assert d.worker.wait_idle(90)
+            assert d.wait_idle(90)
             # Move the first z_B slider with the keyboard, as a person would.
             slider = page.get_by_role("slider").first
             slider.focus()
             for _ in range(25):
                 slider.press("ArrowRight")
             assert _wait(lambda: d.sliders[0].value > 0.2), "the slider move never reached the server"
-            assert _wait(lambda: d.worker.idle() and d.decoded.latents.z_b[0] == d.sliders[0].value, 90)
+            assert _wait(lambda: d.idle() and d.decoded.latents.z_b[0] == d.sliders[0].value, 90)
             assert d.simulated is not None
             with page.expect_download(timeout=30000) as info:
                 page.get_by_role("button", name="Export CSV").click()
@@ -84,7 +84,7 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
             np.testing.assert_array_equal(table.commands, d.decoded.commands)
             # Import it back through the upload button.
             page.locator("input[type=file]").first.set_input_files(str(path))
-            assert _wait(lambda: d.decoded.source == "import: gait.csv" and d.worker.idle(), 90)
+            assert _wait(lambda: d.decoded.source == "import: gait.csv" and d.idle(), 90)
             np.testing.assert_array_equal(d.decoded.commands, table.commands)
             page.wait_for_timeout(1500)
             SCREENSHOT.parent.mkdir(exist_ok=True)

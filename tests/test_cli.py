@@ -3,12 +3,28 @@
 from __future__ import annotations
 
 import json
+import signal
+import socket
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
 
 from app.cli import main
+from app.headless import HeadlessClient
+from model import TrainConfig, train
 from sim import load_dataset
+
+from .test_model import SMALL
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint_dir(tiny_dataset_path, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ckpt_cli")
+    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
+    return out
 
 
 def test_generate_command(tmp_path, capsys, tiny_dataset):
@@ -30,3 +46,72 @@ def test_bench_sim_json(capsys):
 def test_unknown_subcommand_exits_with_usage():
     with pytest.raises(SystemExit):
         main(["fly"])
+
+
+def test_bad_checkpoint_and_dataset_end_with_a_clear_message(tmp_path, capsys, tiny_checkpoint_dir):
+    with pytest.raises(SystemExit) as exc:
+        main(["serve", "--checkpoint", str(tmp_path / "nowhere"), "--port", "0"])
+    assert exc.value.code == 2
+    assert "missing config.json" in capsys.readouterr().err
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"PK\x03\x04 truncated")
+    with pytest.raises(SystemExit) as exc:
+        main(
+            ["evaluate", "--data", str(bad), "--prior-samples", "0", "--checkpoint", str(tiny_checkpoint_dir)]
+        )
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("snakeloco: error:") and "bad.npz" in err
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_serve_stops_cleanly_on_signals(tmp_path, tiny_checkpoint_dir, sig):
+    """Ctrl-C and SIGTERM end `snakeloco serve` with status 0 and free the port (a process whose
+    worker threads lingered would not exit: they are joined, not abandoned)."""
+    port = _free_port()
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "app.cli",
+            "serve",
+            "--port",
+            str(port),
+            "--checkpoint",
+            str(tiny_checkpoint_dir),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.2)
+        else:
+            raise AssertionError("the server never listened")
+        client = HeadlessClient(port)  # a connected tab with its workers running
+        time.sleep(2.0)
+        proc.send_signal(sig)
+        out, _ = proc.communicate(timeout=60)
+        client.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out
+    assert "stopped" in out
+    with socket.socket() as s:  # nothing listens any more
+        assert s.connect_ex(("127.0.0.1", port)) != 0
+    with socket.socket() as s:  # and a restarted server can listen there (as asyncio servers do, with
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # SO_REUSEADDR past TIME_WAIT)
+        s.bind(("127.0.0.1", port))
+        s.listen()

@@ -21,8 +21,11 @@ from model import (
     save_checkpoint,
     train,
 )
+from model.checkpoint import Normalization
 from model.metrics import mmd_null_quantile, mmd_numpy, r2_per_channel
-from model.train import make_scheduler
+from model.train import init_signal_source, make_scheduler
+from sim import shape_to_commands
+from sim.spectra import DEFAULT_EXCITATION
 
 SMALL = ModelConfig(
     z_b_dim=3,
@@ -33,6 +36,19 @@ SMALL = ModelConfig(
     joint_embed=8,
     positional_channels=2,
 )
+
+
+def _net(cfg: ModelConfig = SMALL) -> HierarchicalVAE:
+    """A fresh network whose signal branch uses the standard excitation and unit normalisation."""
+    net = HierarchicalVAE(cfg)
+    unit = Normalization(
+        shape_mean=np.zeros((8, 2)).tolist(),
+        shape_std=np.ones((8, 2)).tolist(),
+        body_mean=[0.0] * 6,
+        body_std=[1.0] * 6,
+    )
+    init_signal_source(net, DEFAULT_EXCITATION.freqs, unit)
+    return net
 
 
 @pytest.fixture(scope="module")
@@ -51,17 +67,35 @@ def tiny_checkpoint(tiny_dataset_path, tmp_path_factory):
 
 def test_forward_shapes_and_finite_losses():
     torch.manual_seed(0)
-    net = HierarchicalVAE(SMALL)
+    net = _net()
     shape, body = torch.randn(5, 8, 8, 2), torch.randn(5, 500, 6)
     out = net(shape, body)
     assert out.shape.shape == (5, 8, 8, 2)
     assert out.body.shape == (5, 500, 6)
     assert out.z_b.shape == (5, 3) and out.z_j.shape == (5, 8, 4)
     terms = loss_terms(net, shape, body)
-    assert set(terms) == {"loss", "rec_joint", "rec_body", "mmd_joint", "mmd_body"}
+    assert set(terms) == {"loss", "rec_joint", "rec_body", "rec_delta", "mmd_joint", "mmd_body"}
     assert all(torch.isfinite(v) for v in terms.values())
     g_shape, g_body = net.generate(torch.zeros(2, 3))
     assert g_shape.shape == (2, 8, 8, 2) and g_body.shape == (2, 500, 6)
+
+
+def test_body_decoder_signals_follow_the_spectral_convention():
+    """The signal branch resynthesises exactly what sim.shape_to_commands does, at the body's stamps."""
+    rng = np.random.default_rng(0)
+    shape = 0.1 * rng.standard_normal((3, 8, 8, 2))  # small: the commands' clip does not bite
+    net = _net()
+    with torch.no_grad():
+        sig = net.joint_signals(torch.as_tensor(shape, dtype=torch.float32)).numpy()  # (3, 16, 500)
+    commands = shape_to_commands(shape)  # (3, 2000, 8) at 20 Hz
+    np.testing.assert_allclose(sig[:, :8].transpose(0, 2, 1), commands[:, ::4], atol=1e-5)
+    # The rate channels are d/dt / (2 pi): compare with a central difference of a 400 Hz synthesis.
+    fine = shape_to_commands(shape, n_samples=40000, sample_rate=400.0)
+    rate = (np.roll(fine, -1, axis=1) - np.roll(fine, 1, axis=1)) * 400.0 / 2.0 / (2 * np.pi)
+    np.testing.assert_allclose(sig[:, 8:].transpose(0, 2, 1), rate[:, ::80], atol=1e-3 * np.abs(rate).max())
+    # A body decoder whose transform was never set refuses instead of decoding from zeros.
+    with pytest.raises(RuntimeError, match="signal branch not initialised"):
+        HierarchicalVAE(SMALL).generate(torch.zeros(1, 3))
 
 
 def test_mmd_estimator():
@@ -80,7 +114,7 @@ def test_mmd_estimator():
 
 def test_tiny_model_loss_falls():
     torch.manual_seed(0)
-    net = HierarchicalVAE(SMALL)
+    net = _net()
     opt = torch.optim.Adam(net.parameters(), lr=3e-3)
     # Learnable data: smooth body series whose amplitude and shape coefficients follow one factor.
     a = torch.linspace(-1.5, 1.5, 16)
@@ -124,7 +158,7 @@ def test_training_writes_metrics_and_checkpoint(tiny_checkpoint):
     for key in ("train_loss", "val_loss", "val_r2_shape", "val_r2_body", "lr"):
         assert np.isfinite(rows[-1][key])
     cfg = json.loads((tiny_checkpoint / "config.json").read_text())
-    assert cfg["schema_version"] == 1 and cfg["model"]["z_b_dim"] == 3
+    assert cfg["schema_version"] == 2 and cfg["model"]["z_b_dim"] == 3
     assert len(cfg["freqs"]) == 8 and cfg["summary"]["epochs_run"] == 2
 
 

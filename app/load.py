@@ -1,0 +1,288 @@
+"""``snakeloco bench load``: real browser tabs drag sliders on one designer server at the same time.
+
+The server runs in this process; each client is a Chromium page (Playwright, Debian ``chromium``)
+whose mouse drags a z_B slider thumb back and forth without pause. Two phases run side by side in
+one call: one client alone, then ``clients`` at once, each for ``seconds``. Reported per client:
+
+- update latency: slider value arriving at the server -> decoded view drawn (p50/p95, ms), and
+  -> replay drawn;
+- exceptions: every error a tab's callbacks or workers raised on the server, and JavaScript errors
+  in the pages;
+- stale draws: after the last drag, for each tab, whether anything shown or exported does not match
+  its final slider values: the browser's slider positions vs the server's, the drawn generated path
+  and the exported CSV (downloaded through the browser) vs an independent decode of those values,
+  and the simulated path vs the replay of those commands;
+- server memory: resident set size sampled every 0.5 s (start, end, peak, and the slope of a
+  least-squares line over the multi-client phase, MB/min).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.gait_csv import read_gait_csv
+from app.server import DesignerClient, DesignerServer
+from sim import shape_to_commands
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+def rss_mb() -> float:
+    """Resident set size of this process (MB), from /proc (Linux) or the peak from getrusage."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+class _RssSampler:
+    def __init__(self, period: float = 0.5) -> None:
+        self.samples: list[tuple[float, float]] = []
+        self._stop = threading.Event()
+        self._period = period
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.samples.append((time.monotonic() - self._t0, rss_mb()))
+            self._stop.wait(self._period)
+
+    def window(self, start: float, end: float) -> np.ndarray:
+        a = np.asarray(self.samples)
+        return a[(a[:, 0] >= start - self._t0) & (a[:, 0] <= end - self._t0)]
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+
+class _Dragger:
+    """One page's mouse, dragging a random z_B slider thumb to random targets in small steps."""
+
+    def __init__(self, page, n_sliders: int, rng: np.random.Generator) -> None:
+        self.page = page
+        self.n_sliders = n_sliders
+        self.rng = rng
+        self.moves = 0
+        self._steps_left = 0
+        self._x = self._y = 0.0
+        self._target = 0.0
+
+    def step(self) -> None:
+        mouse = self.page.mouse
+        if self._steps_left == 0:
+            mouse.up()
+            thumb = self.page.get_by_role("slider").nth(int(self.rng.integers(self.n_sliders)))
+            box = thumb.bounding_box()
+            track = thumb.locator("xpath=..").bounding_box()
+            if box is None or track is None:
+                return
+            self._x, self._y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+            self._lo, self._hi = track["x"] + 2, track["x"] + track["width"] - 2
+            mouse.move(self._x, self._y)
+            mouse.down()
+            self._target = float(self.rng.uniform(self._lo, self._hi))
+            self._steps_left = int(self.rng.integers(10, 30))
+        dx = (self._target - self._x) / self._steps_left
+        self._x = min(max(self._x + dx + float(self.rng.normal(0, 2)), self._lo), self._hi)
+        mouse.move(self._x, self._y)
+        self._steps_left -= 1
+        self.moves += 1
+
+    def release(self) -> None:
+        self.page.mouse.up()
+        self._steps_left = 0
+
+
+def _wait(predicate, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _stale_checks(page, d: DesignerClient, tmp: Path, index: int) -> list[str]:
+    """Everything this tab shows or exports must match its final slider values; returns mismatches."""
+    problems = []
+    z = tuple(float(s.value) for s in d.sliders)
+    shown = [
+        float(v)
+        for v in page.get_by_role("slider").evaluate_all(
+            "els => els.map(e => e.getAttribute('aria-valuenow'))"
+        )[: len(z)]
+    ]
+    if not np.allclose(shown, z, atol=1e-9):
+        problems.append(f"browser sliders {shown} != server sliders {list(z)}")
+    if d.decoded is None or d.decoded.latents is None or d.decoded.latents.z_b != z:
+        problems.append(f"current gait decoded from {getattr(d.decoded, 'latents', None)}, sliders at {z}")
+        return problems
+    shape, body = d.model.decode(np.asarray(z)[None])
+    commands = shape_to_commands(shape[0], d.model.freqs)
+    if not np.allclose(d.plots["forward (m)"].data[1], body[0, :, 1], atol=1e-9):
+        problems.append("drawn generated path is not the decode of the final sliders")
+    if d.simulated is None:
+        problems.append("no replay drawn for the final sliders")
+    elif not np.allclose(d.plots["forward (m)"].data[2], d.simulated.body[::4, 1], atol=1e-12):
+        problems.append("drawn simulated path is not the final replay")
+    with page.expect_download(timeout=60000) as info:
+        page.get_by_role("button", name="Export CSV").click()
+    path = tmp / f"client{index}.csv"
+    info.value.save_as(path)
+    text = path.read_text()
+    exported = read_gait_csv(text.encode()).commands
+    if not np.array_equal(exported, commands):
+        problems.append("exported commands are not those of the final sliders")
+    if "# z_B: [" + ", ".join(f"{v:.4f}" for v in z) + "]" not in text:
+        problems.append("exported z_B comment does not match the final sliders")
+    return problems
+
+
+def _phase(browser, server: DesignerServer, n: int, seconds: float, rng, tmp: Path, log) -> dict:
+    pages, designers, page_errors = [], [], []
+    for _ in range(n):
+        before = set(server.clients)
+        page = browser.new_page(viewport={"width": 1280, "height": 800}, accept_downloads=True)
+        page.on("pageerror", lambda exc: page_errors.append(str(exc)))
+        page.goto(f"http://127.0.0.1:{server.port}")
+        if not _wait(lambda b=before: set(server.clients) - b, 90):
+            raise RuntimeError("a browser page never connected to the designer")
+        designers.append(server.clients[(set(server.clients) - before).pop()])
+        page.get_by_role("slider").first.wait_for(timeout=90000)
+        pages.append(page)
+    for d in designers:
+        d.wait_idle(120)
+    errors_before = len(server.errors)
+    n_sliders = designers[0].model.z_b_dim
+    draggers = [_Dragger(p, n_sliders, np.random.default_rng(rng.integers(2**32))) for p in pages]
+    start = time.perf_counter()
+    t_start = time.monotonic()
+    while time.perf_counter() - start < seconds:
+        for dr in draggers:
+            dr.step()
+        time.sleep(0.01)
+    for dr in draggers:
+        dr.release()
+    t_end = time.monotonic()
+    settled = all(d.wait_idle(180) for d in designers)
+    time.sleep(0.5)  # any slider message still in flight
+    settled = settled and all(d.wait_idle(180) for d in designers)
+    clients = []
+    for i, (page, d, dr) in enumerate(zip(pages, designers, draggers, strict=True)):
+        ts = [t for t in list(d.timings) if t.submitted >= start]
+        dec = np.array([1e3 * (t.decoded - t.submitted) for t in ts if np.isfinite(t.decoded)])
+        rep = np.array([1e3 * (t.replayed - t.submitted) for t in ts if np.isfinite(t.replayed)])
+        stale = _stale_checks(page, d, tmp, i) if settled else ["did not settle within 180 s"]
+        clients.append(
+            {
+                "mouse_moves": dr.moves,
+                "updates": len(ts),
+                "decoded_drawn": int(dec.size),
+                "replays_drawn": int(rep.size),
+                "decoded_p50_ms": float(np.percentile(dec, 50)) if dec.size else float("nan"),
+                "decoded_p95_ms": float(np.percentile(dec, 95)) if dec.size else float("nan"),
+                "replay_p50_ms": float(np.percentile(rep, 50)) if rep.size else float("nan"),
+                "replay_p95_ms": float(np.percentile(rep, 95)) if rep.size else float("nan"),
+                "stale": stale,
+            }
+        )
+        if log:
+            log(
+                f"  client {i + 1}/{n}: {len(ts)} updates, decoded p95 {clients[-1]['decoded_p95_ms']:.1f} ms"
+            )
+    for page in pages:
+        page.close()
+    _wait(lambda: not server.clients, 30)
+    return {
+        "clients": clients,
+        "server_exceptions": server.errors[errors_before:],
+        "page_errors": page_errors,
+        "t_start": t_start,
+        "t_end": t_end,
+    }
+
+
+def bench_load(
+    clients: int = 4,
+    seconds: float = 60.0,
+    checkpoint=None,
+    ensemble: int = 8,
+    seed: int = 0,
+    log=print,
+) -> dict:
+    """Run the single-client and ``clients``-client phases and summarise them (see module docstring)."""
+    import tempfile
+
+    from playwright.sync_api import sync_playwright
+
+    if not Path(CHROMIUM).exists():
+        raise RuntimeError(f"bench load drives Debian chromium at {CHROMIUM}: apt-get install -y chromium")
+    server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
+    rss = _RssSampler()
+    rng = np.random.default_rng(seed)
+    phases = {}
+    try:
+        with tempfile.TemporaryDirectory() as tmp, sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            try:
+                for n in sorted({1, clients}):
+                    if log:
+                        log(f"{n} client(s) dragging sliders for {seconds:g} s")
+                    phases[n] = _phase(browser, server, n, seconds, rng, Path(tmp), log)
+            finally:
+                browser.close()
+    finally:
+        rss.stop()
+        server.stop()
+    multi = phases[clients]
+    single = phases[1]["clients"][0]
+    window = rss.window(multi["t_start"], multi["t_end"])
+    slope = float(np.polyfit(window[:, 0], window[:, 1], 1)[0] * 60.0) if len(window) > 2 else float("nan")
+    all_rss = np.asarray(rss.samples)[:, 1]
+    p95s = [c["decoded_p95_ms"] for c in multi["clients"]]
+    result = {
+        "clients": clients,
+        "seconds": seconds,
+        "single_decoded_p50_ms": single["decoded_p50_ms"],
+        "single_decoded_p95_ms": single["decoded_p95_ms"],
+        "single_replay_p95_ms": single["replay_p95_ms"],
+        "multi_decoded_p50_ms": [c["decoded_p50_ms"] for c in multi["clients"]],
+        "multi_decoded_p95_ms": p95s,
+        "multi_replay_p95_ms": [c["replay_p95_ms"] for c in multi["clients"]],
+        "p95_ratio": float(np.nanmax(p95s) / single["decoded_p95_ms"]),
+        "updates": [c["updates"] for c in multi["clients"]],
+        "server_exceptions": len(phases[1]["server_exceptions"]) + len(multi["server_exceptions"]),
+        "exception_messages": (phases[1]["server_exceptions"] + multi["server_exceptions"])[:10],
+        "page_errors": len(phases[1]["page_errors"]) + len(multi["page_errors"]),
+        "stale_draws": sum(bool(c["stale"]) for ph in phases.values() for c in ph["clients"]),
+        "stale_details": [c["stale"] for ph in phases.values() for c in ph["clients"] if c["stale"]],
+        "rss_start_mb": float(all_rss[0]),
+        "rss_end_mb": float(all_rss[-1]),
+        "rss_peak_mb": float(all_rss.max()),
+        "rss_multi_start_mb": float(window[0, 1]) if len(window) else float("nan"),
+        "rss_multi_end_mb": float(window[-1, 1]) if len(window) else float("nan"),
+        "rss_slope_mb_per_min": slope,
+    }
+    return result

@@ -1,0 +1,55 @@
+"""The short, CI version of `snakeloco bench load`: real Chromium tabs drag sliders at the same time.
+
+Timing is reported, not asserted (shared machines are noisy); what must hold on any machine is
+asserted: no server exceptions, no page errors, no stale draws, every tab served.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from app.load import CHROMIUM
+from model import TrainConfig, train
+
+from .test_browser import pytestmark as browser_marks
+from .test_model import SMALL
+
+pytestmark = [*browser_marks, pytest.mark.load]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tiny_dataset_path, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ckpt_load")
+    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
+    return out
+
+
+def test_bench_load_two_tabs(checkpoint, capsys):
+    pytest.importorskip("playwright.sync_api")
+    assert CHROMIUM
+    from app.cli import main
+
+    main(
+        [
+            "bench",
+            "load",
+            "--clients",
+            "2",
+            "--seconds",
+            "6",
+            "--ensemble",
+            "2",
+            "--json",
+            "--checkpoint",
+            str(checkpoint),
+        ]
+    )
+    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert r["server_exceptions"] == 0, r["exception_messages"]
+    assert r["page_errors"] == 0
+    assert r["stale_draws"] == 0, r["stale_details"]
+    assert len(r["updates"]) == 2 and min(r["updates"]) > 0
+    assert np.isfinite([r["single_decoded_p95_ms"], *r["multi_decoded_p95_ms"], r["rss_peak_mb"]]).all()
