@@ -26,7 +26,6 @@ import numpy as np
 
 from app.gait_csv import read_gait_csv
 from app.server import DesignerClient, DesignerServer
-from sim import shape_to_commands
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -140,7 +139,7 @@ def _stale_checks(page, d: DesignerClient, tmp: Path, index: int) -> list[str]:
         problems.append(f"current gait decoded from {getattr(d.decoded, 'latents', None)}, sliders at {z}")
         return problems
     shape, body = d.model.decode(np.asarray(z)[None])
-    commands = shape_to_commands(shape[0], d.model.freqs)
+    commands = d.model.commands(shape[0])
     if not np.allclose(d.plots["forward (m)"].data[1], body[0, :, 1], atol=1e-9):
         problems.append("drawn generated path is not the decode of the final sliders")
     if d.simulated is None:

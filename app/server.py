@@ -480,7 +480,7 @@ class DesignerClient:
                 color="red",
             )
             return
-        z_b = self.session.encode_commands(commands, sim.body)
+        z_b = self.session.encode_replay(sim)
         with self._draw_lock:
             if not is_current():
                 return
@@ -587,7 +587,7 @@ class DesignerClient:
             )
             if gait.body_ds is not None:
                 lines += [
-                    "| | decoded | simulated | error | physics spread |",
+                    "| | model | simulated | error | physics spread |",
                     "|---|---|---|---|---|",
                     *[
                         f"| {label} | {f[key + '_decoded']:.3g} | {f[key + '_simulated']:.3g} | "
@@ -711,12 +711,7 @@ class DesignerClient:
 
     def _on_upload(self) -> None:
         f = self.import_button.value
-        if len(f.content) > MAX_BYTES:
-            self.client.add_notification(
-                f"Import CSV: {f.name} rejected", f"file is larger than {MAX_BYTES // 2**20} MiB", color="red"
-            )
-            return
-        self.import_bytes(f.name, f.content)
+        self.import_bytes(f.name, f.content)  # read_gait_csv refuses more than MAX_BYTES
 
     def close(self) -> None:
         self._closed.set()
@@ -747,6 +742,43 @@ class DesignerServer:
         self.server = viser.ViserServer(host=host, port=port, label="snakeloco", verbose=verbose)
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
+        self._bound_uploads()
+
+    def _bound_uploads(self) -> None:
+        """Refuse an upload larger than ``MAX_BYTES`` when it starts, before any of it is buffered.
+
+        viser (1.0-1.1) buffers a whole upload in memory before ``on_upload`` fires; its start message
+        declares the size, so an oversized file is refused there and its parts are then dropped
+        unbuffered (viser ignores parts of a transfer it does not know). Should viser's internals
+        differ, the size is still checked in ``on_upload``.
+        """
+        from viser import _messages
+
+        gui = self.server.gui
+        interface = getattr(gui, "_websock_interface", None)
+        original = getattr(gui, "_handle_file_transfer_start", None)
+        if interface is None or original is None:
+            return
+
+        def bounded(client_id, message) -> None:
+            if message.size_bytes > MAX_BYTES:
+                client = self.server.get_clients().get(client_id)
+                if client is not None:
+                    client.add_notification(
+                        f"Import CSV: {message.filename[:80]} rejected",
+                        f"file is {message.size_bytes / 2**20:.1f} MiB; a gait CSV is at most "
+                        f"{MAX_BYTES // 2**20} MiB. The current gait stays.",
+                        color="red",
+                        auto_close_seconds=15.0,
+                    )
+                return
+            original(client_id, message)
+
+        try:
+            interface.unregister_handler(_messages.FileTransferStartUpload, original)
+        except (AssertionError, ValueError):
+            return
+        interface.register_handler(_messages.FileTransferStartUpload, bounded)
 
     @property
     def port(self) -> int:

@@ -17,7 +17,7 @@ from typing import Literal
 import numpy as np
 
 from model.api import GaitModel
-from sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape, shape_to_commands
+from sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape
 from sim.consistency import compare, perturbed_commands
 
 MODEL_RATE = 20.0 / BODY_DOWNSAMPLE
@@ -46,6 +46,7 @@ class DecodedGait:
     commands: np.ndarray
     decode_ms: float = 0.0
     source: str = "model"  # or "import: <name>"
+    stats: dict[str, float] | None = None  # the model's predicted body statistics (model.stats)
 
 
 @dataclass
@@ -79,9 +80,16 @@ class GaitSession:
         z_j = None
         if latents.zk_mode == "sampled":
             z_j = self.model.sample_joint_latents(z_b[0], 1, latents.seed, latents.temperature)
-        shape, body = self.model.decode(z_b, z_j)
-        commands = shape_to_commands(shape[0], self.model.freqs)
-        return DecodedGait(latents, shape[0], body[0], commands, 1e3 * (time.perf_counter() - t0))
+        shape, body, stats = self.model.decode_with_stats(z_b, z_j)
+        commands = self.model.commands(shape[0])
+        return DecodedGait(
+            latents,
+            shape[0],
+            body[0],
+            commands,
+            1e3 * (time.perf_counter() - t0),
+            stats={k: float(v[0]) for k, v in stats.items()},
+        )
 
     def replay(self, gait: DecodedGait) -> SimulatedGait:
         """Replay the commands (one thread); raises SimulationError if physics breaks."""
@@ -108,15 +116,15 @@ class GaitSession:
         decoded = gait.body_ds if gait.source == "model" else None
         ds = sim.ensemble_body[:, ::BODY_DOWNSAMPLE]
         if decoded is not None:
-            sim.figures = compare(decoded, ds, MODEL_RATE)
+            sim.figures = compare(decoded, ds, MODEL_RATE, gait.stats)
         else:
             sim.figures = compare(ds[0], ds, MODEL_RATE)  # imported gait: spread only
         sim.figures["ensemble_broken"] = float(len(members) - len(ok))
         return sim
 
-    def encode_commands(self, commands: np.ndarray, body: np.ndarray) -> np.ndarray:
-        """Where a gait (commands (2000, 8), simulated body (2000, 6)) sits in z_B (posterior mean)."""
-        shape = joint_shape(commands)[None]
+    def encode_replay(self, sim: SimulatedGait) -> np.ndarray:
+        """Where a replayed gait sits in z_B (posterior mean), from its measured shape and body."""
+        shape, body = sim.shape[None], sim.body
         z_b, _ = self.model.encode(shape, body[None, ::BODY_DOWNSAMPLE])
         return z_b[0]
 

@@ -16,6 +16,7 @@ import torch
 
 from model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint
 from model.network import HierarchicalVAE
+from model.stats import stats_dict
 
 
 class GaitModel:
@@ -28,6 +29,7 @@ class GaitModel:
         norm = config.normalization.arrays()
         self._shape_mean, self._shape_std = norm["shape_mean"], norm["shape_std"]  # (L, 2)
         self._body_mean, self._body_std = norm["body_mean"], norm["body_std"]  # (6,)
+        self._stats_mean, self._stats_std = norm["stats_mean"], norm["stats_std"]  # (4,)
         self._lock = threading.Lock()
 
     @property
@@ -42,6 +44,23 @@ class GaitModel:
     def freqs(self) -> np.ndarray:
         """(L,) excited frequencies (Hz) the model was trained on."""
         return np.asarray(self.config.freqs, dtype=np.float64)
+
+    @property
+    def servo_response(self) -> np.ndarray | None:
+        """(8, L, 2) measured/commanded complex servo gain of the training data, or None."""
+        g = self.config.servo_response
+        return None if g is None else np.asarray(g, dtype=np.float64)
+
+    def commands(self, shape: np.ndarray) -> np.ndarray:
+        """Joint commands (..., 2000, 8) rad that make the servos move as a decoded shape (..., 8, L, 2).
+
+        Decoded shapes are *measured* joint angles, so each coefficient is divided by the servo's
+        measured complex gain before the inverse FFT (``sim.shape_to_commands(..., response=...)``);
+        a checkpoint without that gain resynthesises the shape as is.
+        """
+        from sim import shape_to_commands
+
+        return shape_to_commands(shape, self.freqs, response=self.servo_response)
 
     @property
     def hash(self) -> str:
@@ -83,6 +102,17 @@ class GaitModel:
 
     def decode(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """z_b (B, Db) and z_j (B, 8, Dj) (None: zeros, the paper's setting (a)) -> shape, body_ds."""
+        shape, body, _ = self.decode_with_stats(z_b, z_j)
+        return shape, body
+
+    def decode_with_stats(
+        self, z_b: np.ndarray, z_j: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """``decode`` plus the predicted body statistics of the decoded gait, {name: (B,)}.
+
+        Names (``model.stats.STAT_NAMES``): path_length (m over the 100 s), median_speed (m/s),
+        vertical_std (m), net_roll (rad); as ``sim.consistency.path_stats`` measures them at 5 Hz.
+        """
         z_b = np.atleast_2d(np.asarray(z_b, np.float32))
         if z_b.shape[1] != self.z_b_dim:
             raise ValueError(f"z_b must be (B, {self.z_b_dim}), got {z_b.shape}")
@@ -90,8 +120,21 @@ class GaitModel:
         if z_j is not None:
             zj = torch.as_tensor(np.asarray(z_j, np.float32).reshape(z_b.shape[0], -1, self.z_j_dim))
         with self._lock, torch.inference_mode():
-            shape, body = self.net.generate(torch.as_tensor(z_b), zj)
-        return self._phys(shape, body)
+            shape, body, stats = self.net.generate(torch.as_tensor(z_b), zj)
+        shape_p, body_p = self._phys(shape, body)
+        return (
+            shape_p,
+            body_p,
+            stats_dict(stats.numpy().astype(np.float64) * self._stats_std + self._stats_mean),
+        )
+
+    def predict_stats(self, z_b: np.ndarray, shape: np.ndarray) -> dict[str, np.ndarray]:
+        """Body statistics the model predicts for given z_b (B, Db) and joint shapes (B, 8, L, 2) rad."""
+        with self._lock, torch.inference_mode():
+            v = self.net.predict_stats(
+                torch.as_tensor(np.atleast_2d(z_b), dtype=torch.float32), self._norm_shape(np.asarray(shape))
+            )
+        return stats_dict(v.numpy().astype(np.float64) * self._stats_std + self._stats_mean)
 
     def sample_joint_latents(
         self, z_b: np.ndarray, n: int = 1, seed: int = 0, temperature: float = 1.0

@@ -19,7 +19,7 @@ from safetensors.torch import load_file, save_file
 from model.network import HierarchicalVAE, ModelConfig
 
 SCHEMA_VERSION = 2
-"""2: the body decoder gained the signal branch (its weights and inverse-transform buffers)."""
+"""2: the body-statistics head (signal CNN, MLP, inverse-transform buffers) and its normalisation."""
 WEIGHTS = "model.safetensors"
 CONFIG = "config.json"
 PRETRAINED_DIR = Path(__file__).with_name("pretrained")
@@ -39,17 +39,21 @@ class Normalization(BaseModel):
     shape_std: list[list[float]] = Field(description="(L, 2) rad")
     body_mean: list[float] = Field(description="(6,) m and rad")
     body_std: list[float] = Field(description="(6,) m and rad")
+    stats_mean: list[float] = Field(description="(4,) body statistics vector (model/stats.py)")
+    stats_std: list[float] = Field(description="(4,) body statistics vector (model/stats.py)")
 
     @model_validator(mode="after")
     def _positive(self) -> Normalization:
-        if min(min(r) for r in self.shape_std) <= 0 or min(self.body_std) <= 0:
+        if min(min(r) for r in self.shape_std) <= 0 or min(self.body_std) <= 0 or min(self.stats_std) <= 0:
             raise ValueError("normalisation std must be positive")
         return self
 
     @classmethod
-    def fit(cls, shape: np.ndarray, body: np.ndarray) -> Normalization:
-        """Statistics of a training set: shape (N, K, L, 2), body (N, T, 6)."""
+    def fit(cls, shape: np.ndarray, body: np.ndarray, stats: np.ndarray) -> Normalization:
+        """Statistics of a training set: shape (N, K, L, 2), body (N, T, 6), body statistics (N, 4)."""
         return cls(
+            stats_mean=stats.mean(axis=0).tolist(),
+            stats_std=np.maximum(stats.std(axis=0), 1e-6).tolist(),
             shape_mean=shape.mean(axis=(0, 1)).tolist(),
             shape_std=np.maximum(shape.std(axis=(0, 1)), 1e-6).tolist(),
             body_mean=body.mean(axis=(0, 1)).tolist(),
@@ -82,6 +86,11 @@ class CheckpointConfig(BaseModel):
     normalization: Normalization
     freqs: list[float] = Field(description="(L,) excited frequencies of the training data (Hz)")
     dataset_meta_sha256: str
+    servo_response: list[list[list[float]]] | None = Field(
+        None,
+        description="(8, L, 2) mean measured/commanded complex gain of each joint at each frequency in "
+        "the training data; decoded shapes (measured angles) are divided by it to get commands.",
+    )
     mjcf_sha256: str
     train: dict = Field(default_factory=dict, description="The resolved training config.")
     summary: TrainSummary = TrainSummary()
@@ -95,6 +104,12 @@ class CheckpointConfig(BaseModel):
             raise ValueError("shape_mean is not (L, 2)")
         if len(self.normalization.body_mean) != self.model.body_channels:
             raise ValueError("body_mean does not match body_channels")
+        if self.servo_response is not None:
+            g = np.asarray(self.servo_response, dtype=np.float64)
+            if g.shape != (self.model.n_joints, n_l, 2) or not np.isfinite(g).all():
+                raise ValueError(f"servo_response must be finite ({self.model.n_joints}, {n_l}, 2)")
+            if np.hypot(g[..., 0], g[..., 1]).min() < 0.2:
+                raise ValueError("servo_response has a gain below 0.2: not a servo this model can invert")
         return self
 
 
@@ -153,7 +168,7 @@ def load_checkpoint(directory: str | Path | None = None) -> tuple[HierarchicalVA
     if any(not torch.isfinite(v).all() for v in state.values() if v.is_floating_point()):
         raise CheckpointError(f"checkpoint {directory}: weights contain NaN or Inf")
     net.load_state_dict(state)
-    if config.model.body_signals and not bool(net.signal_ready):
+    if not bool(net.signal_ready):
         raise CheckpointError(
             f"checkpoint {directory}: the body decoder's signal branch was never initialised"
         )

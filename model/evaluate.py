@@ -14,11 +14,19 @@ import numpy as np
 
 from model.api import GaitModel, load_pretrained
 from model.metrics import mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
-from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, Simulator, load_dataset, shape_to_commands
-from sim.consistency import PREDICTABLE, compare, perturbed_commands
+from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, Simulator, load_dataset
+from sim.consistency import PREDICTABLE, compare, path_stats, perturbed_commands
 
 MODEL_RATE = 20.0 / BODY_DOWNSAMPLE
 """Sample rate of the model's body series (Hz)."""
+
+
+def _stats_errors(predicted: dict[str, np.ndarray], body_ds: np.ndarray) -> dict[str, float]:
+    true = path_stats(body_ds, MODEL_RATE)
+    return {
+        k: float(np.median(np.abs(predicted[k] - true[k]) / np.maximum(np.abs(true[k]), 1e-9)))
+        for k in PREDICTABLE
+    }
 
 
 def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, batch: int = 512) -> dict:
@@ -46,6 +54,8 @@ def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, bat
         ),
         "r2_body": r2_overall(body_ds, b_hat),
         "r2_body_per_channel": dict(zip(BODY_CHANNELS, r2_per_channel(body_ds, b_hat).tolist(), strict=True)),
+        # The statistics head on the true shapes: median relative error against the records' own.
+        "stats_median_rel_err": _stats_errors(model.predict_stats(z_b, shape), body_ds),
         "z_b": z_b,
         "z_j": z_j,
     }
@@ -107,15 +117,12 @@ def consistency(
     report = {}
     per_batch = max(1, (4 * simulator.workers) // ensemble + 1)
     for name, z_j in modes.items():
-        shapes, bodies = model.decode(z_b, z_j)
+        shapes, bodies, stats = model.decode_with_stats(z_b, z_j)
         rows, broken = [], 0
         for start in range(0, n_prior, per_batch):
             idx = range(start, min(n_prior, start + per_batch))
             cmds = np.concatenate(
-                [
-                    perturbed_commands(shape_to_commands(shapes[i], model.freqs), ensemble, seed=seed + i)
-                    for i in idx
-                ]
+                [perturbed_commands(model.commands(shapes[i]), ensemble, seed=seed + i) for i in idx]
             )  # (b K, T, 8)
             result = simulator.simulate(cmds)
             for j, i in enumerate(idx):
@@ -124,7 +131,8 @@ def consistency(
                     broken += 1
                     continue
                 sim_body = result.body[members, ::BODY_DOWNSAMPLE]  # (K, 500, 6) at the model's rate
-                rows.append(compare(bodies[i], sim_body, MODEL_RATE))
+                predicted = {k: float(v[i]) for k, v in stats.items()}
+                rows.append(compare(bodies[i], sim_body, MODEL_RATE, predicted))
             if progress is not None:
                 progress(len(idx))
         keys = rows[0].keys() if rows else []
@@ -166,6 +174,8 @@ def format_report(r: dict) -> str:
         + ", ".join(f"{k} Hz {v:.3f}" for k, v in r["r2_shape_per_freq"].items()),
         f"R^2 body {r['r2_body']:.3f}; per channel: "
         + ", ".join(f"{k} {v:.3f}" for k, v in r["r2_body_per_channel"].items()),
+        "body statistics predicted for the records' own shapes, median relative error: "
+        + ", ".join(f"{k} {v:.3f}" for k, v in r["stats_median_rel_err"].items()),
         f"MMD(q(z_B) || N(0, I)) {r['mmd_zb']:.5f} (null 95th percentile {r['mmd_zb_null95']:.5f})",
         f"active units: z_B {r['active_units_zb']}, z_j {r['active_units_zj']}; "
         f"inter/intra body variance {r['inter_intra_ratio']:.2f}",

@@ -23,7 +23,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from model.checkpoint import SCHEMA_VERSION, CheckpointConfig, Normalization, TrainSummary, save_checkpoint
 from model.metrics import r2_overall, r2_per_channel
 from model.network import HierarchicalVAE, ModelConfig, loss_terms
-from sim import BODY_DOWNSAMPLE, load_dataset, mjcf_sha256, synthesis_phase
+from model.stats import stats_vector
+from sim import BODY_DOWNSAMPLE, load_dataset, mjcf_sha256, servo_response, synthesis_phase
 
 
 class TrainConfig(BaseModel):
@@ -63,8 +64,6 @@ def make_scheduler(
 def init_signal_source(net: HierarchicalVAE, freqs: np.ndarray, norm: Normalization) -> None:
     """Give the body decoder's signal branch the inverse transform of ``sim.spectra`` at the body
     series' time stamps (every ``BODY_DOWNSAMPLE``-th command sample) and the shape normalisation."""
-    if not net.cfg.body_signals:
-        return
     phase = synthesis_phase(np.asarray(freqs, np.float64), stride=BODY_DOWNSAMPLE)  # (T, L)
     if phase.shape[0] != net.cfg.body_steps:
         raise ValueError(
@@ -87,21 +86,22 @@ def _split(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarr
 
 @torch.no_grad()
 def evaluate_batches(
-    net: HierarchicalVAE, shape: torch.Tensor, body: torch.Tensor, batch: int, seed: int
+    net: HierarchicalVAE, shape: torch.Tensor, body: torch.Tensor, stats: torch.Tensor, batch: int, seed: int
 ) -> dict:
     """Mean loss terms (fixed noise seed) and posterior-mean reconstruction R^2 on normalised tensors."""
     net.eval()
     torch.manual_seed(seed)
     sums: dict[str, float] = {}
-    rec_s, rec_b = [], []
+    rec_s, rec_b, rec_st = [], [], []
     for i in range(0, len(shape), batch):
-        s, b = shape[i : i + batch], body[i : i + batch]
-        terms = loss_terms(net, s, b)
+        s, b, st = shape[i : i + batch], body[i : i + batch], stats[i : i + batch]
+        terms = loss_terms(net, s, b, st)
         for k, v in terms.items():
             sums[k] = sums.get(k, 0.0) + v.item() * len(s)
         out = net(s, b, sample=False)
         rec_s.append(out.shape.cpu().numpy())
         rec_b.append(out.body.cpu().numpy())
+        rec_st.append(out.stats.cpu().numpy())
     n = sum(len(r) for r in rec_s)
     result = {k: v / n for k, v in sums.items()}
     s_true = shape[:n].cpu().numpy()
@@ -112,6 +112,7 @@ def evaluate_batches(
     )
     result["r2_body"] = r2_overall(b_true, b_hat, np.ones(b_true.shape[-1]))
     result["r2_body_channels"] = r2_per_channel(b_true, b_hat).tolist()
+    result["r2_stats"] = r2_per_channel(stats[:n].cpu().numpy(), np.concatenate(rec_st)).tolist()
     return result
 
 
@@ -139,7 +140,8 @@ def train(
     shape_np = ds.shape.astype(np.float64)  # (N, K, L, 2) rad
     body_np = ds.body_ds.astype(np.float64)  # (N, 500, 6)
     train_idx, val_idx = _split(len(ds), cfg.val_fraction, cfg.seed)
-    norm = Normalization.fit(shape_np[train_idx], body_np[train_idx])
+    stats_np = stats_vector(body_np)  # (N, 4)
+    norm = Normalization.fit(shape_np[train_idx], body_np[train_idx], stats_np[train_idx])
     a = norm.arrays()
 
     def to_t(x: np.ndarray) -> torch.Tensor:
@@ -147,8 +149,9 @@ def train(
 
     shape_all = to_t((shape_np - a["shape_mean"]) / a["shape_std"])
     body_all = to_t((body_np - a["body_mean"]) / a["body_std"])
-    s_tr, b_tr = shape_all[train_idx], body_all[train_idx]
-    s_va, b_va = shape_all[val_idx], body_all[val_idx]
+    stats_all = to_t((stats_np - a["stats_mean"]) / a["stats_std"])
+    s_tr, b_tr, st_tr = shape_all[train_idx], body_all[train_idx], stats_all[train_idx]
+    s_va, b_va, st_va = shape_all[val_idx], body_all[val_idx], stats_all[val_idx]
 
     net = HierarchicalVAE(model_cfg)
     init_signal_source(net, ds.freqs, norm)
@@ -162,6 +165,7 @@ def train(
         normalization=norm,
         freqs=ds.freqs.tolist(),
         dataset_meta_sha256=ds.meta_hash,
+        servo_response=servo_response(ds.commands[train_idx], ds.joint_angles[train_idx]).tolist(),
         mjcf_sha256=mjcf_sha256(),
         train=cfg.model_dump(mode="json")
         | {"data": str(data), "n_train": len(train_idx), "n_val": len(val_idx)},
@@ -181,7 +185,7 @@ def train(
             idx = perm[i * cfg.batch_size : (i + 1) * cfg.batch_size]
             if len(idx) < 2:
                 continue
-            terms = loss_terms(net, s_tr[idx], b_tr[idx])
+            terms = loss_terms(net, s_tr[idx], b_tr[idx], st_tr[idx])
             opt.zero_grad(set_to_none=True)
             terms["loss"].backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
@@ -191,7 +195,7 @@ def train(
                 sums[k] = sums.get(k, 0.0) + v.item() / steps_per_epoch
         if not math.isfinite(sums.get("loss", float("nan"))):
             raise RuntimeError(f"training diverged at epoch {epoch}: loss {sums.get('loss')}")
-        val = evaluate_batches(net, s_va, b_va, 512, seed=cfg.seed)
+        val = evaluate_batches(net, s_va, b_va, st_va, 512, seed=cfg.seed)
         row = {
             "epoch": epoch,
             "lr": opt.param_groups[0]["lr"],
@@ -207,7 +211,8 @@ def train(
             rec_b=f"{sums['rec_body']:.3f}",
             mmd_k=f"{sums['mmd_joint']:.4f}",
             mmd_b=f"{sums['mmd_body']:.4f}",
-            val_r2=f"{val['r2_shape']:.3f}/{val['r2_body']:.3f}",
+            rec_s=f"{sums['rec_stats']:.3f}",
+            val_r2=f"{val['r2_shape']:.3f}/{val['r2_body']:.3f}/{np.mean(val['r2_stats']):.3f}",
         )
         summary.epochs_run = epoch + 1
         if val["loss"] < best:

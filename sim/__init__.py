@@ -33,7 +33,7 @@ from sim.robot import (
     load_model,
     mjcf_sha256,
 )
-from sim.spectra import joint_shape, shape_to_commands, synthesis_phase
+from sim.spectra import joint_shape, servo_response, shape_to_commands, synthesis_phase
 
 __all__ = [
     "BODY_CHANNELS",
@@ -63,6 +63,7 @@ __all__ = [
     "multisine",
     "random_phases",
     "replay",
+    "servo_response",
     "shape_to_commands",
     "synthesis_phase",
 ]

@@ -76,8 +76,17 @@ def xy_r2(pred: np.ndarray, target: np.ndarray) -> float:
     return float(1.0 - ((p - t) ** 2).sum() / max(sst, 1e-12))
 
 
-def compare(decoded: np.ndarray, ensemble: np.ndarray, sample_rate: float) -> dict[str, float]:
+def compare(
+    decoded: np.ndarray,
+    ensemble: np.ndarray,
+    sample_rate: float,
+    decoded_stats: dict[str, float] | None = None,
+) -> dict[str, float]:
     """Score a decoded body path (T, 6) against an ensemble of simulated ones (K, T, 6), same rate.
+
+    ``decoded_stats``: the model's own prediction of the predictable statistics (PREDICTABLE names);
+    where given it is scored instead of the statistic measured on the decoded path (a smooth
+    mean path under-states path length, speed and vertical oscillation of a chaotic gait).
 
     Returns the ensemble spread (``ensemble_spread``), the decoded-vs-simulated relative error of each
     predictable statistic against the unperturbed replay (``<stat>_err``), ``xy_r2``, and whether
@@ -86,6 +95,7 @@ def compare(decoded: np.ndarray, ensemble: np.ndarray, sample_rate: float) -> di
     larger), with that distance in units of the spread (``final_z``).
     """
     dec = path_stats(decoded, sample_rate)
+    dec.update({k: np.asarray(v, np.float64) for k, v in (decoded_stats or {}).items() if k in PREDICTABLE})
     ens = path_stats(ensemble, sample_rate)
     out = ensemble_spread(ensemble, sample_rate)
     for key in PREDICTABLE:

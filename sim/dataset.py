@@ -288,6 +288,8 @@ def load_dataset(path: str | Path) -> Dataset:
             headers = {n[:-4]: _read_header(zf, n) for n in names if n.endswith(".npy")}
     except zipfile.BadZipFile as exc:
         raise DatasetError(f"{path}: not a complete .npz file (truncated or foreign): {exc}") from exc
+    except DatasetError:
+        raise
     except (OSError, ValueError, EOFError) as exc:
         raise DatasetError(f"{path}: unreadable dataset ({exc})") from exc
     try:

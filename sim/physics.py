@@ -254,7 +254,8 @@ class Simulator:
         t0 = self.config.lead_in / self.excitation.sample_rate  # record time = sim time - t0
 
         def at(step: int) -> str:
-            return f"t = {step * dt - t0:.2f} s"
+            t = step * dt - t0
+            return f"t = {t:.2f} s" + (" (in the lead-in before the record)" if t < 0 else "")
 
         bad = ~np.isfinite(state).all(axis=1)
         if bad.any():

@@ -69,10 +69,16 @@ def shape_to_commands(
     n_samples: int = DEFAULT_EXCITATION.n_samples,
     sample_rate: float = DEFAULT_EXCITATION.sample_rate,
     limit: float = COMMAND_LIMIT,
+    response: np.ndarray | None = None,
 ) -> np.ndarray:
     """Resynthesise joint commands from a joint shape by inverse FFT (the inverse of ``joint_shape``).
 
     u_k(t_n) = sum_l Re(c_kl exp(i 2 pi f_l t_n)), t_n = n / sample_rate, clipped to +/- ``limit`` rad.
+
+    With ``response`` (the servo's measured/commanded complex gain per joint and frequency, see
+    ``servo_response``), each c_kl is first divided by it: the shape is then read as the *measured*
+    joint motion wanted, and the commands are those that make the servos produce it (servo-lag
+    compensation; the learned shapes are measured angles).
 
     Args:
         shape: (..., 8, L, 2) real and imaginary parts of c_kl (rad).
@@ -88,9 +94,40 @@ def shape_to_commands(
     freqs = DEFAULT_EXCITATION.freqs if freqs is None else np.asarray(freqs, dtype=np.float64)
     if shape.ndim < 3 or shape.shape[-3:] != (N_JOINTS, freqs.shape[0], 2):
         raise ValueError(f"expected (..., {N_JOINTS}, {freqs.shape[0]}, 2) shape, got {shape.shape}")
+    if response is not None:
+        response = np.asarray(response, dtype=np.float64)
+        if response.shape != (N_JOINTS, freqs.shape[0], 2):
+            raise ValueError(f"response must be ({N_JOINTS}, {freqs.shape[0]}, 2), got {response.shape}")
+        c = (shape[..., 0] + 1j * shape[..., 1]) / (response[..., 0] + 1j * response[..., 1])
+        shape = np.stack([c.real, c.imag], axis=-1)
     arg = synthesis_phase(freqs, n_samples=n_samples, sample_rate=sample_rate)  # (T, L) = 2 pi f_l t_n
     # Re(c e^{i w t}) = re cos(w t) - im sin(w t); contract over L for every joint.
     commands = np.cos(arg) @ np.swapaxes(shape[..., 0], -1, -2) - np.sin(arg) @ np.swapaxes(
         shape[..., 1], -1, -2
     )  # (..., T, 8)
     return np.clip(commands, -limit, limit)
+
+
+def servo_response(
+    commands: np.ndarray,
+    joint_angles: np.ndarray,
+    cfg: ExcitationConfig = DEFAULT_EXCITATION,
+    chunk: int = 256,
+) -> np.ndarray:
+    """Mean complex gain measured/commanded of each joint at each excited frequency.
+
+    Args:
+        commands, joint_angles: (N, T, 8) records (rad).
+
+    Returns:
+        (8, L, 2) real and imaginary parts of mean_n (X_meas / X_cmd): |G| is the amplitude ratio,
+        arg G the phase lag.
+    """
+    total = np.zeros((N_JOINTS, len(cfg.bins)), dtype=np.complex128)
+    for i in range(0, len(commands), chunk):
+        u = joint_shape(np.asarray(commands[i : i + chunk], np.float64), cfg)
+        q = joint_shape(np.asarray(joint_angles[i : i + chunk], np.float64), cfg)
+        cu, cq = u[..., 0] + 1j * u[..., 1], q[..., 0] + 1j * q[..., 1]
+        total += (cq / cu).sum(axis=0)
+    g = total / len(commands)
+    return np.stack([g.real, g.imag], axis=-1)

@@ -46,6 +46,19 @@ def _connect(srv: DesignerServer):
     raise AssertionError("the server never registered the client")
 
 
+def _record_notifications(d) -> list[tuple[str, str]]:
+    """Keep (title, body) of every notification the tab shows from now on (still shown as well)."""
+    notes = []
+    original = d.client.add_notification
+
+    def record(title, body, **kw):
+        notes.append((title, body))
+        return original(title, body, **kw)
+
+    d.client.add_notification = record
+    return notes
+
+
 def _data_rows(text: str) -> list[str]:
     return [line for line in text.splitlines() if not line.startswith("#")]
 
@@ -101,14 +114,57 @@ def test_export_import_export_round_trips_exactly(server):
         client.close()
 
 
+def _catalogue() -> dict[str, tuple[bytes, str]]:
+    """Every bad gait file of the robustness catalogue: name -> (bytes, part of the message)."""
+    rng = np.random.default_rng(0)
+    text = write_gait_csv(rng.uniform(-2.2, 2.2, (2000, 8)), {"z_B": "[0.1]"})
+    header = "time_s," + ",".join(f"joint_{k}" for k in range(1, 9))
+    cell = text.splitlines()[5].split(",")[3]
+    return {
+        "empty": (b"", "empty"),
+        "header only": ((header + "\n").encode(), "header only"),
+        "wrong column": (text.replace("joint_8", "joint_9").encode(), "unexpected ['joint_9']"),
+        "missing column": (
+            "\n".join(
+                ",".join(line.split(",")[:-1]) for line in text.splitlines() if not line.startswith("#")
+            ).encode(),
+            "missing ['joint_8']",
+        ),
+        "non-numeric": (text.replace(cell, "abc", 1).encode(), "is not a number"),
+        "NaN": (text.replace(cell, "nan", 1).encode(), "not a finite number"),
+        "Inf": (text.replace(cell, "inf", 1).encode(), "not a finite number"),
+        "out of range": (text.replace(cell, "2.5", 1).encode(), "outside the +/-2.2 rad"),
+        "wrong time step": (text.replace("\n0.05,", "\n0.07,", 1).encode(), "step by 0.05"),
+        "wrong row count": ("\n".join(text.splitlines()[:-1]).encode(), "expected 2000 data rows"),
+        "binary": (bytes(range(256)) * 4, "binary"),
+        "non-UTF-8": ("time_s,caf\u00e9\n".encode("latin-1"), "not UTF-8"),
+        "semicolons": (text.replace(",", ";").encode(), "separated by commas"),
+        "oversized": (b"0" * (3 * 2**20), "at most 2 MiB"),
+    }
+
+
+def test_gait_csv_refuses_every_bad_file_of_the_catalogue():
+    for name, (data, message) in _catalogue().items():
+        with pytest.raises(GaitCSVError, match=re.escape(message)):
+            read_gait_csv(data)
+        assert name
+
+
 def test_bad_import_keeps_the_current_gait(server):
     client, d = _connect(server)
     try:
         before = d.decoded.commands.copy()
-        assert d.import_bytes("bad.csv", b"time_s,joint_1\n0,0\n") is None
-        assert d.import_bytes("bin.csv", bytes(range(256))) is None
+        notes = _record_notifications(d)
+        for name, (data, message) in _catalogue().items():
+            assert d.import_bytes(f"{name}.csv", data) is None, name
+            assert notes[-1][0] == f"Import CSV: {name}.csv rejected" and message in notes[-1][1], (
+                name,
+                notes[-1],
+            )
+            assert notes[-1][1].endswith("The current gait stays.")
         assert d.wait_idle(30)
         np.testing.assert_array_equal(d.decoded.commands, before)
+        assert server.errors == []
     finally:
         client.close()
 
@@ -154,28 +210,12 @@ def test_latest_worker_runs_only_the_newest_request():
     assert ran == [(0, False), (19, True)]
 
 
-def test_gait_csv_round_trip_and_refusals():
+def test_gait_csv_round_trip():
     rng = np.random.default_rng(0)
     u = rng.uniform(-2.2, 2.2, (2000, 8))
     text = write_gait_csv(u, {"z_B": "[0.1]"})
     np.testing.assert_array_equal(read_gait_csv(text.encode()).commands, u)
-    bad = {
-        b"": "empty",
-        b"time_s,joint_1,joint_2,joint_3,joint_4,joint_5,joint_6,joint_7,joint_8\n": "header only",
-        text.replace("joint_8", "joint_9").encode(): "unexpected",
-        text.replace(",", ";").encode(): "separated by commas",
-        text.replace("0.05,", "0.07,", 1).encode(): "step by 0.05",
-        "\n".join(text.splitlines()[:-1]).encode(): "expected 2000 data rows",
-        text.replace(text.splitlines()[5].split(",")[3], "abc", 1).encode(): "not a number",
-        text.replace(text.splitlines()[5].split(",")[3], "nan", 1).encode(): "not a finite number",
-        text.replace(text.splitlines()[5].split(",")[3], "2.5", 1).encode(): "outside the +/-2.2 rad",
-        "caf\u00e9,time_s".encode("latin-1"): "not UTF-8",
-        bytes(range(256)): "binary",
-        b"x" * (3 * 2**20): "at most 2 MiB",
-    }
-    for data, message in bad.items():
-        with pytest.raises(GaitCSVError, match=re.escape(message)):
-            read_gait_csv(data)
+    np.testing.assert_array_equal(read_gait_csv(text.replace("\n", "\r\n").encode()).commands, u)
 
 
 def test_bench_app_json(checkpoint, capsys):
@@ -198,12 +238,7 @@ def test_diverging_import_is_reported_and_the_server_keeps_serving(server):
     client, d = _connect(server)
     try:
         before = d.decoded.commands.copy()
-        notes = []
-        original = d.client.add_notification
-        d.client.add_notification = lambda title, body, **kw: (
-            notes.append((title, body)),
-            original(title, body, **kw),
-        )
+        notes = _record_notifications(d)
         assert d.import_bytes("wild.csv", _square_wave_csv()) is not None
         assert d.wait_idle(60)
         assert notes and "not loaded" in notes[-1][0] and "unstable" in notes[-1][1]

@@ -13,22 +13,13 @@ import numpy as np
 import pytest
 
 from app.gait_csv import read_gait_csv
+from app.load import CHROMIUM, CHROMIUM_ARGS
 from app.server import DesignerServer
 from model import TrainConfig, train
 
 from .test_model import SMALL
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
+ARGS = CHROMIUM_ARGS
 SCREENSHOT = Path(__file__).resolve().parent.parent / "static" / "designer_test.png"
 
 pytestmark = [
@@ -85,6 +76,19 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
             # Import it back through the upload button.
             page.locator("input[type=file]").first.set_input_files(str(path))
             assert _wait(lambda: d.decoded.source == "import: gait.csv" and d.idle(), 90)
+            np.testing.assert_array_equal(d.decoded.commands, table.commands)
+            # An oversized upload is refused when it starts (nothing buffered) with a visible message,
+            # and a malformed one after parsing; the imported gait stays in both cases.
+            big = tmp_path / "big.csv"
+            big.write_bytes(b"0" * (5 * 2**20))
+            page.locator("input[type=file]").first.set_input_files(str(big))
+            sync_api.expect(page.get_by_text("Import CSV: big.csv rejected")).to_be_visible(timeout=30000)
+            assert not srv.server.gui._current_file_upload_states
+            bad = tmp_path / "bad.csv"
+            bad.write_text(path.read_text().replace("joint_8", "joint_9"))
+            page.locator("input[type=file]").first.set_input_files(str(bad))
+            sync_api.expect(page.get_by_text("Import CSV: bad.csv rejected")).to_be_visible(timeout=30000)
+            assert d.idle() and d.decoded.source == "import: gait.csv"
             np.testing.assert_array_equal(d.decoded.commands, table.commands)
             page.wait_for_timeout(1500)
             SCREENSHOT.parent.mkdir(exist_ok=True)

@@ -46,6 +46,8 @@ def _net(cfg: ModelConfig = SMALL) -> HierarchicalVAE:
         shape_std=np.ones((8, 2)).tolist(),
         body_mean=[0.0] * 6,
         body_std=[1.0] * 6,
+        stats_mean=[0.0] * 4,
+        stats_std=[1.0] * 4,
     )
     init_signal_source(net, DEFAULT_EXCITATION.freqs, unit)
     return net
@@ -73,11 +75,12 @@ def test_forward_shapes_and_finite_losses():
     assert out.shape.shape == (5, 8, 8, 2)
     assert out.body.shape == (5, 500, 6)
     assert out.z_b.shape == (5, 3) and out.z_j.shape == (5, 8, 4)
-    terms = loss_terms(net, shape, body)
-    assert set(terms) == {"loss", "rec_joint", "rec_body", "rec_delta", "mmd_joint", "mmd_body"}
+    terms = loss_terms(net, shape, body, torch.randn(5, 4))
+    assert out.stats.shape == (5, 4)
+    assert set(terms) == {"loss", "rec_joint", "rec_body", "rec_stats", "mmd_joint", "mmd_body"}
     assert all(torch.isfinite(v) for v in terms.values())
-    g_shape, g_body = net.generate(torch.zeros(2, 3))
-    assert g_shape.shape == (2, 8, 8, 2) and g_body.shape == (2, 500, 6)
+    g_shape, g_body, g_stats = net.generate(torch.zeros(2, 3))
+    assert g_shape.shape == (2, 8, 8, 2) and g_body.shape == (2, 500, 6) and g_stats.shape == (2, 4)
 
 
 def test_body_decoder_signals_follow_the_spectral_convention():
@@ -121,14 +124,16 @@ def test_tiny_model_loss_falls():
     t = torch.linspace(0, 1, 500)
     body = a[:, None, None] * torch.cos(torch.pi * t)[None, :, None].expand(16, 500, 6)
     shape = a[:, None, None, None] * torch.ones(16, 8, 8, 2)
-    first = None
+    first = first_stats = None
     for _ in range(60):
-        terms = loss_terms(net, shape, body)
+        terms = loss_terms(net, shape, body, a[:, None].expand(16, 4))
         opt.zero_grad()
         terms["loss"].backward()
         opt.step()
         first = first if first is not None else terms["rec_joint"].item() + terms["rec_body"].item()
+        first_stats = first_stats if first_stats is not None else terms["rec_stats"].item()
     last = terms["rec_joint"].item() + terms["rec_body"].item()
+    assert terms["rec_stats"].item() < 0.5 * first_stats
     assert last < 0.5 * first
 
 
@@ -238,3 +243,22 @@ def test_r2_per_channel():
     np.testing.assert_allclose(
         r2_per_channel(t, np.broadcast_to(t.mean(axis=(0, 1)), t.shape)), 0.0, atol=1e-12
     )
+
+
+def test_statistics_head_is_invariant_to_a_time_shift_of_the_gait():
+    """Shifting a gait by m body steps (0.2 s each) rotates every coefficient by 2 pi f_l 0.2 m; the
+    circular signal CNN and its time pooling then see the same signals, so the statistics agree."""
+    torch.manual_seed(0)
+    net = _net().eval()
+    rng = np.random.default_rng(1)
+    shape = 0.3 * rng.standard_normal((2, 8, 8, 2))
+    c = shape[..., 0] + 1j * shape[..., 1]
+    rot = np.exp(1j * 2 * np.pi * DEFAULT_EXCITATION.freqs * 0.2 * 37)  # 37 steps later
+    shifted = c * rot
+    with torch.no_grad():
+        a = net.predict_stats(torch.zeros(2, 3), torch.as_tensor(shape, dtype=torch.float32))
+        b = net.predict_stats(
+            torch.zeros(2, 3),
+            torch.as_tensor(np.stack([shifted.real, shifted.imag], -1), dtype=torch.float32),
+        )
+    torch.testing.assert_close(a, b, atol=2e-5, rtol=1e-4)

@@ -335,3 +335,24 @@ def test_loader_refuses_wrong_schema_and_wrong_arrays(tmp_path, tiny_dataset_pat
     _rewrite(tiny_dataset_path, tmp_path / "meta.npz", meta=np.array("{not json"))
     with pytest.raises(DatasetError, match="not valid JSON"):
         load_dataset(tmp_path / "meta.npz")
+
+
+def test_servo_lag_compensation_brings_the_measured_shape_to_the_target(tiny_dataset):
+    """Dividing a wanted (measured) shape by the servos' complex gain gives commands whose replay
+    measures closer to it than resynthesising the shape as is."""
+    from sim import servo_response
+
+    gain = servo_response(tiny_dataset.commands, tiny_dataset.joint_angles)
+    assert gain.shape == (8, 8, 2)
+    mag = np.hypot(gain[..., 0], gain[..., 1])
+    assert 0.7 < mag.min() and mag.max() < 1.1  # README's tracking table: 0.80-1.0
+    target = tiny_dataset.shape[1].astype(np.float64)
+    c = (target[..., 0] + 1j * target[..., 1]) / (gain[..., 0] + 1j * gain[..., 1])
+    np.testing.assert_allclose(
+        shape_to_commands(target, response=gain), shape_to_commands(np.stack([c.real, c.imag], -1))
+    )
+    errors = []
+    for u in (shape_to_commands(target), shape_to_commands(target, response=gain)):
+        measured = joint_shape(replay(u).joint_angles)
+        errors.append(np.linalg.norm(measured - target) / np.linalg.norm(target))
+    assert errors[1] < 0.7 * errors[0], errors
