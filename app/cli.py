@@ -68,6 +68,8 @@ class Evaluate:
     """Simulation threads (default: all cores)."""
     json: bool = False
     """Print the figures as one JSON object on the last line."""
+    report: Path | None = None
+    """Also write the figures, with every generated gait's statistics, to this JSON file."""
 
 
 @dataclass
@@ -82,6 +84,8 @@ class Figures:
     """Checkpoint directory (default: the shipped pretrained model)."""
     seed: int = 0
     """Seed of the sample choice and latent draws."""
+    report: Path | None = None
+    """A JSON report from `snakeloco evaluate --report` for the consistency figure (fig9)."""
 
 
 @dataclass
@@ -219,8 +223,16 @@ def run_evaluate(cmd: Evaluate) -> dict:
             progress=bar.update,
         )
     print(format_report(report))
+    if cmd.report is not None:
+        cmd.report.parent.mkdir(parents=True, exist_ok=True)
+        cmd.report.write_text(jsonlib.dumps(report, indent=1))
     if cmd.json:
-        print(jsonlib.dumps(report))
+        summary = {k: v for k, v in report.items() if k != "consistency"}
+        summary["consistency"] = {
+            mode: {k: v for k, v in c.items() if k != "gaits"}
+            for mode, c in report.get("consistency", {}).items()
+        }
+        print(jsonlib.dumps(summary))
     return report
 
 
@@ -228,7 +240,7 @@ def run_figures(cmd: Figures) -> list[Path]:
     """Write the figures and list them."""
     from model.figures import figures
 
-    paths = figures(cmd.checkpoint, cmd.data, cmd.out, cmd.seed)
+    paths = figures(cmd.checkpoint, cmd.data, cmd.out, cmd.seed, cmd.report)
     for p in paths:
         print(p)
     return paths

@@ -128,12 +128,10 @@ class GaitModel:
             stats_dict(stats.numpy().astype(np.float64) * self._stats_std + self._stats_mean),
         )
 
-    def predict_stats(self, z_b: np.ndarray, shape: np.ndarray) -> dict[str, np.ndarray]:
-        """Body statistics the model predicts for given z_b (B, Db) and joint shapes (B, 8, L, 2) rad."""
+    def predict_stats(self, shape: np.ndarray) -> dict[str, np.ndarray]:
+        """Body statistics the model predicts for the gaits of joint shapes (B, 8, L, 2) rad."""
         with self._lock, torch.inference_mode():
-            v = self.net.predict_stats(
-                torch.as_tensor(np.atleast_2d(z_b), dtype=torch.float32), self._norm_shape(np.asarray(shape))
-            )
+            v = self.net.predict_stats(self._norm_shape(np.asarray(shape)))
         return stats_dict(v.numpy().astype(np.float64) * self._stats_std + self._stats_mean)
 
     def sample_joint_latents(

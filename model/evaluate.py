@@ -55,7 +55,7 @@ def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, bat
         "r2_body": r2_overall(body_ds, b_hat),
         "r2_body_per_channel": dict(zip(BODY_CHANNELS, r2_per_channel(body_ds, b_hat).tolist(), strict=True)),
         # The statistics head on the true shapes: median relative error against the records' own.
-        "stats_median_rel_err": _stats_errors(model.predict_stats(z_b, shape), body_ds),
+        "stats_median_rel_err": _stats_errors(model.predict_stats(shape), body_ds),
         "z_b": z_b,
         "z_j": z_j,
     }
@@ -140,6 +140,7 @@ def consistency(
         summary["final_inside_fraction"] = float(np.mean([r["final_inside"] for r in rows])) if rows else 0.0
         summary["n_gaits"] = len(rows)
         summary["n_broken"] = broken
+        summary["gaits"] = rows
         report[name] = summary
     return report
 

@@ -21,8 +21,17 @@ def _plt():
     return plt
 
 
-def figures(checkpoint: str | Path | None, data: str | Path, out: str | Path, seed: int = 0) -> list[Path]:
-    """Write fit, prior-sweep, z_k-sample and joint-shape figures to ``out``; returns their paths."""
+def figures(
+    checkpoint: str | Path | None,
+    data: str | Path,
+    out: str | Path,
+    seed: int = 0,
+    report: str | Path | None = None,
+) -> list[Path]:
+    """Write fit, prior-sweep, z_k-sample and joint-shape figures to ``out``; returns their paths.
+
+    With ``report`` (JSON from ``snakeloco evaluate --report``), also the consistency figure.
+    """
     plt = _plt()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -113,4 +122,51 @@ def figures(checkpoint: str | Path | None, data: str | Path, out: str | Path, se
     fig8.savefig(paths[-1], dpi=80)
     plt.close(fig7)
     plt.close(fig8)
+    if report is not None:
+        paths.append(consistency_figure(report, out / "fig9_consistency.png"))
     return paths
+
+
+def consistency_figure(report: str | Path, path: Path) -> Path:
+    """Predicted vs simulated body statistics of prior-generated gaits, with the physics' spread."""
+    import json
+
+    plt = _plt()
+    r = json.loads(Path(report).read_text())
+    labels = {
+        "path_length": "path length over 100 s (m)",
+        "median_speed": "median speed (m/s)",
+        "vertical_std": "vertical oscillation std (m)",
+        "net_roll": "net roll (rad)",
+    }
+    fig, axes = plt.subplots(1, 4, figsize=(20, 5))
+    for (mode, c), marker in zip(r["consistency"].items(), ("o", "x"), strict=False):
+        gaits = c["gaits"]
+        for ax, (key, label) in zip(axes, labels.items(), strict=True):
+            sim = np.array([g[key + "_simulated"] for g in gaits])
+            dec = np.array([g[key + "_decoded"] for g in gaits])
+            spread = np.array([g[key + "_spread"] for g in gaits]) * np.abs(sim)
+            ax.errorbar(
+                sim,
+                dec,
+                xerr=spread,
+                fmt=marker,
+                ms=3,
+                alpha=0.5,
+                elinewidth=0.5,
+                label=f"{mode} (median error {100 * c[key + '_err']:.0f}%)",
+            )
+            ax.set_xlabel(f"simulated {label}")
+            ax.set_ylabel("model")
+            ax.set_title(label)
+    for ax in axes:
+        lo, hi = ax.get_xlim()
+        ax.plot([lo, hi], [lo, hi], "k--", lw=1)
+        ax.legend(fontsize=8)
+    fig.suptitle(
+        "Generated gaits (z_B from the prior): the model's statistics vs MuJoCo's; bars: ensemble std"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path

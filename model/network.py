@@ -16,11 +16,11 @@ C = 6 body channels, Db = z_b_dim, Dj = z_j_dim, H = root GRU width.
   generation setting (a), because the decoder otherwise memorised training bodies.
 - Statistics head (an extension of the paper): the body's *predictable statistics* over the record
   (log path length, log median speed, log vertical-oscillation std, net roll), predicted from z_B and
-  the gait itself. The joint shape (the true one in training, the decoded one in generation) is
+  the gait alone. The joint shape (the true one in training, the decoded one in generation) is
   resynthesised by the inverse transform of ``sim.spectra`` into the 8 joint angles and rates at the
   body's time stamps; a dilated 1D CNN with circular padding (the gait is periodic over the record)
   runs over those 16 channels and is pooled over time (mean and std: invariant to a time shift of
-  the gait), then an MLP with z_B gives the statistics. Why: a body *series* of these gaits is
+  the gait), then an MLP gives the statistics. Why: a body *series* of these gaits is
   chaotic (two replays of the same commands with 1e-3 noise have body R^2 -0.04 against each
   other; vertical -0.18, pitch -0.18), so its MSE-optimal prediction is the smooth conditional mean,
   whose oscillation (path length, speed, vertical std) is far too small. The statistics themselves
@@ -180,7 +180,7 @@ class HierarchicalVAE(nn.Module):
             c_prev = c_sig
         self.signal_net = nn.Sequential(*layers)
         self.stats_head = nn.Sequential(
-            nn.Linear(2 * c_sig + cfg.z_b_dim, cfg.stats_hidden),
+            nn.Linear(2 * c_sig, cfg.stats_hidden),
             nn.GELU(),
             nn.Linear(cfg.stats_hidden, cfg.stats_hidden),
             nn.GELU(),
@@ -276,11 +276,16 @@ class HierarchicalVAE(nn.Module):
         x = self.decoder(h)[:, :, : self.cfg.body_steps]  # (B, C, T)
         return x.transpose(1, 2)
 
-    def predict_stats(self, z_b: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
-        """z_b (B, Db), normalised shape (B, K, L, 2) -> normalised body statistics (B, n_stats)."""
+    def predict_stats(self, shape: torch.Tensor) -> torch.Tensor:
+        """Normalised shape (B, K, L, 2) -> normalised body statistics (B, n_stats).
+
+        A function of the gait alone: z_B is left out so that training cannot lean on what the
+        encoder read off one chaotic realisation, which generation does not have, and so that the
+        statistics term does not pull on the body latent.
+        """
         h = self.signal_net(self.joint_signals(shape))  # (B, c_sig, T)
         pooled = torch.cat([h.mean(dim=2), h.std(dim=2)], dim=1)  # (B, 2 c_sig): shift-invariant
-        return self.stats_head(torch.cat([pooled, z_b], dim=1))
+        return self.stats_head(pooled)
 
     # --- joints ----------------------------------------------------------------------------------
 
@@ -363,7 +368,7 @@ class HierarchicalVAE(nn.Module):
         z_b = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         joints = self.run_joints(z_b, shape, sample_posterior=sample)
         body_hat = self.decode_body(z_b, joints["z_j"])
-        stats = self.predict_stats(z_b, shape)  # teacher forcing: the true shape
+        stats = self.predict_stats(shape)  # teacher forcing: the true shape
         return Output(
             shape=joints["shape"],
             body=body_hat,
@@ -384,7 +389,7 @@ class HierarchicalVAE(nn.Module):
             z_j = torch.zeros(z_b.shape[0], self.cfg.n_joints, self.cfg.z_j_dim, device=z_b.device)
         joints = self.run_joints(z_b, z_j=z_j)
         shape = joints["shape"]
-        return shape, self.decode_body(z_b, joints["z_j"]), self.predict_stats(z_b, shape)
+        return shape, self.decode_body(z_b, joints["z_j"]), self.predict_stats(shape)
 
     def sample_joints(self, z_b: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
         """Joint latents drawn from the learned prior given z_b (B, Db), noise eps (B, K, Dj)."""

@@ -64,11 +64,51 @@ def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
 
 
 def test_figures_and_bench_commands(checkpoint, tiny_dataset_path, tmp_path, capsys):
+    report = tmp_path / "report.json"
     main(
-        ["figures", "--data", str(tiny_dataset_path), "--checkpoint", str(checkpoint), "--out", str(tmp_path)]
+        [
+            "evaluate",
+            "--data",
+            str(tiny_dataset_path),
+            "--checkpoint",
+            str(checkpoint),
+            "--prior-samples",
+            "2",
+            "--ensemble",
+            "2",
+            "--json",
+            "--report",
+            str(report),
+        ]
+    )
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert "gaits" not in printed["consistency"]["zk_zero"]  # the summary line stays short
+    written = json.loads(report.read_text())
+    gaits = written["consistency"]["zk_zero"]["gaits"]
+    assert len(gaits) == written["consistency"]["zk_zero"]["n_gaits"]
+    assert all(np.isfinite(g["path_length_decoded"]) and g["path_length_simulated"] > 0 for g in gaits)
+    assert set(written["stats_median_rel_err"]) == {"path_length", "median_speed", "vertical_std", "net_roll"}
+    main(
+        [
+            "figures",
+            "--data",
+            str(tiny_dataset_path),
+            "--checkpoint",
+            str(checkpoint),
+            "--out",
+            str(tmp_path),
+            "--report",
+            str(report),
+        ]
     )
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
-    assert pngs == ["fig5_fit.png", "fig6_prior_sweep.png", "fig7_zk_samples.png", "fig8_joint_shapes.png"]
+    assert pngs == [
+        "fig5_fit.png",
+        "fig6_prior_sweep.png",
+        "fig7_zk_samples.png",
+        "fig8_joint_shapes.png",
+        "fig9_consistency.png",
+    ]
     assert all((tmp_path / p).read_bytes()[:4] == b"\x89PNG" for p in pngs)
     capsys.readouterr()
     main(["bench", "model", "--json", "--checkpoint", str(checkpoint), "--calls", "20"])

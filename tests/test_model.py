@@ -256,9 +256,16 @@ def test_statistics_head_is_invariant_to_a_time_shift_of_the_gait():
     rot = np.exp(1j * 2 * np.pi * DEFAULT_EXCITATION.freqs * 0.2 * 37)  # 37 steps later
     shifted = c * rot
     with torch.no_grad():
-        a = net.predict_stats(torch.zeros(2, 3), torch.as_tensor(shape, dtype=torch.float32))
+        a = net.predict_stats(torch.as_tensor(shape, dtype=torch.float32))
         b = net.predict_stats(
-            torch.zeros(2, 3),
-            torch.as_tensor(np.stack([shifted.real, shifted.imag], -1), dtype=torch.float32),
+            torch.as_tensor(np.stack([shifted.real, shifted.imag], -1), dtype=torch.float32)
         )
     torch.testing.assert_close(a, b, atol=2e-5, rtol=1e-4)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_training_on_cuda_without_cuda_is_refused(tiny_dataset_path, tmp_path):
+    with pytest.raises(RuntimeError, match="no CUDA device"):
+        train(
+            tiny_dataset_path, tmp_path, TrainConfig(epochs=1, device="cuda"), SMALL, log=None, progress=False
+        )

@@ -356,3 +356,11 @@ def test_servo_lag_compensation_brings_the_measured_shape_to_the_target(tiny_dat
         measured = joint_shape(replay(u).joint_angles)
         errors.append(np.linalg.norm(measured - target) / np.linalg.norm(target))
     assert errors[1] < 0.7 * errors[0], errors
+
+
+def test_loader_never_unpickles(tmp_path, tiny_dataset_path):
+    """A dataset whose meta is a pickled object array is refused, not unpickled."""
+    evil = tmp_path / "evil.npz"
+    _rewrite(tiny_dataset_path, evil, meta=np.array([{"schema_version": 1}], dtype=object))
+    with pytest.raises(DatasetError, match="unreadable dataset"):
+        load_dataset(evil)
