@@ -59,7 +59,7 @@ SHAPE_SCALE = 1.5
 JOINT_SPACING = 0.12
 """Point-cloud height step between joints (m)."""
 FPS = 20.0
-PHYSICS_NICE = 5
+PHYSICS_NICE = 15
 """Nice increment of the physics worker threads (and the rollout threads they start)."""
 
 
