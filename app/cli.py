@@ -323,8 +323,8 @@ def run_bench_app(cmd: BenchApp) -> dict:
 def main(args: list[str] | None = None) -> None:
     """Entry point of the ``snakeloco`` console script.
 
-    A bad input file (dataset, checkpoint) or a port already in use ends the command with a one-line
-    message naming the problem and exit status 2, not a traceback.
+    A bad input file (dataset, checkpoint) ends the command with a one-line message naming the
+    problem and exit status 2, not a traceback.
     """
     from model.checkpoint import CheckpointError
     from sim import DatasetError

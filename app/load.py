@@ -20,7 +20,6 @@ The browsers (and the thread driving them) run at nice +10: in use they sit on o
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ import numpy as np
 
 from app.gait_csv import read_gait_csv
 from app.server import DesignerClient, DesignerServer
+from app.session import lower_thread_priority, set_thread_nice
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -50,20 +50,6 @@ LOAD_ARGS = [
     "--disable-background-timer-throttling",
     "--disable-backgrounding-occluded-windows",
 ]
-
-
-def _set_thread_nice(value: int | None) -> int | None:
-    """Set this thread's nice value (Linux: per thread; processes and threads it starts inherit it);
-    returns the previous one, or None where that is not possible."""
-    if value is None or not hasattr(os, "setpriority"):
-        return None
-    tid = threading.get_native_id()
-    try:
-        previous = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, value)
-    except OSError:
-        return None
-    return previous
 
 
 def rss_mb() -> float:
@@ -140,7 +126,8 @@ class _Dragger:
         self._steps_left = 0
 
 
-def _wait(predicate, timeout: float) -> bool:
+def wait_until(predicate, timeout: float = 60.0) -> bool:
+    """Poll ``predicate`` every 50 ms until it is true (True) or ``timeout`` seconds pass (False)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if predicate():
@@ -196,7 +183,7 @@ def _phase(playwright, server: DesignerServer, n: int, seconds: float, rng, tmp:
         page = browser.new_page(viewport={"width": 1280, "height": 800}, accept_downloads=True)
         page.on("pageerror", lambda exc: page_errors.append(str(exc)))
         page.goto(f"http://127.0.0.1:{server.port}")
-        if not _wait(lambda b=before: set(server.clients) - b, 90):
+        if not wait_until(lambda b=before: set(server.clients) - b, 90):
             raise RuntimeError("a browser page never connected to the designer")
         designers.append(server.clients[(set(server.clients) - before).pop()])
         page.get_by_role("slider").first.wait_for(timeout=90000)
@@ -243,7 +230,7 @@ def _phase(playwright, server: DesignerServer, n: int, seconds: float, rng, tmp:
             )
     for browser in browsers:
         browser.close()
-    _wait(lambda: not server.clients, 30)
+    wait_until(lambda: not server.clients, 30)
     return {
         "clients": clients,
         "server_exceptions": server.errors[errors_before:],
@@ -273,9 +260,7 @@ def bench_load(
     # In use the browsers run on other machines; here they share the cores with the server. The
     # driving thread (and so the Playwright driver and Chromium it starts) runs at nice +10 so the
     # browsers' software WebGL yields to the server instead of timing itself into its latencies.
-    previous_nice = _set_thread_nice(
-        os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + BROWSER_NICE
-    )
+    previous_nice = lower_thread_priority(BROWSER_NICE)
     rng = np.random.default_rng(seed)
     phases = {}
     try:
@@ -287,7 +272,7 @@ def bench_load(
     finally:
         rss.stop()
         server.stop()
-        _set_thread_nice(previous_nice)  # lowering needs no privilege; raising back may (then it stays)
+        set_thread_nice(previous_nice)  # lowering needs no privilege; raising back may (then it stays)
     multi = phases[clients]
     single = phases[1]["clients"][0]
     window = rss.window(multi["t_start"], multi["t_end"])

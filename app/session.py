@@ -17,11 +17,9 @@ from typing import Literal
 import numpy as np
 
 from model.api import GaitModel
+from model.stats import MODEL_RATE
 from sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape
 from sim.consistency import compare, perturbed_commands
-
-MODEL_RATE = 20.0 / BODY_DOWNSAMPLE
-"""Sample rate of decoded body paths (Hz)."""
 
 ZkMode = Literal["zero", "sampled"]
 
@@ -129,6 +127,27 @@ class GaitSession:
         return z_b[0]
 
 
+def set_thread_nice(value: int | None) -> int | None:
+    """Set the calling thread's nice value (Linux: per thread; threads and processes it starts
+    inherit it); returns the previous value, or None where that is not possible."""
+    if value is None or not hasattr(os, "setpriority"):
+        return None
+    tid = threading.get_native_id()
+    try:
+        previous = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, value)
+    except OSError:
+        return None
+    return previous
+
+
+def lower_thread_priority(increment: int) -> int | None:
+    """Raise the calling thread's nice value by ``increment``; returns the previous value or None."""
+    if not hasattr(os, "getpriority"):
+        return None
+    return set_thread_nice(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + increment)
+
+
 class LatestWorker:
     """One thread that runs ``fn(version, request, is_current)`` for the newest submitted request.
 
@@ -147,8 +166,6 @@ class LatestWorker:
         self._fn = fn
         self._on_error = on_error
         self._nice = nice
-        self.errors = 0
-        """Jobs that raised (each is also printed and passed to ``on_error``)."""
         self._cv = threading.Condition()
         self._pending: tuple[int, object] | None = None
         self._version = 0
@@ -190,13 +207,10 @@ class LatestWorker:
         self._thread.join(timeout=30)
 
     def _loop(self) -> None:
-        if self._nice and hasattr(os, "setpriority"):
-            # Lower this thread's priority (Linux: per thread); native threads it starts, such as
-            # mujoco.rollout's pool, inherit it. Keeps slider decoding responsive under physics load.
-            try:
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self._nice)
-            except OSError:
-                pass
+        if self._nice:
+            # Native threads this one starts, such as mujoco.rollout's pool, inherit the priority.
+            # Keeps slider decoding responsive under physics load.
+            lower_thread_priority(self._nice)
         while True:
             with self._cv:
                 while self._pending is None and not self._closed:
@@ -211,7 +225,6 @@ class LatestWorker:
             except Exception as exc:  # a job's failure must never kill the worker
                 import traceback
 
-                self.errors += 1
                 traceback.print_exc()
                 if self._on_error is not None:
                     try:

@@ -30,6 +30,8 @@ class GaitModel:
         self._shape_mean, self._shape_std = norm["shape_mean"], norm["shape_std"]  # (L, 2)
         self._body_mean, self._body_std = norm["body_mean"], norm["body_std"]  # (6,)
         self._stats_mean, self._stats_std = norm["stats_mean"], norm["stats_std"]  # (4,)
+        g = config.servo_response
+        self._servo_response = None if g is None else np.asarray(g, dtype=np.float64)  # (8, L, 2)
         self._lock = threading.Lock()
 
     @property
@@ -48,8 +50,7 @@ class GaitModel:
     @property
     def servo_response(self) -> np.ndarray | None:
         """(8, L, 2) measured/commanded complex servo gain of the training data, or None."""
-        g = self.config.servo_response
-        return None if g is None else np.asarray(g, dtype=np.float64)
+        return self._servo_response
 
     def commands(self, shape: np.ndarray) -> np.ndarray:
         """Joint commands (..., 2000, 8) rad that make the servos move as a decoded shape (..., 8, L, 2).
@@ -60,7 +61,7 @@ class GaitModel:
         """
         from sim import shape_to_commands
 
-        return shape_to_commands(shape, self.freqs, response=self.servo_response)
+        return shape_to_commands(shape, self.freqs, response=self._servo_response)
 
     @property
     def hash(self) -> str:

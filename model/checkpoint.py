@@ -170,7 +170,7 @@ def load_checkpoint(directory: str | Path | None = None) -> tuple[HierarchicalVA
     net.load_state_dict(state)
     if not bool(net.signal_ready):
         raise CheckpointError(
-            f"checkpoint {directory}: the body decoder's signal branch was never initialised"
+            f"checkpoint {directory}: the statistics head's signal branch was never initialised"
         )
     net.eval()
     return net, config

@@ -14,11 +14,9 @@ import numpy as np
 
 from model.api import GaitModel, load_pretrained
 from model.metrics import mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
+from model.stats import MODEL_RATE
 from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, Simulator, load_dataset
 from sim.consistency import PREDICTABLE, compare, path_stats, perturbed_commands
-
-MODEL_RATE = 20.0 / BODY_DOWNSAMPLE
-"""Sample rate of the model's body series (Hz)."""
 
 
 def _stats_errors(predicted: dict[str, np.ndarray], body_ds: np.ndarray) -> dict[str, float]:

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim import BODY_DOWNSAMPLE
 from sim.consistency import path_stats
 
 STAT_NAMES = ("path_length", "median_speed", "vertical_std", "net_roll")
-MODEL_RATE = 5.0
-"""Sample rate of the model's body series (Hz)."""
+MODEL_RATE = 20.0 / BODY_DOWNSAMPLE
+"""Sample rate of the model's body series (Hz): the 20 Hz record, every ``BODY_DOWNSAMPLE``-th sample."""
 _FLOOR = 1e-6
 
 

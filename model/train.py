@@ -62,7 +62,7 @@ def make_scheduler(
 
 
 def init_signal_source(net: HierarchicalVAE, freqs: np.ndarray, norm: Normalization) -> None:
-    """Give the body decoder's signal branch the inverse transform of ``sim.spectra`` at the body
+    """Give the statistics head's signal branch the inverse transform of ``sim.spectra`` at the body
     series' time stamps (every ``BODY_DOWNSAMPLE``-th command sample) and the shape normalisation."""
     phase = synthesis_phase(np.asarray(freqs, np.float64), stride=BODY_DOWNSAMPLE)  # (T, L)
     if phase.shape[0] != net.cfg.body_steps:
