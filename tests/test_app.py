@@ -14,16 +14,6 @@ from app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
 from app.headless import HeadlessClient
 from app.server import DesignerServer
 from app.session import LatestWorker
-from model import TrainConfig, train
-
-from .test_model import SMALL
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tiny_dataset_path, tmp_path_factory):
-    out = tmp_path_factory.mktemp("ckpt_app")
-    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
-    return out
 
 
 @pytest.fixture

@@ -6,18 +6,14 @@ Skipped with a reason where chromium or Playwright is missing; CI installs both 
 from __future__ import annotations
 
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from app.gait_csv import read_gait_csv
-from app.load import CHROMIUM, CHROMIUM_ARGS
+from app.load import CHROMIUM, CHROMIUM_ARGS, wait_until
 from app.server import DesignerServer
-from model import TrainConfig, train
-
-from .test_model import SMALL
 
 ARGS = CHROMIUM_ARGS
 SCREENSHOT = Path(__file__).resolve().parent.parent / "static" / "designer_test.png"
@@ -30,22 +26,6 @@ pytestmark = [
 ]
 
 
-@pytest.fixture(scope="module")
-def checkpoint(tiny_dataset_path, tmp_path_factory):
-    out = tmp_path_factory.mktemp("ckpt_browser")
-    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
-    return out
-
-
-def _wait(predicate, timeout=60.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.1)
-    return False
-
-
 def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
     sync_api = pytest.importorskip("playwright.sync_api")
     srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
@@ -54,7 +34,7 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = browser.new_page(viewport={"width": 1400, "height": 900}, accept_downloads=True)
             page.goto(f"http://127.0.0.1:{srv.port}")
-            assert _wait(lambda: len(srv.clients) == 1), "the page never connected"
+            assert wait_until(lambda: len(srv.clients) == 1), "the page never connected"
             d = next(iter(srv.clients.values()))
             assert d.wait_idle(90)
             # Move the first z_B slider with the keyboard, as a person would.
@@ -62,8 +42,8 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
             slider.focus()
             for _ in range(25):
                 slider.press("ArrowRight")
-            assert _wait(lambda: d.sliders[0].value > 0.2), "the slider move never reached the server"
-            assert _wait(lambda: d.idle() and d.decoded.latents.z_b[0] == d.sliders[0].value, 90)
+            assert wait_until(lambda: d.sliders[0].value > 0.2), "the slider move never reached the server"
+            assert wait_until(lambda: d.idle() and d.decoded.latents.z_b[0] == d.sliders[0].value, 90)
             assert d.simulated is not None
             with page.expect_download(timeout=30000) as info:
                 page.get_by_role("button", name="Export CSV").click()
@@ -75,7 +55,7 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
             np.testing.assert_array_equal(table.commands, d.decoded.commands)
             # Import it back through the upload button.
             page.locator("input[type=file]").first.set_input_files(str(path))
-            assert _wait(lambda: d.decoded.source == "import: gait.csv" and d.idle(), 90)
+            assert wait_until(lambda: d.decoded.source == "import: gait.csv" and d.idle(), 90)
             np.testing.assert_array_equal(d.decoded.commands, table.commands)
             # An oversized upload is refused when it starts (nothing buffered) with a visible message,
             # and a malformed one after parsing; the imported gait stays in both cases.

@@ -14,17 +14,7 @@ import pytest
 
 from app.cli import main
 from app.headless import HeadlessClient
-from model import TrainConfig, train
 from sim import load_dataset
-
-from .test_model import SMALL
-
-
-@pytest.fixture(scope="module")
-def tiny_checkpoint_dir(tiny_dataset_path, tmp_path_factory):
-    out = tmp_path_factory.mktemp("ckpt_cli")
-    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
-    return out
 
 
 def test_generate_command(tmp_path, capsys, tiny_dataset):
@@ -48,7 +38,7 @@ def test_unknown_subcommand_exits_with_usage():
         main(["fly"])
 
 
-def test_bad_checkpoint_and_dataset_end_with_a_clear_message(tmp_path, capsys, tiny_checkpoint_dir):
+def test_bad_checkpoint_and_dataset_end_with_a_clear_message(tmp_path, capsys, checkpoint):
     with pytest.raises(SystemExit) as exc:
         main(["serve", "--checkpoint", str(tmp_path / "nowhere"), "--port", "0"])
     assert exc.value.code == 2
@@ -56,9 +46,7 @@ def test_bad_checkpoint_and_dataset_end_with_a_clear_message(tmp_path, capsys, t
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"PK\x03\x04 truncated")
     with pytest.raises(SystemExit) as exc:
-        main(
-            ["evaluate", "--data", str(bad), "--prior-samples", "0", "--checkpoint", str(tiny_checkpoint_dir)]
-        )
+        main(["evaluate", "--data", str(bad), "--prior-samples", "0", "--checkpoint", str(checkpoint)])
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("snakeloco: error:") and "bad.npz" in err
@@ -71,7 +59,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_serve_stops_cleanly_on_signals(tmp_path, tiny_checkpoint_dir, sig):
+def test_serve_stops_cleanly_on_signals(tmp_path, checkpoint, sig):
     """Ctrl-C and SIGTERM end `snakeloco serve` with status 0 and free the port (a process whose
     worker threads lingered would not exit: they are joined, not abandoned)."""
     port = _free_port()
@@ -84,7 +72,7 @@ def test_serve_stops_cleanly_on_signals(tmp_path, tiny_checkpoint_dir, sig):
             "--port",
             str(port),
             "--checkpoint",
-            str(tiny_checkpoint_dir),
+            str(checkpoint),
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

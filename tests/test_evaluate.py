@@ -8,18 +8,8 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from model import TrainConfig, train
 from model.evaluate import evaluate, format_report
 from sim.consistency import compare, ensemble_spread, path_stats, perturbed_commands
-
-from .test_model import SMALL
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tiny_dataset_path, tmp_path_factory):
-    out = tmp_path_factory.mktemp("ckpt_eval")
-    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
-    return out
 
 
 def test_perturbed_commands():

@@ -12,19 +12,10 @@ import numpy as np
 import pytest
 
 from app.load import CHROMIUM
-from model import TrainConfig, train
 
 from .test_browser import pytestmark as browser_marks
-from .test_model import SMALL
 
 pytestmark = [*browser_marks, pytest.mark.load]
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tiny_dataset_path, tmp_path_factory):
-    out = tmp_path_factory.mktemp("ckpt_load")
-    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
-    return out
 
 
 def test_bench_load_two_tabs(checkpoint, capsys):
