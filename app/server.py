@@ -15,7 +15,10 @@ channels are expressed in, so decoded and simulated paths start at the origin he
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import signal
+import sys
 import threading
 import time
 import traceback
@@ -26,6 +29,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+import torch
 import trimesh
 import viser
 import viser.uplot as uplot
@@ -59,8 +63,12 @@ SHAPE_SCALE = 1.5
 JOINT_SPACING = 0.12
 """Point-cloud height step between joints (m)."""
 FPS = 20.0
+DECODE_THREADS = 1
+"""torch intra-op threads of a designer server process. Four threads decoding at once on 2 cores:
+p50 21-23 ms per decode with 1 intra-op thread, 21-31 ms with 2 (two runs each)."""
 PHYSICS_NICE = 15
-"""Nice increment of the physics worker threads (and the rollout threads they start)."""
+"""Nice increment of the native threads that run a tab's rollouts (its Python threads stay at the
+server's priority, so a niced thread never holds the GIL that slider decoding waits for)."""
 
 
 def _help_text() -> str:
@@ -93,6 +101,7 @@ class Timing:
 
     version: int
     submitted: float
+    started: float = float("nan")  # the decode worker picked the request up
     decoded: float = float("nan")
     replayed: float = float("nan")
     ensembled: float = float("nan")
@@ -116,7 +125,7 @@ class DesignerClient:
         self.client = client
         self._on_error = on_error
         self.model = model
-        self.session = GaitSession(model, ensemble=ensemble, workers=workers)
+        self.session = GaitSession(model, ensemble=ensemble, workers=workers, physics_nice=PHYSICS_NICE)
         self.decoded: DecodedGait | None = None
         self.simulated: SimulatedGait | None = None
         self.timings: deque[Timing] = deque(maxlen=2000)
@@ -139,9 +148,7 @@ class DesignerClient:
         self._build_scene()
         report = lambda exc: self._report(f"{type(exc).__name__}: {exc}")  # noqa: E731
         self.decoder = LatestWorker(self._decode_job, name=f"decode-{client.client_id}", on_error=report)
-        self.physics = LatestWorker(
-            self._physics_job, name=f"physics-{client.client_id}", on_error=report, nice=PHYSICS_NICE
-        )
+        self.physics = LatestWorker(self._physics_job, name=f"physics-{client.client_id}", on_error=report)
         self._animator = threading.Thread(
             target=self._animate, name=f"animate-{client.client_id}", daemon=True
         )
@@ -416,6 +423,7 @@ class DesignerClient:
         if not self.is_current(version):
             return
         timing = self._timing(version)
+        timing.started = time.perf_counter()
         decoded = self.session.decode(latents)
         timing.decode_ms = decoded.decode_ms
         with self._draw_lock:
@@ -717,7 +725,28 @@ class DesignerClient:
         self._closed.set()
         self.decoder.close()
         self.physics.close()
+        self.session.close()
         self._animator.join(timeout=5)
+
+
+def return_freed_buffers_to_the_os(threshold: int = 1 << 20) -> bool:
+    """glibc: serve every allocation of ``threshold`` bytes or more with its own mmap, unmapped
+    when freed. Returns whether the setting took (False elsewhere).
+
+    By default glibc raises that threshold (up to 32 MB) after the first large free; from then on
+    each replay's 6-10 MB state and sensor arrays come from heap arenas, whose pages are kept after
+    the arrays die, and a server's RSS creeps up with every tab's replays.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(_M_MMAP_THRESHOLD, int(threshold)))
+    except (OSError, AttributeError):  # not glibc
+        return False
+
+
+_M_MMAP_THRESHOLD = -3  # glibc malloc.h
 
 
 class DesignerServer:
@@ -733,6 +762,10 @@ class DesignerServer:
         verbose: bool = True,
     ) -> None:
         self.model = load_pretrained(checkpoint)
+        # One decode is a small, GIL-bound graph (~5 ms): intra-op threads do not speed it up, and
+        # with several tabs decoding at once their OpenMP teams only compete for the cores.
+        torch.set_num_threads(DECODE_THREADS)
+        return_freed_buffers_to_the_os()
         self.ensemble = ensemble
         self.workers = workers
         self.clients: dict[int, DesignerClient] = {}

@@ -20,6 +20,7 @@ from model.api import GaitModel
 from model.stats import MODEL_RATE
 from sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape
 from sim.consistency import compare, perturbed_commands
+from sim.physics import lower_thread_priority, set_thread_nice
 
 ZkMode = Literal["zero", "sampled"]
 
@@ -65,11 +66,20 @@ class SimulatedGait:
 class GaitSession:
     """Per-client pipeline state. Not thread-safe on its own: drive it from one ``LatestWorker``."""
 
-    def __init__(self, model: GaitModel, ensemble: int = 8, workers: int | None = None) -> None:
+    def __init__(
+        self, model: GaitModel, ensemble: int = 8, workers: int | None = None, physics_nice: int = 0
+    ) -> None:
         self.model = model
         self.ensemble = ensemble
-        self._replayer = Simulator(workers=1)
-        self._ensembler = Simulator(workers=workers or os.cpu_count() or 1)
+        # ``physics_nice``: the rollouts run on native threads that much lower in CPU priority
+        # (``Simulator(nice=...)``), so a tab's physics yields to every tab's slider decoding.
+        self._replayer = Simulator(workers=1, nice=physics_nice)
+        self._ensembler = Simulator(workers=workers or os.cpu_count() or 1, nice=physics_nice)
+
+    def close(self) -> None:
+        """Stop the simulators' native threads."""
+        self._replayer.close()
+        self._ensembler.close()
 
     def decode(self, latents: Latents) -> DecodedGait:
         """Decode latents to a joint shape, a body path and resynthesised commands."""
@@ -127,27 +137,6 @@ class GaitSession:
         return z_b[0]
 
 
-def set_thread_nice(value: int | None) -> int | None:
-    """Set the calling thread's nice value (Linux: per thread; threads and processes it starts
-    inherit it); returns the previous value, or None where that is not possible."""
-    if value is None or not hasattr(os, "setpriority"):
-        return None
-    tid = threading.get_native_id()
-    try:
-        previous = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, value)
-    except OSError:
-        return None
-    return previous
-
-
-def lower_thread_priority(increment: int) -> int | None:
-    """Raise the calling thread's nice value by ``increment``; returns the previous value or None."""
-    if not hasattr(os, "getpriority"):
-        return None
-    return set_thread_nice(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + increment)
-
-
 class LatestWorker:
     """One thread that runs ``fn(version, request, is_current)`` for the newest submitted request.
 
@@ -161,11 +150,9 @@ class LatestWorker:
         fn: Callable[[int, object, Callable[[], bool]], None],
         name: str = "gait-worker",
         on_error: Callable[[BaseException], None] | None = None,
-        nice: int = 0,
     ) -> None:
         self._fn = fn
         self._on_error = on_error
-        self._nice = nice
         self._cv = threading.Condition()
         self._pending: tuple[int, object] | None = None
         self._version = 0
@@ -207,10 +194,6 @@ class LatestWorker:
         self._thread.join(timeout=30)
 
     def _loop(self) -> None:
-        if self._nice:
-            # Native threads this one starts, such as mujoco.rollout's pool, inherit the priority.
-            # Keeps slider decoding responsive under physics load.
-            lower_thread_priority(self._nice)
         while True:
             with self._cv:
                 while self._pending is None and not self._closed:
@@ -237,4 +220,13 @@ class LatestWorker:
                     self._cv.notify_all()
 
 
-__all__ = ["DecodedGait", "GaitSession", "Latents", "LatestWorker", "SimulatedGait", "SimulationError"]
+__all__ = [
+    "DecodedGait",
+    "GaitSession",
+    "Latents",
+    "LatestWorker",
+    "SimulatedGait",
+    "SimulationError",
+    "lower_thread_priority",
+    "set_thread_nice",
+]

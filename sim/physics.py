@@ -21,6 +21,7 @@ angles of R_z(-yaw_0) R(t). Yaw and roll are unwrapped over time (the snake may 
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import dataclass
 
@@ -164,10 +165,61 @@ def body_states(pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
     )
 
 
+def set_thread_nice(value: int | None) -> int | None:
+    """Set the calling thread's nice value (Linux: per thread; threads and processes it starts
+    inherit it); returns the previous value, or None where that is not possible."""
+    if value is None or not hasattr(os, "setpriority"):
+        return None
+    tid = threading.get_native_id()
+    try:
+        previous = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, value)
+    except OSError:
+        return None
+    return previous
+
+
+def lower_thread_priority(increment: int) -> int | None:
+    """Raise the calling thread's nice value by ``increment``; returns the previous value or None."""
+    if not hasattr(os, "getpriority"):
+        return None
+    return set_thread_nice(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + increment)
+
+
+def _start_pool(nthread: int, nice: int) -> mj_rollout.Rollout:
+    """A rollout thread pool whose native threads run ``nice`` lower than the caller.
+
+    Threads inherit their creator's nice value, so the pool is created on a short-lived helper
+    thread that lowers its own priority first; the caller's priority is untouched (lowering needs
+    no privilege, raising it back would).
+    """
+    if nice <= 0:
+        return mj_rollout.Rollout(nthread=nthread)
+    made: list = []
+
+    def make() -> None:
+        try:
+            lower_thread_priority(nice)
+            made.append(mj_rollout.Rollout(nthread=nthread))
+        except BaseException as exc:  # handed to the caller below
+            made.append(exc)
+
+    helper = threading.Thread(target=make, name="rollout-pool-start")
+    helper.start()
+    helper.join()
+    if isinstance(made[0], BaseException):
+        raise made[0]
+    return made[0]
+
+
 class Simulator:
     """Batched open-loop rollouts of the snake on ``workers`` native threads (``mujoco.rollout``).
 
-    One Simulator is not for concurrent use from several Python threads; make one per thread.
+    ``nice`` > 0 runs the rollouts on a pool of native threads at that much lower CPU priority
+    (Linux), leaving the calling Python thread's own priority alone: an interactive server keeps
+    physics out of the way of slider decoding without the priority inversion of a niced thread
+    that holds the GIL. One Simulator is not for concurrent use from several Python threads; make
+    one per thread.
     """
 
     def __init__(
@@ -175,13 +227,17 @@ class Simulator:
         workers: int = 1,
         excitation: ExcitationConfig | None = None,
         config: SimConfig | None = None,
+        nice: int = 0,
     ) -> None:
         self.excitation = excitation or ExcitationConfig()
         self.config = config or SimConfig()
         self.model = load_model()
         self.workers = max(1, int(workers))
         self._datas = [mujoco.MjData(self.model) for _ in range(self.workers)]
-        self._pool = mj_rollout.Rollout(nthread=self.workers) if self.workers > 1 else None
+        self.nice = int(nice)
+        self._pool = None
+        if self.workers > 1 or self.nice > 0:
+            self._pool = _start_pool(self.workers, self.nice)
         self._lock = threading.Lock()
         dt = self.model.opt.timestep
         self.substeps = round(1.0 / (self.excitation.sample_rate * dt))
@@ -204,7 +260,7 @@ class Simulator:
         """Raw rollouts from the resting state: ctrl (B, n_steps, 8) -> (state, sensordata).
 
         state is (B, n_steps, nstate) after each step; sensordata (B, n_steps, nsensordata) is
-        measured at the start of each step.
+        measured at the start of each step (about 16 MB per record: callers keep only samples).
         """
         batch = ctrl.shape[0]
         initial = np.broadcast_to(self.initial_state, (batch, self.initial_state.size))
@@ -215,6 +271,12 @@ class Simulator:
             if self._pool is None:
                 return mj_rollout.rollout(self.model, self._datas[0], initial, ctrl, initial_warmstart=warm)
             return self._pool.rollout(self.model, self._datas, initial, ctrl, initial_warmstart=warm)
+
+    def close(self) -> None:
+        """Stop the native thread pool (the Simulator cannot roll out after this)."""
+        with self._lock:
+            if self._pool is not None:
+                self._pool.close()
 
     def simulate(self, commands: np.ndarray) -> BatchResult:
         """Simulate a batch of records under the command rule and measure them.

@@ -316,3 +316,12 @@ def test_server_stop_leaves_no_threads(checkpoint):
             break
         time.sleep(0.05)
     assert ours() == []
+
+
+def test_large_freed_buffers_go_back_to_the_os_on_glibc():
+    import platform
+
+    from app.server import return_freed_buffers_to_the_os
+
+    on_glibc = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
+    assert return_freed_buffers_to_the_os() is on_glibc

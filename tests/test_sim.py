@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
+import threading
 import zipfile
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -175,6 +178,35 @@ def test_replay_matches_generation_exactly(tiny_dataset):
     np.testing.assert_array_equal(result.body.astype(np.float32), tiny_dataset.body[i])
     assert result.joint_angles.shape == (2000, 8) and result.body.shape == (2000, 6)
     np.testing.assert_allclose(result.times[:2], [0.0, 0.05])
+
+
+def _thread_nices() -> list[int]:
+    """Nice values of this process's threads (Linux /proc)."""
+    nices = []
+    for stat in Path("/proc/self/task").glob("*/stat"):
+        fields = stat.read_text().rsplit(")", 1)[1].split()
+        nices.append(int(fields[16]))  # field 19 of proc(5), counted after the command name
+    return nices
+
+
+def test_low_priority_pool_gives_the_same_physics_and_leaves_the_caller_alone(tiny_dataset):
+    niced = Simulator(workers=1, nice=5)
+    me = threading.get_native_id()
+    before = os.getpriority(os.PRIO_PROCESS, me)
+    try:
+        if Path("/proc/self/task").is_dir():
+            assert before + 5 in _thread_nices()  # the pool's native thread
+        first = niced.simulate(tiny_dataset.commands[:1].astype(np.float64))
+        second = niced.simulate(tiny_dataset.commands[1:2].astype(np.float64))
+        assert os.getpriority(os.PRIO_PROCESS, me) == before  # the caller's priority is untouched
+        # Exactly the generator's physics, from a pool thread.
+        np.testing.assert_array_equal(first.body[0].astype(np.float32), tiny_dataset.body[0])
+        np.testing.assert_array_equal(second.body[0].astype(np.float32), tiny_dataset.body[1])
+        np.testing.assert_array_equal(first.joint_angles[0].astype(np.float32), tiny_dataset.joint_angles[0])
+    finally:
+        niced.close()
+    with pytest.raises(RuntimeError, match="shutdown"):
+        niced.simulate(tiny_dataset.commands[:1].astype(np.float64))
 
 
 def test_replay_rejects_bad_commands():
