@@ -102,8 +102,10 @@ def consistency(
 ) -> dict:
     """Decode n_prior z_B from the prior (z_k = 0 and z_k sampled), replay each as an ensemble, score.
 
-    Returns per mode: medians of each figure over the gaits that simulated cleanly, and the count
-    of gaits whose replay broke.
+    Returns per mode: medians of each figure over the gaits whose own (unperturbed) replay
+    simulated cleanly, the count of those that broke (``n_broken``), and the fraction of all
+    replays that broke; perturbed members that broke are left out of their gait's ensemble, as
+    the designer does.
     """
     rng = np.random.default_rng(seed)
     simulator = Simulator(workers or os.cpu_count() or 1)
@@ -116,7 +118,7 @@ def consistency(
     per_batch = max(1, (4 * simulator.workers) // ensemble + 1)
     for name, z_j in modes.items():
         shapes, bodies, stats = model.decode_with_stats(z_b, z_j)
-        rows, broken = [], 0
+        rows, broken, broken_members = [], 0, 0
         for start in range(0, n_prior, per_batch):
             idx = range(start, min(n_prior, start + per_batch))
             cmds = np.concatenate(
@@ -124,13 +126,18 @@ def consistency(
             )  # (b K, T, 8)
             result = simulator.simulate(cmds)
             for j, i in enumerate(idx):
-                members = slice(j * ensemble, (j + 1) * ensemble)
-                if any(f is not None for f in result.failures[members]):
+                members = np.arange(j * ensemble, (j + 1) * ensemble)
+                ok = np.array([result.failures[m] is None for m in members])
+                broken_members += int((~ok).sum())
+                if not ok[0] or ok.sum() < 2:  # its own replay broke, or no spread is left
                     broken += 1
                     continue
-                sim_body = result.body[members, ::BODY_DOWNSAMPLE]  # (K, 500, 6) at the model's rate
+                # As the designer does: perturbed members that broke leave the ensemble (counted).
+                sim_body = result.body[members[ok], ::BODY_DOWNSAMPLE]  # (K', 500, 6) at the model's rate
                 predicted = {k: float(v[i]) for k, v in stats.items()}
-                rows.append(compare(bodies[i], sim_body, MODEL_RATE, predicted))
+                row = compare(bodies[i], sim_body, MODEL_RATE, predicted)
+                row["ensemble_broken"] = float((~ok).sum())
+                rows.append(row)
             if progress is not None:
                 progress(len(idx))
         keys = rows[0].keys() if rows else []
@@ -138,6 +145,8 @@ def consistency(
         summary["final_inside_fraction"] = float(np.mean([r["final_inside"] for r in rows])) if rows else 0.0
         summary["n_gaits"] = len(rows)
         summary["n_broken"] = broken
+        summary["broken_replay_fraction"] = broken_members / float(n_prior * ensemble)
+        summary["n_gaits_with_a_broken_member"] = int(broken + sum(r["ensemble_broken"] > 0 for r in rows))
         summary["gaits"] = rows
         report[name] = summary
     return report
@@ -180,7 +189,10 @@ def format_report(r: dict) -> str:
         f"inter/intra body variance {r['inter_intra_ratio']:.2f}",
     ]
     for mode, c in r.get("consistency", {}).items():
-        lines.append(f"consistency ({mode}): {c['n_gaits']} gaits, {c['n_broken']} broken replays; medians:")
+        lines.append(
+            f"consistency ({mode}): {c['n_gaits']} gaits, {c['n_broken']} whose own replay broke "
+            f"({100 * c.get('broken_replay_fraction', float('nan')):.1f}% of all replays broke); medians:"
+        )
         lines.append(
             f"  physics' spread: final position {c.get('final_spread', float('nan')):.2f} x displacement; "
             + ", ".join(f"{k} {c.get(k + '_spread', float('nan')):.3f}" for k in PREDICTABLE)

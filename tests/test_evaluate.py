@@ -53,6 +53,30 @@ def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
     assert "consistency (zk_zero)" in format_report(report)
 
 
+def test_consistency_drops_broken_members_and_leaves_out_broken_gaits(checkpoint, monkeypatch):
+    import dataclasses
+
+    from model import evaluate as ev
+    from model.api import load_pretrained
+
+    real = ev.Simulator.simulate
+
+    def flaky(self, commands):
+        result = real(self, commands)
+        failures = list(result.failures)
+        failures[1] = "a perturbed member of gait 0 broke"
+        failures[3] = "gait 1's own replay broke"
+        return dataclasses.replace(result, failures=failures)
+
+    monkeypatch.setattr(ev.Simulator, "simulate", flaky)
+    report = ev.consistency(load_pretrained(checkpoint), n_prior=2, ensemble=3, workers=2)
+    for c in report.values():
+        assert (c["n_gaits"], c["n_broken"], c["n_gaits_with_a_broken_member"]) == (1, 1, 2)
+        assert c["gaits"][0]["ensemble_broken"] == 1.0
+        assert c["broken_replay_fraction"] == pytest.approx(2 / 6)
+        assert np.isfinite(c["final_spread"])  # the spread of the two clean members
+
+
 def test_figures_and_bench_commands(checkpoint, tiny_dataset_path, tmp_path, capsys):
     report = tmp_path / "report.json"
     main(
