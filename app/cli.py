@@ -73,6 +73,26 @@ class Evaluate:
 
 
 @dataclass
+class Calibrate:
+    """Fine-tune the statistics head on replays of the model's own prior gaits (model/calibrate.py)."""
+
+    data: Path
+    """The dataset .npz the checkpoint was trained on (its training split is mixed in)."""
+    out: Path
+    """Directory for the calibrated checkpoint (may be the input checkpoint's own)."""
+    checkpoint: Path | None = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    prior_samples: int = 512
+    """z_B drawn from the prior; each is decoded with z_k = 0 and sampled at temperatures 0.5 and 1."""
+    epochs: int = 40
+    """Fine-tuning epochs of the head."""
+    seed: int = 1000
+    """Seed of the z_B draws (evaluate's consistency check draws with seed 0)."""
+    workers: int | None = None
+    """Simulation threads (default: all cores)."""
+
+
+@dataclass
 class Figures:
     """Write PNG figures like the paper's Figs. 5-8 (fit, prior sweep, z_k samples, joint shapes)."""
 
@@ -167,6 +187,7 @@ COMMANDS: dict[str, type] = {
     "generate": Generate,
     "train": Train,
     "evaluate": Evaluate,
+    "calibrate": Calibrate,
     "figures": Figures,
     "serve": Serve,
     "bench": Bench,
@@ -236,6 +257,25 @@ def run_evaluate(cmd: Evaluate) -> dict:
     return report
 
 
+def run_calibrate(cmd: Calibrate) -> dict:
+    """Replay prior gaits with a progress bar, then fine-tune and save."""
+    from tqdm import tqdm
+
+    from model.calibrate import MODES, calibrate
+
+    with tqdm(total=len(MODES) * cmd.prior_samples, unit="gait", desc="replay prior gaits") as bar:
+        return calibrate(
+            cmd.checkpoint,
+            cmd.data,
+            cmd.out,
+            n=cmd.prior_samples,
+            seed=cmd.seed,
+            epochs=cmd.epochs,
+            workers=cmd.workers,
+            progress=bar.update,
+        )
+
+
 def run_figures(cmd: Figures) -> list[Path]:
     """Write the figures and list them."""
     from model.figures import figures
@@ -284,11 +324,25 @@ def run_bench_load(cmd: BenchLoad) -> dict:
     from app.load import bench_load
 
     r = bench_load(cmd.clients, cmd.seconds, cmd.checkpoint, cmd.ensemble, cmd.seed)
+    where = (
+        f"server on CPUs {r['server_cpus']}, browsers on CPUs {r['browser_cpus']}"
+        if r["server_cpus"]
+        else "server and browsers share the CPUs"
+    )
     print(
+        f"{where}\n"
         f"1 client: decoded view p50 {r['single_decoded_p50_ms']:.1f} ms, p95 {r['single_decoded_p95_ms']:.1f} ms\n"
         f"{r['clients']} clients: decoded view p95 per client "
         + ", ".join(f"{v:.1f}" for v in r["multi_decoded_p95_ms"])
         + f" ms; worst / single p95 = {r['p95_ratio']:.2f} (goal <= 2)\n"
+        "p95 breakdown (ms), 1 client -> each of "
+        + f"{r['clients']}: "
+        + "; ".join(
+            f"{k} {r['single_breakdown_p95_ms'][k]:.1f} -> "
+            + "/".join(f"{v:.1f}" for v in r["multi_breakdown_p95_ms"][k])
+            for k in ("wait", "decode", "draw")
+        )
+        + "\n"
         f"updates per client {r['updates']}; server exceptions {r['server_exceptions']}, "
         f"page errors {r['page_errors']}, stale draws {r['stale_draws']}\n"
         f"server RSS {r['rss_start_mb']:.0f} MB at start, {r['rss_multi_start_mb']:.0f} -> "
@@ -341,6 +395,7 @@ def main(args: list[str] | None = None) -> None:
         Train: run_train,
         Serve: run_serve,
         Evaluate: run_evaluate,
+        Calibrate: run_calibrate,
         Figures: run_figures,
         BenchSim: run_bench_sim,
         BenchModel: run_bench_model,

@@ -269,3 +269,29 @@ def test_training_on_cuda_without_cuda_is_refused(tiny_dataset_path, tmp_path):
         train(
             tiny_dataset_path, tmp_path, TrainConfig(epochs=1, device="cuda"), SMALL, log=None, progress=False
         )
+
+
+def test_calibration_tunes_only_the_statistics_head(tiny_checkpoint, tiny_dataset_path, tmp_path):
+    from model.calibrate import MODES, calibrate
+    from model.checkpoint import load_checkpoint
+    from sim import DatasetError, GenerateConfig, generate_dataset
+
+    out = tmp_path / "calibrated"
+    summary = calibrate(tiny_checkpoint, tiny_dataset_path, out, n=4, epochs=3, lr=1e-2, log=None)
+    assert summary["gaits"] + sum(summary["broken"].values()) == 4 * len(MODES)
+    assert set(summary["median_rel_err_after"]) == {"generated", "dataset"}
+    before, _ = load_checkpoint(tiny_checkpoint)
+    after, config = load_checkpoint(out)
+    assert config.summary.model_extra["calibration"]["prior_samples"] == 4
+    head = ("signal_net.", "stats_head.")
+    changed = {k for k, v in after.state_dict().items() if not torch.equal(v, before.state_dict()[k])}
+    assert changed and all(k.startswith(head) for k in changed), changed
+    # Decodes are unchanged; only the predicted statistics move.
+    z = torch.zeros(2, SMALL.z_b_dim)
+    with torch.no_grad():
+        s0, b0, _ = before.generate(z)
+        s1, b1, _ = after.generate(z)
+    assert torch.equal(s0, s1) and torch.equal(b0, b1)
+    other = generate_dataset(GenerateConfig(num_samples=2, seed=99), tmp_path / "other.npz", workers=2)
+    with pytest.raises(DatasetError, match="not the dataset this checkpoint was trained on"):
+        calibrate(tiny_checkpoint, other, tmp_path / "x", n=2, epochs=1, log=None)
