@@ -15,11 +15,16 @@ one call: one client alone, then ``clients`` at once, each for ``seconds``. Repo
 - server memory: resident set size sampled every 0.5 s (start, end, peak, and the slope of a
   least-squares line over the multi-client phase, MB/min).
 
-The browsers (and the thread driving them) run at nice +10: in use they sit on other machines.
+In use the browsers sit on other machines. Here they share this one, so where there are at least
+two CPUs the benchmark splits them: every server thread (and each thread they start) is pinned to
+the first half, the thread driving the browsers (and so Playwright and every Chromium it starts) to
+the second half, which also runs at nice +10. On a 2-core machine the server thus gets one core of
+its own and the browsers' software WebGL cannot time itself into the server's latencies.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -50,6 +55,27 @@ LOAD_ARGS = [
     "--disable-background-timer-throttling",
     "--disable-backgrounding-occluded-windows",
 ]
+
+
+def split_cpus() -> tuple[list[int], list[int]] | None:
+    """(server CPUs, browser CPUs): the first and second half of this process's CPUs, or None
+    where there are fewer than two or affinity cannot be set (then everything shares them)."""
+    if not hasattr(os, "sched_getaffinity") or not Path("/proc/self/task").is_dir():
+        return None
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        return None
+    half = len(cpus) // 2
+    return cpus[:half], cpus[half:]
+
+
+def _pin_process(cpus) -> None:
+    """Pin every thread of this process to ``cpus`` (threads started later inherit their creator's)."""
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(tid), cpus)
+        except OSError:  # the thread ended meanwhile
+            pass
 
 
 def rss_mb() -> float:
@@ -136,6 +162,10 @@ def wait_until(predicate, timeout: float = 60.0) -> bool:
     return False
 
 
+def _p(values: np.ndarray, q: float) -> float:
+    return float(np.percentile(values, q)) if values.size else float("nan")
+
+
 def _stale_checks(page, d: DesignerClient, tmp: Path, index: int) -> list[str]:
     """Everything this tab shows or exports must match its final slider values; returns mismatches."""
     problems = []
@@ -210,6 +240,11 @@ def _phase(playwright, server: DesignerServer, n: int, seconds: float, rng, tmp:
         ts = [t for t in list(d.timings) if t.submitted >= start]
         dec = np.array([1e3 * (t.decoded - t.submitted) for t in ts if np.isfinite(t.decoded)])
         rep = np.array([1e3 * (t.replayed - t.submitted) for t in ts if np.isfinite(t.replayed)])
+        drawn = [t for t in ts if np.isfinite(t.decoded) and np.isfinite(t.started)]
+        # Where a decoded view's latency goes: waiting for the decode worker, decoding, drawing.
+        wait = np.array([1e3 * (t.started - t.submitted) for t in drawn])
+        work = np.array([t.decode_ms for t in drawn])
+        draw = np.array([1e3 * (t.decoded - t.started) - t.decode_ms for t in drawn])
         stale = _stale_checks(page, d, tmp, i) if settled else ["did not settle within 180 s"]
         clients.append(
             {
@@ -217,10 +252,13 @@ def _phase(playwright, server: DesignerServer, n: int, seconds: float, rng, tmp:
                 "updates": len(ts),
                 "decoded_drawn": int(dec.size),
                 "replays_drawn": int(rep.size),
-                "decoded_p50_ms": float(np.percentile(dec, 50)) if dec.size else float("nan"),
-                "decoded_p95_ms": float(np.percentile(dec, 95)) if dec.size else float("nan"),
-                "replay_p50_ms": float(np.percentile(rep, 50)) if rep.size else float("nan"),
-                "replay_p95_ms": float(np.percentile(rep, 95)) if rep.size else float("nan"),
+                "decoded_p50_ms": _p(dec, 50),
+                "decoded_p95_ms": _p(dec, 95),
+                "wait_p95_ms": _p(wait, 95),
+                "decode_p95_ms": _p(work, 95),
+                "draw_p95_ms": _p(draw, 95),
+                "replay_p50_ms": _p(rep, 50),
+                "replay_p95_ms": _p(rep, 95),
                 "stale": stale,
             }
         )
@@ -255,11 +293,16 @@ def bench_load(
 
     if not Path(CHROMIUM).exists():
         raise RuntimeError(f"bench load drives Debian chromium at {CHROMIUM}: apt-get install -y chromium")
+    split = split_cpus()
+    all_cpus = sorted(os.sched_getaffinity(0)) if split else None
+    if split:
+        _pin_process(split[0])  # before the server starts: its threads inherit the server half
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
     rss = _RssSampler()
-    # In use the browsers run on other machines; here they share the cores with the server. The
-    # driving thread (and so the Playwright driver and Chromium it starts) runs at nice +10 so the
-    # browsers' software WebGL yields to the server instead of timing itself into its latencies.
+    # In use the browsers run on other machines. The driving thread (and so the Playwright driver
+    # and every Chromium it starts) moves to the other CPUs, at nice +10.
+    if split:
+        os.sched_setaffinity(threading.get_native_id(), split[1])
     previous_nice = lower_thread_priority(BROWSER_NICE)
     rng = np.random.default_rng(seed)
     phases = {}
@@ -273,6 +316,8 @@ def bench_load(
         rss.stop()
         server.stop()
         set_thread_nice(previous_nice)  # lowering needs no privilege; raising back may (then it stays)
+        if all_cpus:
+            _pin_process(all_cpus)
     multi = phases[clients]
     single = phases[1]["clients"][0]
     window = rss.window(multi["t_start"], multi["t_end"])
@@ -282,12 +327,18 @@ def bench_load(
     result = {
         "clients": clients,
         "seconds": seconds,
+        "server_cpus": split[0] if split else None,
+        "browser_cpus": split[1] if split else None,
         "single_decoded_p50_ms": single["decoded_p50_ms"],
         "single_decoded_p95_ms": single["decoded_p95_ms"],
         "single_replay_p95_ms": single["replay_p95_ms"],
         "multi_decoded_p50_ms": [c["decoded_p50_ms"] for c in multi["clients"]],
         "multi_decoded_p95_ms": p95s,
         "multi_replay_p95_ms": [c["replay_p95_ms"] for c in multi["clients"]],
+        "single_breakdown_p95_ms": {k: single[f"{k}_p95_ms"] for k in ("wait", "decode", "draw")},
+        "multi_breakdown_p95_ms": {
+            k: [c[f"{k}_p95_ms"] for c in multi["clients"]] for k in ("wait", "decode", "draw")
+        },
         "p95_ratio": float(np.nanmax(p95s) / single["decoded_p95_ms"]),
         "updates": [c["updates"] for c in multi["clients"]],
         "server_exceptions": len(phases[1]["server_exceptions"]) + len(multi["server_exceptions"]),

@@ -7,6 +7,7 @@ asserted: no server exceptions, no page errors, no stale draws, every tab served
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ def test_bench_load_two_tabs(checkpoint, capsys):
     assert CHROMIUM
     from app.cli import main
 
+    cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
     main(
         [
             "bench",
@@ -44,3 +46,7 @@ def test_bench_load_two_tabs(checkpoint, capsys):
     assert r["stale_draws"] == 0, r["stale_details"]
     assert len(r["updates"]) == 2 and min(r["updates"]) > 0
     assert np.isfinite([r["single_decoded_p95_ms"], *r["multi_decoded_p95_ms"], r["rss_peak_mb"]]).all()
+    if r["server_cpus"] is not None:  # the server's and the browsers' CPUs were kept apart
+        assert not set(r["server_cpus"]) & set(r["browser_cpus"])
+    if cpus is not None:
+        assert os.sched_getaffinity(0) == cpus  # and this process got all of its CPUs back
