@@ -162,6 +162,10 @@ class BenchLoad:
     """Replays per gait (as in `snakeloco serve`)."""
     seed: int = 0
     """Seed of the drag targets."""
+    render: bool = False
+    """Let the pages draw the 3D view and animate the snake (software WebGL: far fewer slider updates)."""
+    pin_cpus: bool = False
+    """Pin the server to the first half of the CPUs and the browsers to the second half."""
 
 
 @dataclass
@@ -323,7 +327,15 @@ def run_bench_load(cmd: BenchLoad) -> dict:
     """Run and print the multi-client load benchmark."""
     from app.load import bench_load
 
-    r = bench_load(cmd.clients, cmd.seconds, cmd.checkpoint, cmd.ensemble, cmd.seed)
+    r = bench_load(
+        cmd.clients,
+        cmd.seconds,
+        cmd.checkpoint,
+        cmd.ensemble,
+        cmd.seed,
+        render=cmd.render,
+        pin_cpus=cmd.pin_cpus,
+    )
     where = (
         f"server on CPUs {r['server_cpus']}, browsers on CPUs {r['browser_cpus']}"
         if r["server_cpus"]
