@@ -66,6 +66,8 @@ FPS = 20.0
 DECODE_THREADS = 1
 """torch intra-op threads of a designer server process. Four threads decoding at once on 2 cores:
 p50 21-23 ms per decode with 1 intra-op thread, 21-31 ms with 2 (two runs each)."""
+SWITCH_INTERVAL_S = 0.001
+"""Python's GIL switch interval in a designer server (default 0.005 s)."""
 PHYSICS_NICE = 15
 """Nice increment of the native threads that run a tab's rollouts (its Python threads stay at the
 server's priority, so a niced thread never holds the GIL that slider decoding waits for)."""
@@ -766,6 +768,10 @@ class DesignerServer:
         # with several tabs decoding at once their OpenMP teams only compete for the cores.
         torch.set_num_threads(DECODE_THREADS)
         return_freed_buffers_to_the_os()
+        # A thread that waits for the GIL forces the holder to let go after this long: with many
+        # busy threads (tabs drawing, the websocket loop) a decode's every numpy/torch call would
+        # otherwise wait up to the default 5 ms to get it back.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         self.ensemble = ensemble
         self.workers = workers
         self.clients: dict[int, DesignerClient] = {}

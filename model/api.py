@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint
-from model.network import HierarchicalVAE
+from model.network import HierarchicalVAE, trace_single_generate
 from model.stats import stats_dict
 
 
@@ -33,6 +33,8 @@ class GaitModel:
         g = config.servo_response
         self._servo_response = None if g is None else np.asarray(g, dtype=np.float64)  # (8, L, 2)
         self._lock = threading.Lock()
+        self._single: torch.jit.ScriptModule | None = None  # traced decode of one z_B, made on first use
+        self._single_failed = False
 
     @property
     def z_b_dim(self) -> int:
@@ -121,13 +123,27 @@ class GaitModel:
         if z_j is not None:
             zj = torch.as_tensor(np.asarray(z_j, np.float32).reshape(z_b.shape[0], -1, self.z_j_dim))
         with self._lock, torch.inference_mode():
-            shape, body, stats = self.net.generate(torch.as_tensor(z_b), zj)
+            shape, body, stats = self._generate(torch.as_tensor(z_b), zj)
         shape_p, body_p = self._phys(shape, body)
         return (
             shape_p,
             body_p,
             stats_dict(stats.numpy().astype(np.float64) * self._stats_std + self._stats_mean),
         )
+
+    def _generate(self, z_b: torch.Tensor, z_j: torch.Tensor | None):
+        """``net.generate``; one z_B (the slider path) runs the traced graph (``trace_single_generate``)."""
+        if z_b.shape[0] == 1 and not self._single_failed:
+            if self._single is None:
+                try:
+                    self._single = trace_single_generate(self.net)
+                except Exception:  # a torch without TorchScript: decode eagerly (same numbers)
+                    self._single_failed = True
+                    return self.net.generate(z_b, z_j)
+            if z_j is None:
+                z_j = torch.zeros(1, self.config.model.n_joints, self.z_j_dim)
+            return self._single(z_b, z_j)
+        return self.net.generate(z_b, z_j)
 
     def predict_stats(self, shape: np.ndarray) -> dict[str, np.ndarray]:
         """Body statistics the model predicts for the gaits of joint shapes (B, 8, L, 2) rad."""
