@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint
-from model.network import HierarchicalVAE, trace_single_generate
+from model.network import HierarchicalVAE, trace_single
 from model.stats import stats_dict
 
 
@@ -33,8 +33,7 @@ class GaitModel:
         g = config.servo_response
         self._servo_response = None if g is None else np.asarray(g, dtype=np.float64)  # (8, L, 2)
         self._lock = threading.Lock()
-        self._single: torch.jit.ScriptModule | None = None  # traced decode of one z_B, made on first use
-        self._single_failed = False
+        self._traced: dict[str, torch.jit.ScriptModule | None] = {}  # one-z_B graphs, made on first use
 
     @property
     def z_b_dim(self) -> int:
@@ -131,19 +130,24 @@ class GaitModel:
             stats_dict(stats.numpy().astype(np.float64) * self._stats_std + self._stats_mean),
         )
 
+    def _single(self, method: str):
+        """The traced one-z_B graph of ``net.<method>`` (``network.trace_single``), or None where
+        this torch cannot trace (then the eager method gives the same numbers)."""
+        if method not in self._traced:
+            try:
+                self._traced[method] = trace_single(self.net, method)
+            except Exception:
+                self._traced[method] = None
+        return self._traced[method]
+
     def _generate(self, z_b: torch.Tensor, z_j: torch.Tensor | None):
-        """``net.generate``; one z_B (the slider path) runs the traced graph (``trace_single_generate``)."""
-        if z_b.shape[0] == 1 and not self._single_failed:
-            if self._single is None:
-                try:
-                    self._single = trace_single_generate(self.net)
-                except Exception:  # a torch without TorchScript: decode eagerly (same numbers)
-                    self._single_failed = True
-                    return self.net.generate(z_b, z_j)
-            if z_j is None:
-                z_j = torch.zeros(1, self.config.model.n_joints, self.z_j_dim)
-            return self._single(z_b, z_j)
-        return self.net.generate(z_b, z_j)
+        """``net.generate``; one z_B (the slider path) runs the traced graph."""
+        traced = self._single("generate") if z_b.shape[0] == 1 else None
+        if traced is None:
+            return self.net.generate(z_b, z_j)
+        if z_j is None:
+            z_j = torch.zeros(1, self.config.model.n_joints, self.z_j_dim)
+        return traced(z_b, z_j)
 
     def predict_stats(self, shape: np.ndarray) -> dict[str, np.ndarray]:
         """Body statistics the model predicts for the gaits of joint shapes (B, 8, L, 2) rad."""
@@ -167,7 +171,10 @@ class GaitModel:
         )
         with self._lock, torch.inference_mode():
             zb = torch.as_tensor(z).repeat_interleave(n, dim=0)  # (B n, Db)
-            out = self.net.sample_joints(zb, eps.flatten(0, 1)).view(z.shape[0], n, -1, self.z_j_dim)
+            eps = eps.flatten(0, 1)
+            traced = self._single("sample_joints") if zb.shape[0] == 1 else None
+            joints = traced(zb, eps) if traced is not None else self.net.sample_joints(zb, eps)
+            out = joints.view(z.shape[0], n, -1, self.z_j_dim)
         out = out.numpy().astype(np.float64)
         return out[0] if single else out
 

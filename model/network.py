@@ -396,19 +396,18 @@ class HierarchicalVAE(nn.Module):
         return self.run_joints(z_b, prior_eps=eps)["z_j"]
 
 
-class _SingleGenerate(nn.Module):
-    def __init__(self, net: HierarchicalVAE) -> None:
+class _Method(nn.Module):
+    def __init__(self, net: HierarchicalVAE, method: str) -> None:
         super().__init__()
-        self.net = net
+        self.net, self.method = net, method
 
-    def forward(
-        self, z_b: torch.Tensor, z_j: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        return self.net.generate(z_b, z_j)
+    def forward(self, z_b: torch.Tensor, z_j: torch.Tensor):
+        return getattr(self.net, self.method)(z_b, z_j)
 
 
-def trace_single_generate(net: HierarchicalVAE) -> torch.jit.ScriptModule:
-    """``net.generate`` for one z_b (1, Db) and z_j (1, K, Dj) as a frozen TorchScript graph.
+def trace_single(net: HierarchicalVAE, method: str = "generate") -> torch.jit.ScriptModule:
+    """``net.<method>(z_b (1, Db), z_j (1, K, Dj))`` as a frozen TorchScript graph, for one z_B:
+    ``generate`` (z_j: the joint latents) or ``sample_joints`` (z_j: the prior's noise).
 
     Why: eager PyTorch releases and re-takes the GIL around each of the few hundred small ops of a
     decode, so in a server where any other Python thread is busy (another tab drawing, the websocket
@@ -423,7 +422,7 @@ def trace_single_generate(net: HierarchicalVAE) -> torch.jit.ScriptModule:
     zj = torch.zeros(1, net.cfg.n_joints, net.cfg.z_j_dim)
     with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the deprecation notice, and the constant signal_ready check
-        return torch.jit.freeze(torch.jit.trace(_SingleGenerate(net).eval(), (zb, zj), check_trace=False))
+        return torch.jit.freeze(torch.jit.trace(_Method(net, method).eval(), (zb, zj), check_trace=False))
 
 
 def loss_terms(
