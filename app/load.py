@@ -15,14 +15,14 @@ one call: one client alone, then ``clients`` at once, each for ``seconds``. Repo
 - server memory: resident set size sampled every 0.5 s (start, end, peak, and the slope of a
   least-squares line over the multi-client phase, MB/min).
 
-In use the browsers sit on other machines. Here they share this one: the thread driving them (and
-so Playwright and every Chromium it starts) runs at nice +10 and every browser thread is held there
-(Chromium raises its renderers' priority itself), unless ``render`` the pages hide their 3D
-canvas and pause the snake animation (they still receive and apply every scene and GUI message of
-each slider move; software WebGL on a small machine otherwise handles so few mouse events that the
-load is no load), and a page's pointer
-moves come no faster than a 60 Hz display delivers them. ``pin_cpus`` also pins every server thread
-to the first half of the CPUs and the browsers to the second half.
+In use the browsers sit on other machines; here they share this one. So the thread driving them
+(and with it Playwright and every Chromium it starts) runs at nice +10, and every browser thread is
+held there (Chromium raises its renderers' priority itself). Unless ``render``, the pages hide their
+3D canvas and pause the snake animation: they still receive and apply every scene and GUI message
+of each slider move, but software WebGL on a small machine otherwise handles so few mouse events
+that the load is no load. A page's pointer moves come no faster than a 60 Hz display delivers
+them. ``pin_cpus`` also pins every server thread to the first half of the CPUs and the browsers to
+the second half.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import numpy as np
 
 from app.gait_csv import read_gait_csv
 from app.server import DesignerClient, DesignerServer
-from app.session import lower_thread_priority, set_thread_nice
+from sim.physics import lower_thread_priority, set_thread_nice
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -290,14 +290,11 @@ def _phase(
             raise RuntimeError("a browser page never connected to the designer")
         designers.append(server.clients[(set(server.clients) - before).pop()])
         page.get_by_role("slider").first.wait_for(timeout=90000)
-        # The clients are load: they receive and apply every scene and GUI message, but draw no
-        # pixels. With the 3D canvas shown, 4 software-WebGL pages on this 2-core machine handled
-        # so few mouse events that each tab sent 2 slider updates a minute.
+        # The clients are load: they receive and apply every message but draw no pixels and stop
+        # the 20 Hz snake animation (as a user may). With both on, 4 software-WebGL pages on a
+        # 2-core machine stopped answering and each tab sent 1-2 slider updates a minute.
         if not render:
             page.add_style_tag(content="canvas { display: none !important; }")
-            # And stop the 20 Hz snake animation, as a user may: measured here, 4 pages applying it
-            # kept their renderers (which Chromium runs at nice -8 as root) busy enough that they
-            # stopped answering, and each tab got 1-2 slider updates in a minute.
             page.get_by_role("button", name="Pause").click()
         pages.append(page)
     for d in designers:

@@ -20,7 +20,6 @@ from model.api import GaitModel
 from model.stats import MODEL_RATE
 from sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape
 from sim.consistency import compare, perturbed_commands
-from sim.physics import lower_thread_priority, set_thread_nice
 
 ZkMode = Literal["zero", "sampled"]
 
@@ -220,13 +219,4 @@ class LatestWorker:
                     self._cv.notify_all()
 
 
-__all__ = [
-    "DecodedGait",
-    "GaitSession",
-    "Latents",
-    "LatestWorker",
-    "SimulatedGait",
-    "SimulationError",
-    "lower_thread_priority",
-    "set_thread_nice",
-]
+__all__ = ["DecodedGait", "GaitSession", "Latents", "LatestWorker", "SimulatedGait", "SimulationError"]

@@ -30,7 +30,7 @@ import torch
 
 from model.api import GaitModel, load_pretrained
 from model.checkpoint import CheckpointConfig, save_checkpoint
-from model.stats import MODEL_RATE, STAT_NAMES, stats_vector
+from model.stats import MODEL_RATE, STAT_NAMES, median_relative_errors, stats_dict, stats_vector
 from sim import BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset
 
 MODES: dict[str, float | None] = {"zk_zero": None, "zk_t0.5": 0.5, "zk_t1": 1.0}
@@ -79,18 +79,6 @@ def replay_prior_gaits(
         "mode": np.concatenate(mode_index),
         "broken": broken,
     }
-
-
-def _median_rel_errors(pred: np.ndarray, true: np.ndarray) -> dict[str, float]:
-    """Median relative error per statistic, in physical units, of (N, 4) statistics vectors."""
-    out = {}
-    for i, name in enumerate(STAT_NAMES):
-        if name == "net_roll":
-            p, t = pred[:, i], true[:, i]
-        else:
-            p, t = np.exp(pred[:, i]), np.exp(true[:, i])
-        out[name] = float(np.median(np.abs(p - t) / np.maximum(np.abs(t), 1e-9)))
-    return out
 
 
 def _head_parameters(net) -> list[torch.nn.Parameter]:
@@ -182,7 +170,9 @@ def calibrate(
     def score(x: torch.Tensor, y: torch.Tensor) -> tuple[float, dict[str, float]]:
         p = predict(x)
         mse = float(((p - y.numpy()) ** 2).mean())
-        return mse, _median_rel_errors(p * s_std + s_mean, y.numpy() * s_std + s_mean)
+        return mse, median_relative_errors(
+            stats_dict(p * s_std + s_mean), stats_dict(y.numpy() * s_std + s_mean)
+        )
 
     def val_loss() -> float:
         # Both held-out sets count equally: generated gaits and measured records.

@@ -14,17 +14,13 @@ import numpy as np
 
 from model.api import GaitModel, load_pretrained
 from model.metrics import mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
-from model.stats import MODEL_RATE
+from model.stats import MODEL_RATE, median_relative_errors
 from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, Simulator, load_dataset
 from sim.consistency import PREDICTABLE, compare, path_stats, perturbed_commands
 
 
 def _stats_errors(predicted: dict[str, np.ndarray], body_ds: np.ndarray) -> dict[str, float]:
-    true = path_stats(body_ds, MODEL_RATE)
-    return {
-        k: float(np.median(np.abs(predicted[k] - true[k]) / np.maximum(np.abs(true[k]), 1e-9)))
-        for k in PREDICTABLE
-    }
+    return median_relative_errors(predicted, path_stats(body_ds, MODEL_RATE))
 
 
 def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, batch: int = 512) -> dict:

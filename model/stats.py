@@ -41,3 +41,11 @@ def stats_dict(vector: np.ndarray) -> dict[str, np.ndarray]:
         "vertical_std": np.exp(v[..., 2]),
         "net_roll": v[..., 3],
     }
+
+
+def median_relative_errors(predicted: dict, true: dict) -> dict[str, float]:
+    """Median over records of |predicted - true| / |true| for each of ``STAT_NAMES`` (physical units)."""
+    return {
+        k: float(np.median(np.abs(predicted[k] - true[k]) / np.maximum(np.abs(true[k]), 1e-9)))
+        for k in STAT_NAMES
+    }

@@ -234,10 +234,9 @@ class Simulator:
         self.model = load_model()
         self.workers = max(1, int(workers))
         self._datas = [mujoco.MjData(self.model) for _ in range(self.workers)]
-        self.nice = int(nice)
         self._pool = None
-        if self.workers > 1 or self.nice > 0:
-            self._pool = _start_pool(self.workers, self.nice)
+        if self.workers > 1 or nice > 0:
+            self._pool = _start_pool(self.workers, int(nice))
         self._lock = threading.Lock()
         dt = self.model.opt.timestep
         self.substeps = round(1.0 / (self.excitation.sample_rate * dt))
@@ -273,7 +272,7 @@ class Simulator:
             return self._pool.rollout(self.model, self._datas, initial, ctrl, initial_warmstart=warm)
 
     def close(self) -> None:
-        """Stop the native thread pool (the Simulator cannot roll out after this)."""
+        """Stop the native thread pool, if there is one (then the Simulator cannot roll out)."""
         with self._lock:
             if self._pool is not None:
                 self._pool.close()
