@@ -359,7 +359,10 @@ def run_bench_load(cmd: BenchLoad) -> dict:
         f"page errors {r['page_errors']}, stale draws {r['stale_draws']}\n"
         f"server RSS {r['rss_start_mb']:.0f} MB at start, {r['rss_multi_start_mb']:.0f} -> "
         f"{r['rss_multi_end_mb']:.0f} MB over the {r['clients']}-client phase "
-        f"(slope {r['rss_slope_mb_per_min']:+.1f} MB/min), peak {r['rss_peak_mb']:.0f} MB"
+        f"(slope {r['rss_slope_mb_per_min']:+.1f} MB/min; second half {r['rss_late_start_mb']:.0f} -> "
+        f"{r['rss_late_end_mb']:.0f} MB, slope {r['rss_late_slope_mb_per_min']:+.1f} MB/min), "
+        f"peak {r['rss_peak_mb']:.0f} MB; tabs idle before / after the drags "
+        f"{r['rss_idle_before_mb']:.0f} / {r['rss_idle_after_mb']:.0f} MB"
     )
     for details in r["stale_details"]:
         print("stale:", "; ".join(details))

@@ -1,6 +1,7 @@
 """``snakeloco bench load``: real browser tabs drag sliders on one designer server at the same time.
 
-The server runs in this process; each client is a Chromium page (Playwright, Debian ``chromium``)
+The server runs in this process; each client is a Chromium page (Playwright, Debian ``chromium``,
+driven from a separate process: ``app.load_driver`` says why)
 whose mouse drags a z_B slider thumb back and forth without pause. Two phases run side by side in
 one call: one client alone, then ``clients`` at once, each for ``seconds``. Reported per client:
 
@@ -13,16 +14,18 @@ one call: one client alone, then ``clients`` at once, each for ``seconds``. Repo
   and the exported CSV (downloaded through the browser) vs an independent decode of those values,
   and the simulated path vs the replay of those commands;
 - server memory: resident set size sampled every 0.5 s (start, end, peak, and the slope of a
-  least-squares line over the multi-client phase, MB/min).
+  least-squares line over the multi-client phase and over its second half, MB/min), and with the
+  tabs connected and idle just before and just after the drags: what load leaves behind, without
+  the replays in flight (each holds its physics steps for a moment) that make the samples jump.
 
-In use the browsers sit on other machines; here they share this one. So the thread driving them
+In use the browsers sit on other machines; here they share this one. So the process driving them
 (and with it Playwright and every Chromium it starts) runs at nice +10, and every browser thread is
 held there (Chromium raises its renderers' priority itself). Unless ``render``, the pages hide their
 3D canvas and pause the snake animation: they still receive and apply every scene and GUI message
 of each slider move, but software WebGL on a small machine otherwise handles so few mouse events
 that the load is no load. A page's pointer moves come no faster than a 60 Hz display delivers
-them. ``pin_cpus`` also pins every server thread to the first half of the CPUs and the browsers to
-the second half.
+them. ``pin_cpus`` also pins every server thread to the first half of the CPUs and the browser
+process to the second half.
 """
 
 from __future__ import annotations
@@ -34,36 +37,14 @@ from pathlib import Path
 
 import numpy as np
 
+from app import load_driver
 from app.gait_csv import read_gait_csv
+from app.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until  # noqa: F401 (the browser tests' too)
 from app.server import DesignerClient, DesignerServer
-from sim.physics import lower_thread_priority, set_thread_nice
-
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
-
 
 BROWSER_NICE = 10
-POINTER_HZ = 60.0
-"""Most pointer moves per second per page, as a 60 Hz display delivers them during a drag."""
 CATCH_UP_S = 120.0
 """How long a page may take, after the drags end, to show the final sliders and deliver an export."""
-VIEWPORT = {"width": 960, "height": 600}
-"""Each page's size: software WebGL's cost grows with the pixels, and the browsers are only load."""
-LOAD_ARGS = [
-    *CHROMIUM_ARGS,
-    "--disable-renderer-backgrounding",
-    "--disable-background-timer-throttling",
-    "--disable-backgrounding-occluded-windows",
-]
 
 
 def split_cpus() -> tuple[list[int], list[int]] | None:
@@ -100,8 +81,8 @@ def rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _descendant_tasks(root: int) -> list[int]:
-    """Thread ids of every process descended from ``root`` (Linux /proc)."""
+def _descendants(root: int) -> list[int]:
+    """Process ids of every process descended from ``root`` (Linux /proc)."""
     parent = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
@@ -113,20 +94,27 @@ def _descendant_tasks(root: int) -> list[int]:
     while frontier:
         frontier = {pid for pid, pp in parent.items() if pp in frontier} - found
         found |= frontier
-    tasks = []
-    for pid in found:
-        try:
-            tasks += [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-        except OSError:
-            continue
-    return tasks
+    return sorted(found)
+
+
+def _autogroup(pid: int | str) -> tuple[str, int] | None:
+    """(name, nice) of a process's scheduler autogroup, or None where the kernel has none."""
+    try:
+        name, nice = Path(f"/proc/{pid}/autogroup").read_text().split()[:3:2]
+        return name, int(nice)
+    except (OSError, ValueError):
+        return None
 
 
 class _BrowserNice:
     """Keeps every thread of the browsers this process started at nice >= ``nice``.
 
     Chromium sets its renderers' priority itself (as root, to nice -8 for visible pages), which
-    would put the load generators above the server they are measuring.
+    would put the load generators above the server they are measuring. And Playwright starts each
+    browser in a session of its own: where the kernel groups sessions for scheduling
+    (``sched_autogroup_enabled``, the default on desktop kernels), a thread's nice only counts
+    inside its group and the groups share the CPUs equally, so 4 browsers held the server to a
+    fifth of the machine whatever their threads' nice. Each browser's group gets the nice too.
     """
 
     def __init__(self, nice: int, period: float = 0.5) -> None:
@@ -138,13 +126,25 @@ class _BrowserNice:
 
     def _run(self) -> None:
         me = os.getpid()
+        mine = _autogroup("self")
         while not self._stop.wait(self._period):
-            for tid in _descendant_tasks(me):
+            for pid in _descendants(me):
+                group = _autogroup(pid)
+                if group is not None and group[0] != (mine and mine[0]) and group[1] < self._nice:
+                    try:
+                        Path(f"/proc/{pid}/autogroup").write_text(str(self._nice))
+                    except OSError:
+                        pass
                 try:
-                    if os.getpriority(os.PRIO_PROCESS, tid) < self._nice:
-                        os.setpriority(os.PRIO_PROCESS, tid, self._nice)
+                    tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
                 except OSError:
                     continue
+                for tid in tids:
+                    try:
+                        if os.getpriority(os.PRIO_PROCESS, tid) < self._nice:
+                            os.setpriority(os.PRIO_PROCESS, tid, self._nice)
+                    except OSError:
+                        continue
 
     def stop(self) -> None:
         self._stop.set()
@@ -175,69 +175,75 @@ class _RssSampler:
         self._thread.join(timeout=5)
 
 
-class _Dragger:
-    """One page's mouse, dragging a random z_B slider thumb to random targets in small steps."""
-
-    def __init__(self, page, n_sliders: int, rng: np.random.Generator) -> None:
-        self.page = page
-        self.n_sliders = n_sliders
-        self.rng = rng
-        self.moves = 0
-        self.slowest_step_s = 0.0  # the longest a page took to take one pointer move
-        self._steps_left = 0
-        self._x = self._y = 0.0
-        self._target = 0.0
-
-    def step(self) -> None:
-        mouse = self.page.mouse
-        if self._steps_left == 0:
-            mouse.up()
-            thumb = self.page.get_by_role("slider").nth(int(self.rng.integers(self.n_sliders)))
-            box = thumb.bounding_box()
-            track = thumb.locator("xpath=..").bounding_box()
-            if box is None or track is None:
-                return
-            self._x, self._y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
-            self._lo, self._hi = track["x"] + 2, track["x"] + track["width"] - 2
-            mouse.move(self._x, self._y)
-            mouse.down()
-            self._target = float(self.rng.uniform(self._lo, self._hi))
-            self._steps_left = int(self.rng.integers(10, 30))
-        dx = (self._target - self._x) / self._steps_left
-        self._x = min(max(self._x + dx + float(self.rng.normal(0, 2)), self._lo), self._hi)
-        mouse.move(self._x, self._y)
-        self._steps_left -= 1
-        self.moves += 1
-
-    def release(self) -> None:
-        self.page.mouse.up()
-        self._steps_left = 0
-
-
-def wait_until(predicate, timeout: float = 60.0) -> bool:
-    """Poll ``predicate`` every 50 ms until it is true (True) or ``timeout`` seconds pass (False)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
+def _slope_mb_per_min(samples: np.ndarray) -> float:
+    """Least-squares slope of (seconds, MB) samples, in MB per minute (NaN for fewer than 3)."""
+    return float(np.polyfit(samples[:, 0], samples[:, 1], 1)[0] * 60.0) if len(samples) > 2 else float("nan")
 
 
 def _p(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
-def _stale_checks(page, d: DesignerClient, tmp: Path, index: int) -> list[str]:
+class _Browser:
+    """One user: a Chromium page driven from a process of its own (``app.load_driver``), so that
+    every page drags at its own pace, as users' browsers on their own machines do."""
+
+    def __init__(self, url: str, render: bool, cpus: list[int] | None) -> None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")  # no fork of a process with server threads
+        self._conn, child = ctx.Pipe()
+        self._process = ctx.Process(
+            target=load_driver.main, args=(child, url, render, BROWSER_NICE, cpus), name="bench-load-browser"
+        )
+        self._process.start()
+        child.close()
+
+    def send(self, name: str, *args) -> None:
+        try:
+            self._conn.send((name, *args))
+        except OSError as exc:
+            raise RuntimeError(
+                f"the browser driver process ended (exit code {self._process.exitcode})"
+            ) from exc
+
+    def receive(self, name: str, timeout: float):
+        """The answer to the command ``name`` sent last; RuntimeError with the driver's message if it failed."""
+        try:
+            if not self._conn.poll(timeout):
+                raise RuntimeError(f"the browser driver did not answer {name!r} within {timeout:g} s")
+            status, value = self._conn.recv()
+        except (EOFError, OSError) as exc:
+            raise RuntimeError(
+                f"the browser driver process ended (exit code {self._process.exitcode}) during {name!r}"
+            ) from exc
+        if status != "ok":
+            raise RuntimeError(f"browser driver, {name!r}: {value}")
+        return value
+
+    def call(self, name: str, *args, timeout: float = 600.0):
+        self.send(name, *args)
+        return self.receive(name, timeout)
+
+    def close(self) -> None:
+        try:
+            self._conn.send(("quit",))
+        except OSError:
+            pass
+        self._process.join(60)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join(10)
+        self._conn.close()
+
+
+def _stale_checks(browser: _Browser, d: DesignerClient, tmp: Path, index: int) -> list[str]:
     """Everything this tab shows or exports must match its final slider values; returns mismatches."""
     problems = []
     z = tuple(float(s.value) for s in d.sliders)
 
     def shown() -> list[float]:
-        values = page.get_by_role("slider").evaluate_all(
-            "els => els.map(e => e.getAttribute('aria-valuenow'))"
-        )
-        return [float(v) for v in values[: len(z)]]
+        return browser.call("shown", 0)[: len(z)]
 
     # A page may still be working through the messages of the last burst: give it time to catch up.
     wait_until(lambda: np.allclose(shown(), z, atol=1e-9), CATCH_UP_S)
@@ -254,16 +260,10 @@ def _stale_checks(page, d: DesignerClient, tmp: Path, index: int) -> list[str]:
         problems.append("no replay drawn for the final sliders")
     elif not np.allclose(d.plots["forward (m)"].data[2], d.simulated.body[::4, 1], atol=1e-12):
         problems.append("drawn simulated path is not the final replay")
-    from playwright.sync_api import TimeoutError as PlaywrightTimeout
-
-    try:
-        with page.expect_download(timeout=1000 * CATCH_UP_S) as info:
-            page.get_by_role("button", name="Export CSV").click()
-    except PlaywrightTimeout:
+    path = tmp / f"client{index}.csv"
+    if not browser.call("export", 0, str(path), CATCH_UP_S, timeout=CATCH_UP_S + 60):
         problems.append(f"the exported CSV did not arrive in the browser within {CATCH_UP_S:g} s")
         return problems
-    path = tmp / f"client{index}.csv"
-    info.value.save_as(path)
     text = path.read_text()
     exported = read_gait_csv(text.encode()).commands
     if not np.array_equal(exported, commands):
@@ -273,52 +273,49 @@ def _stale_checks(page, d: DesignerClient, tmp: Path, index: int) -> list[str]:
     return problems
 
 
-def _phase(
-    playwright, server: DesignerServer, n: int, seconds: float, rng, tmp: Path, log, render: bool
+def _phase(server: DesignerServer, n: int, seconds: float, rng, tmp: Path, log, render: bool, cpus) -> dict:
+    browsers: list[_Browser] = []
+    try:
+        return _drive(browsers, server, n, seconds, rng, tmp, log, render, cpus)
+    finally:
+        for browser in browsers:
+            try:
+                browser.call("close", timeout=60)
+            except RuntimeError:
+                pass
+            browser.close()
+        wait_until(lambda: not server.clients, 30)
+
+
+def _drive(
+    browsers: list, server: DesignerServer, n: int, seconds: float, rng, tmp, log, render, cpus
 ) -> dict:
-    pages, designers, page_errors, browsers = [], [], [], []
+    designers = []
     for _ in range(n):
         before = set(server.clients)
-        # One browser per client, as each user has their own: pages of one browser share its input
-        # and rendering pipeline, and background pages are throttled.
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=LOAD_ARGS)
-        browsers.append(browser)
-        page = browser.new_page(viewport=VIEWPORT, accept_downloads=True)
-        page.on("pageerror", lambda exc: page_errors.append(str(exc)))
-        page.goto(f"http://127.0.0.1:{server.port}")
+        browsers.append(_Browser(f"http://127.0.0.1:{server.port}", render, cpus))
+        browsers[-1].call("open", timeout=180)
         if not wait_until(lambda b=before: set(server.clients) - b, 90):
             raise RuntimeError("a browser page never connected to the designer")
         designers.append(server.clients[(set(server.clients) - before).pop()])
-        page.get_by_role("slider").first.wait_for(timeout=90000)
-        # The clients are load: they receive and apply every message but draw no pixels and stop
-        # the 20 Hz snake animation (as a user may). With both on, 4 software-WebGL pages on a
-        # 2-core machine stopped answering and each tab sent 1-2 slider updates a minute.
-        if not render:
-            page.add_style_tag(content="canvas { display: none !important; }")
-            page.get_by_role("button", name="Pause").click()
-        pages.append(page)
     for d in designers:
         d.wait_idle(120)
+    rss_idle_before = rss_mb()  # every tab connected, its first gait replayed, nothing running
     errors_before = len(server.errors)
     n_sliders = designers[0].model.z_b_dim
-    draggers = [_Dragger(p, n_sliders, np.random.default_rng(rng.integers(2**32))) for p in pages]
+    seeds = [int(rng.integers(2**32)) for _ in designers]
     start = time.perf_counter()
     t_start = time.monotonic()
-    while time.perf_counter() - start < seconds:
-        round_start = time.perf_counter()
-        for dr in draggers:
-            t0 = time.perf_counter()
-            dr.step()
-            dr.slowest_step_s = max(dr.slowest_step_s, time.perf_counter() - t0)
-        time.sleep(max(0.0, 1.0 / POINTER_HZ - (time.perf_counter() - round_start)))
-    for dr in draggers:
-        dr.release()
+    for browser, seed in zip(browsers, seeds, strict=True):
+        browser.send("drag", seconds, n_sliders, [seed])
+    moves = [browser.receive("drag", timeout=seconds + 600)[0] for browser in browsers]
     t_end = time.monotonic()
     settled = all(d.wait_idle(180) for d in designers)
     time.sleep(0.5)  # any slider message still in flight
     settled = settled and all(d.wait_idle(180) for d in designers)
+    rss_idle_after = rss_mb()  # the same tabs, idle again after the drags
     clients = []
-    for i, (page, d, dr) in enumerate(zip(pages, designers, draggers, strict=True)):
+    for i, (browser, d, dr) in enumerate(zip(browsers, designers, moves, strict=True)):
         ts = [t for t in list(d.timings) if t.submitted >= start]
         dec = np.array([1e3 * (t.decoded - t.submitted) for t in ts if np.isfinite(t.decoded)])
         rep = np.array([1e3 * (t.replayed - t.submitted) for t in ts if np.isfinite(t.replayed)])
@@ -327,11 +324,10 @@ def _phase(
         wait = np.array([1e3 * (t.started - t.submitted) for t in drawn])
         work = np.array([t.decode_ms for t in drawn])
         draw = np.array([1e3 * (t.decoded - t.started) - t.decode_ms for t in drawn])
-        stale = _stale_checks(page, d, tmp, i) if settled else ["did not settle within 180 s"]
+        stale = _stale_checks(browser, d, tmp, i) if settled else ["did not settle within 180 s"]
         clients.append(
             {
-                "mouse_moves": dr.moves,
-                "slowest_move_s": dr.slowest_step_s,
+                **dr,
                 "updates": len(ts),
                 "decoded_drawn": int(dec.size),
                 "replays_drawn": int(rep.size),
@@ -349,15 +345,14 @@ def _phase(
             log(
                 f"  client {i + 1}/{n}: {len(ts)} updates, decoded p95 {clients[-1]['decoded_p95_ms']:.1f} ms"
             )
-    for browser in browsers:
-        browser.close()
-    wait_until(lambda: not server.clients, 30)
     return {
         "clients": clients,
         "server_exceptions": server.errors[errors_before:],
-        "page_errors": page_errors,
+        "page_errors": [e for browser in browsers for e in browser.call("errors")],
         "t_start": t_start,
         "t_end": t_end,
+        "rss_idle_before_mb": rss_idle_before,
+        "rss_idle_after_mb": rss_idle_after,
     }
 
 
@@ -374,7 +369,7 @@ def bench_load(
     """Run the single-client and ``clients``-client phases and summarise them (see module docstring)."""
     import tempfile
 
-    from playwright.sync_api import sync_playwright
+    import playwright.sync_api  # noqa: F401 (fail here, before the server starts, if it is missing)
 
     if not Path(CHROMIUM).exists():
         raise RuntimeError(f"bench load drives Debian chromium at {CHROMIUM}: apt-get install -y chromium")
@@ -385,30 +380,31 @@ def bench_load(
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
     rss = _RssSampler()
     browser_nice = _BrowserNice(BROWSER_NICE)
-    # In use the browsers run on other machines. The driving thread (and so the Playwright driver
-    # and every Chromium it starts) moves to the other CPUs, at nice +10.
-    if split:
-        os.sched_setaffinity(threading.get_native_id(), split[1])
-    previous_nice = lower_thread_priority(BROWSER_NICE)
     rng = np.random.default_rng(seed)
     phases = {}
     try:
-        with tempfile.TemporaryDirectory() as tmp, sync_playwright() as p:
+        with tempfile.TemporaryDirectory() as tmp:
             for n in sorted({1, clients}):
                 if log:
                     log(f"{n} client(s) dragging sliders for {seconds:g} s")
-                phases[n] = _phase(p, server, n, seconds, rng, Path(tmp), log, render)
+                phases[n] = _phase(
+                    server, n, seconds, rng, Path(tmp), log, render, split[1] if split else None
+                )
     finally:
         rss.stop()
         browser_nice.stop()
         server.stop()
-        set_thread_nice(previous_nice)  # lowering needs no privilege; raising back may (then it stays)
         if all_cpus:
             _pin_process(all_cpus)
     multi = phases[clients]
     single = phases[1]["clients"][0]
     window = rss.window(multi["t_start"], multi["t_end"])
-    slope = float(np.polyfit(window[:, 0], window[:, 1], 1)[0] * 60.0) if len(window) > 2 else float("nan")
+    slope = _slope_mb_per_min(window)
+    # The first replays of every tab allocate what a tab keeps (its simulator's pool, its gait and
+    # replay arrays): a step, then flat. The second half of the phase shows which.
+    late = (
+        window[window[:, 0] >= window[0, 0] + (window[-1, 0] - window[0, 0]) / 2] if len(window) else window
+    )
     all_rss = np.asarray(rss.samples)[:, 1]
     p95s = [c["decoded_p95_ms"] for c in multi["clients"]]
     result = {
@@ -442,5 +438,11 @@ def bench_load(
         "rss_multi_start_mb": float(window[0, 1]) if len(window) else float("nan"),
         "rss_multi_end_mb": float(window[-1, 1]) if len(window) else float("nan"),
         "rss_slope_mb_per_min": slope,
+        "rss_idle_before_mb": multi["rss_idle_before_mb"],
+        "rss_idle_after_mb": multi["rss_idle_after_mb"],
+        "rss_late_slope_mb_per_min": _slope_mb_per_min(late),
+        "rss_late_start_mb": float(late[0, 1]) if len(late) else float("nan"),
+        "rss_late_end_mb": float(late[-1, 1]) if len(late) else float("nan"),
+        "rss_series_mb": [[round(float(t), 1), round(float(mb), 1)] for t, mb in rss.samples[::10]],
     }
     return result

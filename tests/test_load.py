@@ -45,7 +45,10 @@ def test_bench_load_two_tabs(checkpoint, capsys):
     assert r["page_errors"] == 0
     assert r["stale_draws"] == 0, r["stale_details"]
     assert len(r["updates"]) == 2 and min(r["updates"]) > 0
-    assert np.isfinite([r["single_decoded_p95_ms"], *r["multi_decoded_p95_ms"], r["rss_peak_mb"]]).all()
+    assert np.isfinite(
+        [r["single_decoded_p95_ms"], *r["multi_decoded_p95_ms"], r["rss_peak_mb"], r["rss_idle_after_mb"]]
+    ).all()
+    assert min(r["mouse_moves"]) > 0  # every page dragged, each from its own driver process
     if r["server_cpus"] is not None:  # the server's and the browsers' CPUs were kept apart
         assert not set(r["server_cpus"]) & set(r["browser_cpus"])
     if cpus is not None:
