@@ -186,6 +186,27 @@ def lower_thread_priority(increment: int) -> int | None:
     return set_thread_nice(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + increment)
 
 
+class _FifoLock:
+    """A lock granted in request order (``threading.Lock`` lets a thread that just released it win
+    again): tabs sharing one simulator each get their turn between the others' batches."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition(threading.Lock())
+        self._next_ticket = 0
+        self._serving = 0
+
+    def __enter__(self) -> None:
+        with self._cond:
+            ticket = self._next_ticket
+            self._next_ticket += 1
+            self._cond.wait_for(lambda: self._serving == ticket)
+
+    def __exit__(self, *exc) -> None:
+        with self._cond:
+            self._serving += 1
+            self._cond.notify_all()
+
+
 def _start_pool(nthread: int, nice: int) -> mj_rollout.Rollout:
     """A rollout thread pool whose native threads run ``nice`` lower than the caller.
 
@@ -228,16 +249,21 @@ class Simulator:
         excitation: ExcitationConfig | None = None,
         config: SimConfig | None = None,
         nice: int = 0,
+        max_batch: int | None = None,
     ) -> None:
         self.excitation = excitation or ExcitationConfig()
         self.config = config or SimConfig()
         self.model = load_model()
         self.workers = max(1, int(workers))
+        # Records rolled out per call: a rollout keeps every physics step (~16 MB per record), so a
+        # larger batch runs as consecutive calls of this many (2 per thread keeps both balanced).
+        self.max_batch = max(1, int(max_batch or 2 * self.workers))
         self._datas = [mujoco.MjData(self.model) for _ in range(self.workers)]
         self._pool = None
         if self.workers > 1 or nice > 0:
             self._pool = _start_pool(self.workers, int(nice))
-        self._lock = threading.Lock()
+        self._closed = False
+        self._lock = _FifoLock()  # callers sharing one simulator roll out in the order they came
         dt = self.model.opt.timestep
         self.substeps = round(1.0 / (self.excitation.sample_rate * dt))
         if abs(self.substeps * dt * self.excitation.sample_rate - 1.0) > 1e-9:
@@ -267,6 +293,8 @@ class Simulator:
         # on which thread ran the previous rollout.
         warm = np.zeros((batch, self.model.nv))
         with self._lock:
+            if self._closed:
+                raise SimulationError("the simulator was closed (the server is stopping)")
             if self._pool is None:
                 return mj_rollout.rollout(self.model, self._datas[0], initial, ctrl, initial_warmstart=warm)
             return self._pool.rollout(self.model, self._datas, initial, ctrl, initial_warmstart=warm)
@@ -274,6 +302,7 @@ class Simulator:
     def close(self) -> None:
         """Stop the native thread pool, if there is one (then the Simulator cannot roll out)."""
         with self._lock:
+            self._closed = True
             if self._pool is not None:
                 self._pool.close()
 
@@ -286,11 +315,27 @@ class Simulator:
         Returns:
             BatchResult with (B, T, 8) joint angles and (B, T, 6) body states; a failed row's
             ``failures`` entry names the problem (its measurements are then meaningless).
+            Records are independent (same start, zero warm start): rolled out ``max_batch`` at a
+            time, the results are those of one call.
         """
         commands = np.asarray(commands, dtype=np.float64)
         expected = (self.excitation.n_samples, N_JOINTS)
         if commands.ndim != 3 or commands.shape[1:] != expected:
             raise ValueError(f"expected (B, {expected[0]}, {expected[1]}) commands, got {commands.shape}")
+        parts = [
+            self._simulate(commands[i : i + self.max_batch]) for i in range(0, len(commands), self.max_batch)
+        ]
+        if len(parts) == 1:
+            return parts[0]
+        return BatchResult(
+            joint_angles=np.concatenate([r.joint_angles for r in parts]),
+            body=np.concatenate([r.body for r in parts]),
+            failures=[f for r in parts for f in r.failures],
+            qpos=np.concatenate([r.qpos for r in parts]),
+        )
+
+    def _simulate(self, commands: np.ndarray) -> BatchResult:
+        expected = (self.excitation.n_samples, N_JOINTS)
         ctrl = expand_commands(commands, self.substeps, self.config)
         state, sens = self.rollout(ctrl)
         failures = self._diagnose(state, sens)

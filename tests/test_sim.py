@@ -6,6 +6,7 @@ import itertools
 import json
 import os
 import threading
+import time
 import zipfile
 from pathlib import Path
 
@@ -171,6 +172,17 @@ def test_joint_tracking_at_excited_frequencies():
     assert (lag < 0).all() and lag[-1] > -40
 
 
+def test_large_batches_roll_out_in_chunks_with_the_same_results(tiny_dataset):
+    # A rollout keeps every physics step (~16 MB a record): batches run max_batch at a time.
+    commands = tiny_dataset.commands[:3].astype(np.float64)
+    whole = Simulator(workers=2, max_batch=3).simulate(commands)
+    chunked = Simulator(workers=2, max_batch=2).simulate(commands)
+    assert Simulator(workers=3).max_batch == 6
+    for name in ("joint_angles", "body", "qpos"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
+    assert chunked.failures == whole.failures == [None] * 3
+
+
 def test_replay_matches_generation_exactly(tiny_dataset):
     i = 2
     result = replay(tiny_dataset.commands[i])
@@ -205,8 +217,25 @@ def test_low_priority_pool_gives_the_same_physics_and_leaves_the_caller_alone(ti
         np.testing.assert_array_equal(first.joint_angles[0].astype(np.float32), tiny_dataset.joint_angles[0])
     finally:
         niced.close()
-    with pytest.raises(RuntimeError, match="shutdown"):
+    with pytest.raises(SimulationError, match="simulator was closed"):
         niced.simulate(tiny_dataset.commands[:1].astype(np.float64))
+
+
+def test_callers_sharing_a_simulator_roll_out_in_the_order_they_came():
+    from sim.physics import _FifoLock
+
+    lock, order, threads = _FifoLock(), [], []
+    with lock:
+        for i in range(5):
+            t = threading.Thread(target=lambda i=i: lock.__enter__() or order.append(i) or lock.__exit__())
+            t.start()
+            deadline = time.monotonic() + 10
+            while lock._next_ticket < i + 2 and time.monotonic() < deadline:  # thread i has its ticket
+                time.sleep(0.001)
+            threads.append(t)
+    for t in threads:
+        t.join(10)
+    assert order == [0, 1, 2, 3, 4]
 
 
 def test_replay_rejects_bad_commands():
