@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
 import signal
 import sys
 import threading
@@ -38,6 +39,7 @@ from app.gait_csv import MAX_BYTES, GaitCSVError, read_gait_csv, write_gait_csv
 from app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait
 from model.api import GaitModel, load_pretrained
 from sim import LINK_RADIUS, SimulationError, joint_shape, load_model
+from sim.physics import Simulator
 
 HELP_PATH = Path(__file__).resolve().parent.parent / "static" / "help.md"
 SLIDER_RANGE = 3.0
@@ -123,11 +125,14 @@ class DesignerClient:
         ensemble: int = 8,
         workers: int | None = None,
         on_error: Callable[[str], None] | None = None,
+        simulator: Simulator | None = None,
     ):
         self.client = client
         self._on_error = on_error
         self.model = model
-        self.session = GaitSession(model, ensemble=ensemble, workers=workers, physics_nice=PHYSICS_NICE)
+        self.session = GaitSession(
+            model, ensemble=ensemble, workers=workers, physics_nice=PHYSICS_NICE, simulator=simulator
+        )
         self.decoded: DecodedGait | None = None
         self.simulated: SimulatedGait | None = None
         self.timings: deque[Timing] = deque(maxlen=2000)
@@ -774,6 +779,8 @@ class DesignerServer:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         self.ensemble = ensemble
         self.workers = workers
+        # Every tab's replays and ensembles take turns on one pool of physics threads, at nice +15.
+        self.simulator = Simulator(workers=workers or os.cpu_count() or 1, nice=PHYSICS_NICE)
         self.clients: dict[int, DesignerClient] = {}
         self.errors: list[str] = []
         """Every exception a tab's callbacks or workers raised (each also printed); bench load counts them."""
@@ -830,7 +837,14 @@ class DesignerServer:
 
     def _connect(self, client: viser.ClientHandle) -> None:
         try:
-            designer = DesignerClient(client, self.model, self.ensemble, self.workers, on_error=self._error)
+            designer = DesignerClient(
+                client,
+                self.model,
+                self.ensemble,
+                self.workers,
+                on_error=self._error,
+                simulator=self.simulator,
+            )
         except Exception as exc:  # a tab that could not be set up must not take the server down
             traceback.print_exc()
             self._error(f"client {client.client_id}: setup failed: {type(exc).__name__}: {exc}")
@@ -850,6 +864,7 @@ class DesignerServer:
             self.clients.clear()
         for d in designers:
             d.close()
+        self.simulator.close()
         self.server.stop()
 
 

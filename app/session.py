@@ -66,19 +66,32 @@ class GaitSession:
     """Per-client pipeline state. Not thread-safe on its own: drive it from one ``LatestWorker``."""
 
     def __init__(
-        self, model: GaitModel, ensemble: int = 8, workers: int | None = None, physics_nice: int = 0
+        self,
+        model: GaitModel,
+        ensemble: int = 8,
+        workers: int | None = None,
+        physics_nice: int = 0,
+        simulator: Simulator | None = None,
     ) -> None:
         self.model = model
         self.ensemble = ensemble
-        # ``physics_nice``: the rollouts run on native threads that much lower in CPU priority
-        # (``Simulator(nice=...)``), so a tab's physics yields to every tab's slider decoding.
-        self._replayer = Simulator(workers=1, nice=physics_nice)
-        self._ensembler = Simulator(workers=workers or os.cpu_count() or 1, nice=physics_nice)
+        # ``simulator``: one shared by every tab of a server (its rollouts then take turns, so the
+        # physics of N tabs uses the cores once, not N times over, and holds one batch of physics
+        # steps in memory at a time); the caller closes it. Else the session owns one for its replays
+        # (one thread) and one for ensembles (all cores). ``physics_nice``: those run on native
+        # threads that much lower in CPU priority (``Simulator(nice=...)``).
+        self._owned = []
+        if simulator is None:
+            self._owned = [
+                Simulator(workers=1, nice=physics_nice),
+                Simulator(workers=workers or os.cpu_count() or 1, nice=physics_nice),
+            ]
+        self._replayer, self._ensembler = self._owned or (simulator, simulator)
 
     def close(self) -> None:
-        """Stop the simulators' native threads."""
-        self._replayer.close()
-        self._ensembler.close()
+        """Stop the native threads of the simulators this session owns."""
+        for simulator in self._owned:
+            simulator.close()
 
     def decode(self, latents: Latents) -> DecodedGait:
         """Decode latents to a joint shape, a body path and resynthesised commands."""

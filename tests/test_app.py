@@ -170,6 +170,9 @@ def test_two_clients_are_independent(server):
         assert d1.decoded.latents.z_b[0] == 2.0
         assert d2.decoded.latents.z_b[0] == 0.0 and d2.sliders[0].value == 0.0
         assert not np.array_equal(d1.decoded.commands, d2.decoded.commands)
+        # Their physics takes turns on the server's one pool of rollout threads...
+        assert d1.session._ensembler is d2.session._ensembler is server.simulator
+        assert d1.session._replayer is server.simulator
     finally:
         c1.close()
         c2.close()
@@ -178,6 +181,13 @@ def test_two_clients_are_independent(server):
             break
         time.sleep(0.05)
     assert not server.clients  # disconnects clean up their designers
+    # ... which outlives them: a tab that leaves does not stop the others' physics.
+    assert not server.simulator._closed
+    c3, d3 = _connect(server)
+    try:
+        assert d3.wait_idle(60) and d3.simulated is not None
+    finally:
+        c3.close()
 
 
 def test_latest_worker_runs_only_the_newest_request():
