@@ -270,7 +270,12 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
         assert d.wait_idle(60)
         assert d.simulated is None and d.gen_path is not None
         assert "Replay failed" in d.panel.content and "unstable" in d.panel.content
+        assert "Resample z_k" not in d.panel.content  # z_k = 0: no sampling to blame
         assert d.timings[-1].failed and server.errors == []
+        d.zk_mode.value = "sampled"  # a sampled gait that breaks gets told what to try
+        time.sleep(0.2)
+        assert d.wait_idle(60)
+        assert "Replay failed" in d.panel.content and "Resample z_k" in d.panel.content
     finally:
         client.close()
 
