@@ -269,7 +269,11 @@ def _stale_checks(browser: _Browser, d: DesignerClient, tmp: Path, index: int) -
     if not np.array_equal(exported, commands):
         problems.append("exported commands are not those of the final sliders")
     if "# z_B: [" + ", ".join(f"{v:.4f}" for v in z) + "]" not in text:
-        problems.append("exported z_B comment does not match the final sliders")
+        line = next((ln for ln in text.splitlines() if ln.startswith("# z_B:")), "no z_B line")
+        problems.append(f"exported z_B comment does not match the final sliders {list(z)}: {line!r}")
+    now = tuple(float(s.value) for s in d.sliders)
+    if problems and now != z:  # says whether a late browser event moved the sliders during the checks
+        problems.append(f"the server's sliders moved during these checks: {list(z)} -> {list(now)}")
     return problems
 
 
