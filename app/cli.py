@@ -48,6 +48,8 @@ class Train:
     """Weight of MMD(q(z_k) || p(z_k))."""
     gamma: float = 10.0
     """Weight of MMD(q(z_B) || N(0, I))."""
+    body_sees_stats: bool = True
+    """Modulate the body decoder by the gait's predicted statistics (README, Model)."""
 
 
 @dataclass
@@ -226,7 +228,12 @@ def run_train(cmd: Train):
         batch_size=cmd.batch_size,
         cycle_epochs=cmd.cycle_epochs,
     )
-    return train(cmd.data, cmd.out, cfg, ModelConfig(beta=cmd.beta, gamma=cmd.gamma))
+    return train(
+        cmd.data,
+        cmd.out,
+        cfg,
+        ModelConfig(beta=cmd.beta, gamma=cmd.gamma, body_sees_stats=cmd.body_sees_stats),
+    )
 
 
 def run_evaluate(cmd: Evaluate) -> dict:

@@ -888,6 +888,9 @@ def serve(
 
     signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
+    warning = app.model.robot_warning()
+    if warning:
+        print(f"snakeloco: warning: {warning}", file=sys.stderr)
     print(f"snakeloco designer on http://{host}:{app.port} (no authentication: keep it on a trusted network)")
     try:
         stop.wait()

@@ -64,6 +64,22 @@ class GaitModel:
 
         return shape_to_commands(shape, self.freqs, response=self._servo_response)
 
+    def robot_warning(self) -> str | None:
+        """None if the checkpoint was trained on this robot (``sim/snake.xml``), else a warning.
+
+        A changed MJCF (joints, servos, integrator) changes what a decoded gait does when replayed,
+        so predictions and consistency figures then describe another robot.
+        """
+        from sim import mjcf_sha256
+
+        if self.config.mjcf_sha256 == mjcf_sha256():
+            return None
+        return (
+            f"checkpoint {self.path or ''} was trained on another robot model (MJCF sha256 "
+            f"{self.config.mjcf_sha256[:12]}, this sim/snake.xml {mjcf_sha256()[:12]}): replays follow "
+            "this robot, the decoded paths and statistics the other one"
+        )
+
     @property
     def hash(self) -> str:
         """sha256 of the weights file (identifies the checkpoint in exported gaits)."""

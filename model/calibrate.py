@@ -11,10 +11,18 @@ decodes a gait in each z_k mode the designer offers (z_k = 0, and sampled at tem
 1), resynthesises the commands exactly as the designer does (``GaitModel.commands``), replays them
 once in MuJoCo and measures the body statistics of the replay. The head (signal CNN and MLP, nothing
 else) is then fine-tuned on those (decoded shape -> replayed statistics) pairs mixed with the
-dataset's own (measured shape -> statistics) training pairs; the rest of the network, its
-normalisation and so every decode are unchanged. The z_B draws use their own seed (default 1000),
-disjoint from ``snakeloco evaluate``'s consistency draws (seed 0), and a tenth of them (all modes
-of a z_B together) is held out to choose the best epoch and to report the gain.
+dataset's own (measured shape -> statistics) training pairs.
+
+Where the body decoder is modulated by the predicted statistics (``ModelConfig.body_sees_stats``),
+a second stage fits that modulation (the FiLM layer, nothing else) to the same replays: decoded
+(z_B, statistics) -> the replay's body path, mixed with the dataset's (posterior z_B, statistics)
+-> recorded path. Why: the decoder learned the modulation on records only, and with z_k = 0 the
+statistics lie far outside them (net roll near 0 where records roll ~86 rad), so it extrapolated:
+with the first stage alone, 10% of z_k = 0 decoded final positions fell inside the replays'
+spread (48 prior z_B). The rest of the network, its normalisation and so every decoded *shape*
+are unchanged. The z_B draws use their own seed (default 1000), disjoint from ``snakeloco
+evaluate``'s consistency draws (seed 0), and a tenth of them (all modes of a z_B together) is held
+out to choose the best epoch of each stage and to report the gain.
 """
 
 from __future__ import annotations
@@ -48,16 +56,18 @@ def replay_prior_gaits(
     """Decode n prior z_B in every ``MODES`` entry, replay each gait once and measure it.
 
     Returns arrays over the M = n * len(MODES) gaits (broken replays dropped): ``shape`` (M, 8, L, 2)
-    decoded rad, ``stats`` (M, 4) the replay's statistics vector (``model.stats``), ``z_index`` (M,)
-    which z_B draw, ``mode`` (M,) index into ``MODES``, and ``broken`` (len(MODES),) counts.
+    decoded rad, ``stats`` (M, 4) the replay's statistics vector (``model.stats``), ``body``
+    (M, 500, 6) the replay's body series at the model's rate, ``z_b`` (M, Db) and ``z_j``
+    (M, 8, Dj) the latents decoded, ``z_index`` (M,) which z_B draw, ``mode`` (M,) index into
+    ``MODES``, and ``broken`` (len(MODES),) counts.
     """
     rng = np.random.default_rng(seed)
     z_b = rng.standard_normal((n, model.z_b_dim))
     simulator = Simulator(workers or os.cpu_count() or 1)
-    shapes, stats, z_index, mode_index = [], [], [], []
+    shapes, stats, bodies, z_bs, z_js, z_index, mode_index = [], [], [], [], [], [], []
     broken = np.zeros(len(MODES), dtype=np.int64)
     for m, (_, temperature) in enumerate(MODES.items()):
-        z_j = None
+        z_j = np.zeros((n, model.config.model.n_joints, model.z_j_dim))
         if temperature is not None:
             z_j = model.sample_joint_latents(z_b, 1, seed=seed + 1 + m, temperature=temperature)[:, 0]
         shape, _ = model.decode(z_b, z_j)
@@ -67,7 +77,11 @@ def replay_prior_gaits(
             ok = np.array([f is None for f in result.failures])
             broken[m] += int((~ok).sum())
             shapes.append(shape[idx][ok])
-            stats.append(stats_vector(result.body[ok, ::BODY_DOWNSAMPLE], MODEL_RATE))
+            body_ds = result.body[ok, ::BODY_DOWNSAMPLE]  # (b, 500, 6) at the model's rate
+            stats.append(stats_vector(body_ds, MODEL_RATE))
+            bodies.append(body_ds.astype(np.float32))
+            z_bs.append(z_b[idx][ok])
+            z_js.append(z_j[idx][ok])
             z_index.append(idx[ok])
             mode_index.append(np.full(int(ok.sum()), m))
             if progress is not None:
@@ -75,6 +89,9 @@ def replay_prior_gaits(
     return {
         "shape": np.concatenate(shapes),
         "stats": np.concatenate(stats),
+        "body": np.concatenate(bodies),
+        "z_b": np.concatenate(z_bs),
+        "z_j": np.concatenate(z_js),
         "z_index": np.concatenate(z_index),
         "mode": np.concatenate(mode_index),
         "broken": broken,
@@ -83,6 +100,107 @@ def replay_prior_gaits(
 
 def _head_parameters(net) -> list[torch.nn.Parameter]:
     return [*net.signal_net.parameters(), *net.stats_head.parameters()]
+
+
+def _fit_path_modulation(
+    model: GaitModel,
+    d_shape: np.ndarray,
+    d_body: np.ndarray,
+    v_shape: np.ndarray,
+    v_body: np.ndarray,
+    gaits: dict[str, np.ndarray],
+    g_val: np.ndarray,
+    epochs: int,
+    lr: float,
+    batch_size: int,
+    seed: int,
+    log: Callable[[str], None] | None,
+) -> dict:
+    """Stage 2: fit the body decoder's FiLM layer to replayed paths (module docstring).
+
+    Records enter with their posterior-mean z_B and the (now calibrated) statistics predicted from
+    their shapes; generated gaits with the z_B and z_k they were decoded from and the statistics
+    predicted from their decoded shapes. Loss: normalised MSE of the body series.
+    """
+    net = model.net
+    net.eval()
+
+    @torch.no_grad()
+    def inputs(shape: np.ndarray, body: np.ndarray, z_b: np.ndarray | None, z_j: np.ndarray | None):
+        x = model._norm_shape(np.asarray(shape, np.float64))
+        y = model._norm_body(np.asarray(body, np.float64))
+        st, zb, zj = [], [], []
+        for i in range(0, len(x), 512):
+            st.append(net.predict_stats(x[i : i + 512]))
+            if z_b is None:  # a record: its posterior means
+                mu, _ = net.encode_body(y[i : i + 512])
+                zb.append(mu)
+                zj.append(net.run_joints(mu, x[i : i + 512], sample_posterior=False)["z_j"])
+        if z_b is None:
+            return torch.cat(zb), torch.cat(zj), torch.cat(st), y
+        f32 = torch.float32
+        return torch.as_tensor(z_b, dtype=f32), torch.as_tensor(z_j, dtype=f32), torch.cat(st), y
+
+    rec_tr = inputs(d_shape, d_body, None, None)
+    rec_va = inputs(v_shape, v_body, None, None)
+    gen_tr = inputs(gaits["shape"][~g_val], gaits["body"][~g_val], gaits["z_b"][~g_val], gaits["z_j"][~g_val])
+    gen_va = inputs(gaits["shape"][g_val], gaits["body"][g_val], gaits["z_b"][g_val], gaits["z_j"][g_val])
+    train_set = [torch.cat(parts) for parts in zip(rec_tr, gen_tr, strict=True)]
+
+    @torch.no_grad()
+    def mse(t: list[torch.Tensor]) -> float:
+        net.eval()
+        z_b, z_j, st, y = t
+        err = [
+            ((net.decode_body(z_b[i : i + 512], z_j[i : i + 512], st[i : i + 512]) - y[i : i + 512]) ** 2)
+            .sum()
+            .item()
+            for i in range(0, len(y), 512)
+        ]
+        return sum(err) / y.numel()
+
+    def val_loss() -> float:
+        return 0.5 * (mse(gen_va) + mse(rec_va))
+
+    before = {"generated": mse(gen_va), "dataset": mse(rec_va)}
+    params = list(net.dec_film.parameters())
+    for p in params:
+        p.requires_grad_(True)
+    opt = torch.optim.Adam(params, lr=lr)
+    steps = math.ceil(len(train_set[0]) / batch_size)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps, eta_min=lr * 0.01)
+    gen = torch.Generator().manual_seed(seed + 1)
+    best, best_state, best_epoch = val_loss(), None, -1
+    for epoch in range(epochs):
+        net.train()
+        perm = torch.randperm(len(train_set[0]), generator=gen)
+        for i in range(steps):
+            idx = perm[i * batch_size : (i + 1) * batch_size]
+            z_b, z_j, st, y = (t[idx] for t in train_set)
+            loss = torch.nn.functional.mse_loss(net.decode_body(z_b, z_j, st), y)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+        v = val_loss()
+        if log:
+            log(f"  path epoch {epoch}: val mse {v:.4f}")
+        if v < best:
+            best, best_epoch = v, epoch
+            best_state = {k: t.detach().clone() for k, t in net.dec_film.state_dict().items()}
+    if best_state is not None:
+        net.dec_film.load_state_dict(best_state)
+    for p in params:
+        p.requires_grad_(False)
+    net.eval()
+    after = {"generated": mse(gen_va), "dataset": mse(rec_va)}
+    if log:
+        log(
+            "body path, normalised MSE before -> after: held-out generated gaits "
+            f"{before['generated']:.3f} -> {after['generated']:.3f}, "
+            f"held-out records {before['dataset']:.3f} -> {after['dataset']:.3f}"
+        )
+    return {"best_epoch": best_epoch, "mse_before": before, "mse_after": after}
 
 
 def calibrate(
@@ -116,6 +234,9 @@ def calibrate(
             f"{data} is not the dataset this checkpoint was trained on (meta hash {ds.meta_hash[:12]}, "
             f"checkpoint {config.dataset_meta_sha256[:12]})"
         )
+    warning = model.robot_warning()
+    if warning and log:
+        log(f"warning: {warning}")
     if gaits is None:
         t0 = time.perf_counter()
         gaits = replay_prior_gaits(model, n, seed, workers, progress=progress)
@@ -208,6 +329,22 @@ def calibrate(
     for p in net.parameters():
         p.requires_grad_(False)
     after = {"generated": score(x_gv, y_gv)[1], "dataset": score(x_dv, y_dv)[1]}
+    path_summary = None
+    if net.cfg.body_sees_stats:
+        path_summary = _fit_path_modulation(
+            model,
+            ds.shape[tr_idx],
+            ds.body_ds[tr_idx],
+            ds.shape[va_idx],
+            ds.body_ds[va_idx],
+            gaits,
+            g_val,
+            epochs=epochs,
+            lr=lr,
+            batch_size=batch_size,
+            seed=seed,
+            log=log,
+        )
     summary = {
         "prior_samples": n,
         "seed": seed,
@@ -220,6 +357,7 @@ def calibrate(
         "median_rel_err_before": before,
         "median_rel_err_after": after,
         "history": history,
+        "path": path_summary,
         "wall_time_s": time.perf_counter() - t_start,
         "data": str(data),
     }

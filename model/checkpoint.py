@@ -18,8 +18,12 @@ from safetensors.torch import load_file, save_file
 
 from model.network import HierarchicalVAE, ModelConfig
 
-SCHEMA_VERSION = 2
-"""2: the body-statistics head (signal CNN, MLP, inverse-transform buffers) and its normalisation."""
+SCHEMA_VERSION = 3
+"""2: the body-statistics head (signal CNN, MLP, inverse-transform buffers) and its normalisation.
+3: the body decoder may see the gait's predicted statistics (``ModelConfig.body_sees_stats``)."""
+READABLE_VERSIONS = (2, 3)
+"""Schema versions this code loads; a version-2 config is read with ``body_sees_stats`` off, as
+its decoder was built."""
 WEIGHTS = "model.safetensors"
 CONFIG = "config.json"
 PRETRAINED_DIR = Path(__file__).with_name("pretrained")
@@ -120,6 +124,8 @@ def save_checkpoint(directory: str | Path, net: HierarchicalVAE, config: Checkpo
     state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
     tmp_w, tmp_c = directory / (WEIGHTS + ".tmp"), directory / (CONFIG + ".tmp")
     save_file(state, str(tmp_w), metadata={"schema_version": str(SCHEMA_VERSION)})
+    # Written as this code's schema: the model config spells out every field, older ones included.
+    config = config.model_copy(update={"schema_version": SCHEMA_VERSION})
     tmp_c.write_text(json.dumps(config.model_dump(mode="json"), indent=2))
     tmp_w.replace(directory / WEIGHTS)
     tmp_c.replace(directory / CONFIG)
@@ -143,10 +149,13 @@ def load_checkpoint(directory: str | Path | None = None) -> tuple[HierarchicalVA
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise CheckpointError(f"checkpoint {directory}: {CONFIG} is not valid JSON ({exc})") from exc
     version = raw.get("schema_version") if isinstance(raw, dict) else None
-    if version != SCHEMA_VERSION:
+    if version not in READABLE_VERSIONS:
+        readable = " or ".join(map(str, READABLE_VERSIONS))
         raise CheckpointError(
-            f"checkpoint {directory}: schema version {version!r}, this snakeloco reads {SCHEMA_VERSION}"
+            f"checkpoint {directory}: schema version {version!r}, this snakeloco reads {readable}"
         )
+    if version == 2 and isinstance(raw.get("model"), dict):
+        raw["model"].setdefault("body_sees_stats", False)
     try:
         config = CheckpointConfig.model_validate(raw)
     except ValidationError as exc:

@@ -163,7 +163,13 @@ def evaluate(
     shape, body_ds = ds.shape.astype(np.float64), ds.body_ds.astype(np.float64)
     rec = reconstruction(model, shape, body_ds)
     z_b, z_j = rec.pop("z_b"), rec.pop("z_j")
-    out = {"checkpoint": str(model.path), "data": str(data), "n_samples": len(ds), **rec}
+    out = {
+        "checkpoint": str(model.path),
+        "data": str(data),
+        "n_samples": len(ds),
+        "robot_warning": model.robot_warning(),
+        **rec,
+    }
     out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=seed))
     if n_prior > 0:
         out["consistency"] = consistency(model, n_prior, ensemble, seed, workers, progress=progress)
@@ -172,7 +178,8 @@ def evaluate(
 
 def format_report(r: dict) -> str:
     """Human-readable evaluation report."""
-    lines = [
+    lines = [f"WARNING: {r['robot_warning']}"] if r.get("robot_warning") else []
+    lines += [
         f"checkpoint {r['checkpoint']} on {r['data']} ({r['n_samples']} samples)",
         f"R^2 joint shape {r['r2_shape']:.3f}; per frequency: "
         + ", ".join(f"{k} Hz {v:.3f}" for k, v in r["r2_shape_per_freq"].items()),

@@ -21,7 +21,7 @@ from model import (
     save_checkpoint,
     train,
 )
-from model.checkpoint import Normalization
+from model.checkpoint import CheckpointConfig, Normalization
 from model.metrics import mmd_null_quantile, mmd_numpy, r2_per_channel
 from model.stats import stats_dict
 from model.train import init_signal_source, make_scheduler
@@ -164,7 +164,7 @@ def test_training_writes_metrics_and_checkpoint(tiny_checkpoint):
     for key in ("train_loss", "val_loss", "val_r2_shape", "val_r2_body", "lr"):
         assert np.isfinite(rows[-1][key])
     cfg = json.loads((tiny_checkpoint / "config.json").read_text())
-    assert cfg["schema_version"] == 2 and cfg["model"]["z_b_dim"] == 3
+    assert cfg["schema_version"] == 3 and cfg["model"]["z_b_dim"] == 3
     assert len(cfg["freqs"]) == 8 and cfg["summary"]["epochs_run"] == 2
 
 
@@ -198,6 +198,10 @@ def test_gait_model_api_units_and_shapes(tiny_checkpoint, tiny_dataset):
     assert model.sample_joint_latents(z_b, 2, seed=0).shape == (2, 2, 8, 4)
     with pytest.raises(ValueError, match="z_b must be"):
         model.decode(np.zeros((1, 5)))
+    # Trained on this robot: no warning; a checkpoint of another MJCF says so.
+    assert model.robot_warning() is None
+    other = type(model)(model.net, model.config.model_copy(update={"mjcf_sha256": "f" * 64}))
+    assert "another robot model" in other.robot_warning()
 
 
 def _copy(src, dst):
@@ -235,6 +239,60 @@ def test_bad_checkpoints_are_refused_clearly(tiny_checkpoint, tmp_path):
     (bad / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(CheckpointError, match=r"invalid config\.json"):
         load_checkpoint(bad)
+
+
+def test_body_decoder_sees_the_gait_statistics_but_does_not_train_them():
+    torch.manual_seed(0)
+    net = _net()
+    assert net.cfg.body_sees_stats
+    z_b, z_j = torch.randn(3, 3), torch.zeros(3, 8, 4)
+    with torch.no_grad():
+        net.dec_film.weight.normal_()  # as after training (it starts at zero: the z_B-only decoder)
+        a = net.decode_body(z_b, z_j, torch.zeros(3, 4))
+        b = net.decode_body(z_b, z_j, torch.ones(3, 4))
+    assert not torch.allclose(a, b)
+    with pytest.raises(ValueError, match="pass stats"):
+        net.decode_body(z_b, z_j)
+    # The body loss reaches the decoder but not the statistics head (its input is detached).
+    shape, body = torch.randn(4, 8, 8, 2), torch.randn(4, 500, 6)
+    torch.nn.functional.mse_loss(net(shape, body).body, body).backward()
+    assert all(p.grad is None for p in net.stats_head.parameters())
+    assert all(p.grad is None for p in net.signal_net.parameters())
+    assert net.dec_film.weight.grad.abs().sum() > 0
+
+
+def test_schema_2_checkpoint_loads_with_its_statistics_blind_decoder(tmp_path):
+    """Checkpoints written before the decoder saw the statistics still load and decode as built."""
+    old_cfg = SMALL.model_copy(update={"body_sees_stats": False})
+    net = _net(old_cfg)
+    config = CheckpointConfig(
+        schema_version=3,
+        model=old_cfg,
+        normalization=Normalization(
+            shape_mean=np.zeros((8, 2)).tolist(),
+            shape_std=np.ones((8, 2)).tolist(),
+            body_mean=[0.0] * 6,
+            body_std=[1.0] * 6,
+            stats_mean=[0.0] * 4,
+            stats_std=[1.0] * 4,
+        ),
+        freqs=DEFAULT_EXCITATION.freqs.tolist(),
+        dataset_meta_sha256="0" * 64,
+        mjcf_sha256="0" * 64,
+    )
+    save_checkpoint(tmp_path, net, config)
+    raw = json.loads((tmp_path / "config.json").read_text())
+    del raw["model"]["body_sees_stats"]
+    (tmp_path / "config.json").write_text(json.dumps(raw | {"schema_version": 2}))
+    loaded, cfg = load_checkpoint(tmp_path)
+    assert not cfg.model.body_sees_stats
+    z = torch.randn(2, 3)
+    with torch.no_grad():
+        assert torch.equal(loaded.generate(z)[1], net.generate(z)[1])
+    raw["model"]["body_sees_stats"] = True  # a version-2 file claiming the new decoder: refused
+    (tmp_path / "config.json").write_text(json.dumps(raw | {"schema_version": 2}))
+    with pytest.raises(CheckpointError, match="weights do not match its config"):
+        load_checkpoint(tmp_path)
 
 
 def test_r2_per_channel():
@@ -284,15 +342,20 @@ def test_calibration_tunes_only_the_statistics_head(tiny_checkpoint, tiny_datase
     before, _ = load_checkpoint(tiny_checkpoint)
     after, config = load_checkpoint(out)
     assert config.summary.model_extra["calibration"]["prior_samples"] == 4
-    head = ("signal_net.", "stats_head.")
+    # Stage 1 tunes the statistics head, stage 2 the body decoder's statistics modulation; nothing else.
+    tuned = ("signal_net.", "stats_head.", "dec_film.")
     changed = {k for k, v in after.state_dict().items() if not torch.equal(v, before.state_dict()[k])}
-    assert changed and all(k.startswith(head) for k in changed), changed
-    # Decodes are unchanged; only the predicted statistics move.
+    assert changed and all(k.startswith(tuned) for k in changed), changed
+    assert any(k.startswith("dec_film.") for k in changed)
+    path = summary["path"]
+    val = {k: 0.5 * (path[k]["generated"] + path[k]["dataset"]) for k in ("mse_before", "mse_after")}
+    assert path["best_epoch"] >= 0 and val["mse_after"] < val["mse_before"]
+    # Decoded shapes are unchanged; the predicted statistics and the body path move.
     z = torch.zeros(2, SMALL.z_b_dim)
     with torch.no_grad():
-        s0, b0, _ = before.generate(z)
-        s1, b1, _ = after.generate(z)
-    assert torch.equal(s0, s1) and torch.equal(b0, b1)
+        s0, b0, st0 = before.generate(z)
+        s1, b1, st1 = after.generate(z)
+        assert torch.equal(s0, s1) and not torch.equal(st0, st1) and not torch.equal(b0, b1)
     other = generate_dataset(GenerateConfig(num_samples=2, seed=99), tmp_path / "other.npz", workers=2)
     with pytest.raises(DatasetError, match="not the dataset this checkpoint was trained on"):
         calibrate(tiny_checkpoint, other, tmp_path / "x", n=2, epochs=1, log=None)
