@@ -201,6 +201,10 @@ def format_report(r: dict) -> str:
             + ", ".join(f"{k} {c.get(k + '_spread', float('nan')):.3f}" for k in PREDICTABLE)
         )
         lines.append(
+            "  physics' floor (perturbed replays' mean vs the replay): "
+            + ", ".join(f"{k} {c.get(k + '_floor', float('nan')):.3f}" for k in PREDICTABLE)
+        )
+        lines.append(
             "  decoded vs simulated relative error: "
             + ", ".join(f"{k} {c.get(k + '_err', float('nan')):.3f}" for k in PREDICTABLE)
         )

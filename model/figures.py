@@ -127,6 +127,12 @@ def figures(
     return paths
 
 
+def _floor_text(summary: dict, key: str) -> str:
+    """ ", physics' floor N%" where the report has it (reports before the floor was measured lack it)."""
+    floor = summary.get(key + "_floor")
+    return "" if floor is None else f", physics' floor {100 * floor:.0f}%"
+
+
 def consistency_figure(report: str | Path, path: Path) -> Path:
     """Predicted vs simulated body statistics of prior-generated gaits, with the physics' spread."""
     import json
@@ -154,7 +160,7 @@ def consistency_figure(report: str | Path, path: Path) -> Path:
                 ms=3,
                 alpha=0.5,
                 elinewidth=0.5,
-                label=f"{mode} (median error {100 * c[key + '_err']:.0f}%)",
+                label=f"{mode} (median error {100 * c[key + '_err']:.0f}%" + _floor_text(c, key) + ")",
             )
             ax.set_xlabel(f"simulated {label}")
             ax.set_ylabel("model")

@@ -39,7 +39,14 @@ def test_path_stats_and_compare():
     far = body.copy()
     far[:, 2] = 0.2 * t  # drifts sideways by 20 m: outside the ensemble's spread
     assert compare(far, ens, 5.0)["final_inside"] == 0.0
-    assert ensemble_spread(ens, 5.0)["final_spread"] == pytest.approx(np.sqrt(0.01**2), rel=1e-6)
+    spread = ensemble_spread(ens, 5.0)
+    assert spread["final_spread"] == pytest.approx(np.sqrt(0.01**2), rel=1e-6)
+    # Members 1.01x and 0.99x average to member 0: the floor is zero; skewed, it is their mean's error.
+    assert spread["path_length_floor"] == pytest.approx(0.0, abs=1e-12)
+    skewed = ensemble_spread(np.stack([body, body * 1.02, body * 1.04]), 5.0)
+    assert skewed["path_length_floor"] == pytest.approx(0.03)
+    assert skewed["net_roll_floor"] == pytest.approx(0.03)
+    assert c["path_length_floor"] == spread["path_length_floor"]
 
 
 def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
