@@ -237,7 +237,43 @@ class _Browser:
         self._conn.close()
 
 
-def _stale_checks(browser: _Browser, d: DesignerClient, tmp: Path, index: int) -> list[str]:
+MOVED = "the server's sliders moved during these checks"
+
+
+def _wait_quiet(designers: list[DesignerClient], quiet_s: float = 2.0, timeout_s: float = 180.0) -> bool:
+    """Wait until no tab's sliders have changed for ``quiet_s`` and every tab is idle.
+
+    A CPU-starved page can deliver its last slider messages seconds after its driver's final
+    pointer move returned (a move took up to 30 s in a 4-tab run): checking before then would
+    compare what is drawn with values that are about to change.
+    """
+    deadline = time.monotonic() + timeout_s
+    last = [tuple(float(s.value) for s in d.sliders) for d in designers]
+    since = time.monotonic()
+    while time.monotonic() < deadline:
+        time.sleep(0.1)
+        now = [tuple(float(s.value) for s in d.sliders) for d in designers]
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return all(d.wait_idle(max(1.0, deadline - time.monotonic())) for d in designers)
+    return False
+
+
+def _stale_checks(
+    browser: _Browser, d: DesignerClient, tmp: Path, index: int, attempts: int = 3
+) -> list[str]:
+    """``_check_final_state``, again from the new values if a late browser event moved the sliders
+    while it ran (that is not a stale draw: the state it checked was not yet final)."""
+    for _ in range(attempts):
+        problems = _check_final_state(browser, d, tmp, index)
+        if not (problems and problems[-1].startswith(MOVED)):
+            return problems
+        _wait_quiet([d])
+    return problems
+
+
+def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: int) -> list[str]:
     """Everything this tab shows or exports must match its final slider values; returns mismatches."""
     problems = []
     z = tuple(float(s.value) for s in d.sliders)
@@ -273,7 +309,7 @@ def _stale_checks(browser: _Browser, d: DesignerClient, tmp: Path, index: int) -
         problems.append(f"exported z_B comment does not match the final sliders {list(z)}: {line!r}")
     now = tuple(float(s.value) for s in d.sliders)
     if problems and now != z:  # says whether a late browser event moved the sliders during the checks
-        problems.append(f"the server's sliders moved during these checks: {list(z)} -> {list(now)}")
+        problems.append(f"{MOVED}: {list(z)} -> {list(now)}")
     return problems
 
 
@@ -314,9 +350,7 @@ def _drive(
         browser.send("drag", seconds, n_sliders, [seed])
     moves = [browser.receive("drag", timeout=seconds + 600)[0] for browser in browsers]
     t_end = time.monotonic()
-    settled = all(d.wait_idle(180) for d in designers)
-    time.sleep(0.5)  # any slider message still in flight
-    settled = settled and all(d.wait_idle(180) for d in designers)
+    settled = _wait_quiet(designers)  # slider messages a starved page sends late
     rss_idle_after = rss_mb()  # the same tabs, idle again after the drags
     clients = []
     for i, (browser, d, dr) in enumerate(zip(browsers, designers, moves, strict=True)):
