@@ -39,10 +39,9 @@ SMALL = ModelConfig(
 )
 
 
-def _net(cfg: ModelConfig = SMALL) -> HierarchicalVAE:
-    """A fresh network whose signal branch uses the standard excitation and unit normalisation."""
-    net = HierarchicalVAE(cfg)
-    unit = Normalization(
+def _unit_normalization() -> Normalization:
+    """Zero means and unit stds: normalised values equal physical ones."""
+    return Normalization(
         shape_mean=np.zeros((8, 2)).tolist(),
         shape_std=np.ones((8, 2)).tolist(),
         body_mean=[0.0] * 6,
@@ -50,7 +49,12 @@ def _net(cfg: ModelConfig = SMALL) -> HierarchicalVAE:
         stats_mean=[0.0] * 4,
         stats_std=[1.0] * 4,
     )
-    init_signal_source(net, DEFAULT_EXCITATION.freqs, unit)
+
+
+def _net(cfg: ModelConfig = SMALL) -> HierarchicalVAE:
+    """A fresh network whose signal branch uses the standard excitation and unit normalisation."""
+    net = HierarchicalVAE(cfg)
+    init_signal_source(net, DEFAULT_EXCITATION.freqs, _unit_normalization())
     return net
 
 
@@ -268,14 +272,7 @@ def test_schema_2_checkpoint_loads_with_its_statistics_blind_decoder(tmp_path):
     config = CheckpointConfig(
         schema_version=3,
         model=old_cfg,
-        normalization=Normalization(
-            shape_mean=np.zeros((8, 2)).tolist(),
-            shape_std=np.ones((8, 2)).tolist(),
-            body_mean=[0.0] * 6,
-            body_std=[1.0] * 6,
-            stats_mean=[0.0] * 4,
-            stats_std=[1.0] * 4,
-        ),
+        normalization=_unit_normalization(),
         freqs=DEFAULT_EXCITATION.freqs.tolist(),
         dataset_meta_sha256="0" * 64,
         mjcf_sha256="0" * 64,
