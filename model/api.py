@@ -72,11 +72,12 @@ class GaitModel:
         """
         from sim import mjcf_sha256
 
-        if self.config.mjcf_sha256 == mjcf_sha256():
+        here = mjcf_sha256()
+        if self.config.mjcf_sha256 == here:
             return None
         return (
             f"checkpoint {self.path or ''} was trained on another robot model (MJCF sha256 "
-            f"{self.config.mjcf_sha256[:12]}, this sim/snake.xml {mjcf_sha256()[:12]}): replays follow "
+            f"{self.config.mjcf_sha256[:12]}, this sim/snake.xml {here[:12]}): replays follow "
             "this robot, the decoded paths and statistics the other one"
         )
 
