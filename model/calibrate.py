@@ -102,6 +102,63 @@ def _head_parameters(net) -> list[torch.nn.Parameter]:
     return [*net.signal_net.parameters(), *net.stats_head.parameters()]
 
 
+def _fit_best(
+    net: torch.nn.Module,
+    keep: torch.nn.Module,
+    params: list[torch.nn.Parameter],
+    n: int,
+    batch_loss: Callable[[torch.Tensor], torch.Tensor],
+    val_loss: Callable[[], float],
+    epochs: int,
+    lr: float,
+    batch_size: int,
+    seed: int,
+    log: Callable[[str], None] | None,
+    label: str = "",
+    min_batch: int = 1,
+) -> tuple[int, list[dict]]:
+    """Train ``params`` (the rest of ``net`` frozen) on ``n`` examples, shuffled batches, Adam with
+    cosine decay to 1% of ``lr``; ``keep`` (the module holding ``params``) is restored to the epoch
+    with the lowest ``val_loss`` (the untrained start counts as epoch -1). ``batch_loss`` takes a
+    batch's example indices; batches under ``min_batch`` examples are skipped.
+    Returns the best epoch and the per-epoch history (train and validation MSE)."""
+    for p in params:
+        p.requires_grad_(True)
+    opt = torch.optim.Adam(params, lr=lr)
+    steps = math.ceil(n / batch_size)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps, eta_min=lr * 0.01)
+    gen = torch.Generator().manual_seed(seed)
+    best, best_state, best_epoch = val_loss(), None, -1
+    history = []
+    for epoch in range(epochs):
+        net.train()
+        perm = torch.randperm(n, generator=gen)
+        total = 0.0
+        for i in range(steps):
+            idx = perm[i * batch_size : (i + 1) * batch_size]
+            if len(idx) < min_batch:
+                continue
+            loss = batch_loss(idx)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            total += loss.item() / steps
+        v = val_loss()
+        history.append({"epoch": epoch, "train_mse": total, "val_mse": v})
+        if log:
+            log(f"  {label}epoch {epoch}: train mse {total:.4f}, val mse {v:.4f}")
+        if v < best:
+            best, best_epoch = v, epoch
+            best_state = {k: t.detach().clone() for k, t in keep.state_dict().items()}
+    if best_state is not None:
+        keep.load_state_dict(best_state)
+    for p in params:
+        p.requires_grad_(False)
+    net.eval()
+    return best_epoch, history
+
+
 def _fit_path_modulation(
     model: GaitModel,
     d_shape: np.ndarray,
@@ -163,36 +220,25 @@ def _fit_path_modulation(
         return 0.5 * (mse(gen_va) + mse(rec_va))
 
     before = {"generated": mse(gen_va), "dataset": mse(rec_va)}
-    params = list(net.dec_film.parameters())
-    for p in params:
-        p.requires_grad_(True)
-    opt = torch.optim.Adam(params, lr=lr)
-    steps = math.ceil(len(train_set[0]) / batch_size)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps, eta_min=lr * 0.01)
-    gen = torch.Generator().manual_seed(seed + 1)
-    best, best_state, best_epoch = val_loss(), None, -1
-    for epoch in range(epochs):
-        net.train()
-        perm = torch.randperm(len(train_set[0]), generator=gen)
-        for i in range(steps):
-            idx = perm[i * batch_size : (i + 1) * batch_size]
-            z_b, z_j, st, y = (t[idx] for t in train_set)
-            loss = torch.nn.functional.mse_loss(net.decode_body(z_b, z_j, st), y)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-        v = val_loss()
-        if log:
-            log(f"  path epoch {epoch}: val mse {v:.4f}")
-        if v < best:
-            best, best_epoch = v, epoch
-            best_state = {k: t.detach().clone() for k, t in net.dec_film.state_dict().items()}
-    if best_state is not None:
-        net.dec_film.load_state_dict(best_state)
-    for p in params:
-        p.requires_grad_(False)
-    net.eval()
+
+    def batch_loss(idx: torch.Tensor) -> torch.Tensor:
+        z_b, z_j, st, y = (t[idx] for t in train_set)
+        return torch.nn.functional.mse_loss(net.decode_body(z_b, z_j, st), y)
+
+    best_epoch, _ = _fit_best(
+        net,
+        net.dec_film,
+        list(net.dec_film.parameters()),
+        len(train_set[0]),
+        batch_loss,
+        val_loss,
+        epochs,
+        lr,
+        batch_size,
+        seed + 1,
+        log,
+        label="path ",
+    )
     after = {"generated": mse(gen_va), "dataset": mse(rec_va)}
     if log:
         log(
@@ -275,13 +321,6 @@ def calibrate(
     net = model.net
     for p in net.parameters():
         p.requires_grad_(False)
-    params = _head_parameters(net)
-    for p in params:
-        p.requires_grad_(True)
-    opt = torch.optim.Adam(params, lr=lr)
-    steps = math.ceil(len(x_tr) / batch_size)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps, eta_min=lr * 0.01)
-    gen = torch.Generator().manual_seed(seed)
 
     @torch.no_grad()
     def predict(x: torch.Tensor) -> np.ndarray:
@@ -300,34 +339,20 @@ def calibrate(
         return 0.5 * (score(x_gv, y_gv)[0] + score(x_dv, y_dv)[0])
 
     before = {"generated": score(x_gv, y_gv)[1], "dataset": score(x_dv, y_dv)[1]}
-    best, best_state, best_epoch = val_loss(), None, -1
-    history = []
-    for epoch in range(epochs):
-        net.train()
-        perm = torch.randperm(len(x_tr), generator=gen)
-        total = 0.0
-        for i in range(steps):
-            idx = perm[i * batch_size : (i + 1) * batch_size]
-            if len(idx) < 2:
-                continue
-            loss = torch.nn.functional.mse_loss(net.predict_stats(x_tr[idx]), y_tr[idx])
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            total += loss.item() / steps
-        v = val_loss()
-        history.append({"epoch": epoch, "train_mse": total, "val_mse": v})
-        if log:
-            log(f"  epoch {epoch}: train mse {total:.4f}, val mse {v:.4f}")
-        if v < best:
-            best, best_epoch = v, epoch
-            best_state = {k: t.detach().clone() for k, t in net.state_dict().items()}
-    if best_state is not None:
-        net.load_state_dict(best_state)
-    net.eval()
-    for p in net.parameters():
-        p.requires_grad_(False)
+    best_epoch, history = _fit_best(
+        net,
+        net,
+        _head_parameters(net),
+        len(x_tr),
+        lambda idx: torch.nn.functional.mse_loss(net.predict_stats(x_tr[idx]), y_tr[idx]),
+        val_loss,
+        epochs,
+        lr,
+        batch_size,
+        seed,
+        log,
+        min_batch=2,
+    )
     after = {"generated": score(x_gv, y_gv)[1], "dataset": score(x_dv, y_dv)[1]}
     path_summary = None
     if net.cfg.body_sees_stats:
