@@ -92,6 +92,10 @@ class Calibrate:
     """Seed of the z_B draws (evaluate's consistency check draws with seed 0)."""
     workers: int | None = None
     """Simulation threads (default: all cores)."""
+    gaits: Path | None = None
+    """Replayed calibration gaits (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same samples and seed), else written there after replaying."""
+    head_loss: Literal["l1", "mse"] = "l1"
+    """Loss of the statistics head on normalised statistics: l1 fits each statistic's median (what the consistency check's median relative error rewards), mse its mean (the previous default)."""
 
 
 @dataclass
@@ -269,12 +273,22 @@ def run_evaluate(cmd: Evaluate) -> dict:
 
 
 def run_calibrate(cmd: Calibrate) -> dict:
-    """Replay prior gaits with a progress bar, then fine-tune and save."""
+    """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save."""
     from tqdm import tqdm
 
     from model.calibrate import MODES, calibrate
 
-    with tqdm(total=len(MODES) * cmd.prior_samples, unit="gait", desc="replay prior gaits") as bar:
+    bar = None
+
+    def progress(k: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=len(MODES) * cmd.prior_samples, unit="gait", desc="replay prior gaits")
+        bar.update(k)
+        if bar.n >= bar.total:
+            bar.close()  # before the fine-tuning's log lines
+
+    try:
         return calibrate(
             cmd.checkpoint,
             cmd.data,
@@ -283,8 +297,13 @@ def run_calibrate(cmd: Calibrate) -> dict:
             seed=cmd.seed,
             epochs=cmd.epochs,
             workers=cmd.workers,
-            progress=bar.update,
+            progress=progress,
+            gaits_path=cmd.gaits,
+            loss=cmd.head_loss,
         )
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def run_figures(cmd: Figures) -> list[Path]:

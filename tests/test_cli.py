@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
 import socket
 import subprocess
@@ -103,3 +104,17 @@ def test_serve_stops_cleanly_on_signals(tmp_path, checkpoint, sig):
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # SO_REUSEADDR past TIME_WAIT)
         s.bind(("127.0.0.1", port))
         s.listen()
+
+
+def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpoint, tiny_dataset_path):
+    gaits = tmp_path / "gaits.npz"
+    args = ["calibrate", "--data", str(tiny_dataset_path), "--checkpoint", str(checkpoint)]
+    args += ["--prior-samples", "2", "--epochs", "1", "--workers", "1", "--gaits", str(gaits)]
+    main([*args, "--out", str(tmp_path / "a")])
+    first = capsys.readouterr()
+    assert gaits.exists() and "replay prior gaits" in first.err and "replayed" in first.out
+    main([*args, "--out", str(tmp_path / "b"), "--head-loss", "mse"])
+    second = capsys.readouterr()
+    assert re.search(rf"reusing \d+ replayed prior gaits from {re.escape(str(gaits))}", second.out)
+    assert "replay prior gaits" not in second.err
+    assert (tmp_path / "b" / "model.safetensors").exists()

@@ -335,7 +335,9 @@ def test_calibration_tunes_only_the_statistics_head(tiny_checkpoint, tiny_datase
     out = tmp_path / "calibrated"
     summary = calibrate(tiny_checkpoint, tiny_dataset_path, out, n=4, epochs=3, lr=1e-2, log=None)
     assert summary["gaits"] + sum(summary["broken"].values()) == 4 * len(MODES)
-    assert set(summary["median_rel_err_after"]) == {"generated", "dataset"}
+    assert (
+        {"generated", "dataset"} <= set(summary["median_rel_err_after"]) <= {"generated", "dataset", *MODES}
+    )
     before, _ = load_checkpoint(tiny_checkpoint)
     after, config = load_checkpoint(out)
     assert config.summary.model_extra["calibration"]["prior_samples"] == 4
@@ -356,6 +358,76 @@ def test_calibration_tunes_only_the_statistics_head(tiny_checkpoint, tiny_datase
     other = generate_dataset(GenerateConfig(num_samples=2, seed=99), tmp_path / "other.npz", workers=2)
     with pytest.raises(DatasetError, match="not the dataset this checkpoint was trained on"):
         calibrate(tiny_checkpoint, other, tmp_path / "x", n=2, epochs=1, log=None)
+
+
+def test_calibration_gaits_file_is_reused_and_checked(
+    tiny_checkpoint, tiny_dataset_path, tmp_path, monkeypatch
+):
+    import model.calibrate as cal
+    from model.checkpoint import load_checkpoint
+    from sim import DatasetError
+
+    gaits_file = tmp_path / "gaits.npz"
+    first = cal.calibrate(
+        tiny_checkpoint, tiny_dataset_path, tmp_path / "a", n=3, epochs=2, log=None, gaits_path=gaits_file
+    )
+    assert gaits_file.exists()
+    replay = cal.replay_prior_gaits
+
+    def no_replay(*args, **kwargs):
+        raise AssertionError("replayed although the gaits file exists")
+
+    # The second run replays nothing and trains to the same weights.
+    monkeypatch.setattr(cal, "replay_prior_gaits", no_replay)
+    second = cal.calibrate(
+        tiny_checkpoint, tiny_dataset_path, tmp_path / "b", n=3, epochs=2, log=None, gaits_path=gaits_file
+    )
+    assert first["median_rel_err_after"] == second["median_rel_err_after"]
+    a, _ = load_checkpoint(tmp_path / "a")
+    b, _ = load_checkpoint(tmp_path / "b")
+    for k, v in a.state_dict().items():
+        assert torch.equal(v, b.state_dict()[k]), k
+    # The head's loss changes what it learns, and the summary records it.
+    rel = cal.calibrate(
+        tiny_checkpoint,
+        tiny_dataset_path,
+        tmp_path / "c",
+        n=3,
+        epochs=2,
+        log=None,
+        gaits_path=gaits_file,
+        loss="mse",
+    )
+    assert rel["head_loss"] == "mse" and first["head_loss"] == "l1"
+    c, _ = load_checkpoint(tmp_path / "c")
+    assert not torch.equal(c.state_dict()["stats_head.0.weight"], a.state_dict()["stats_head.0.weight"])
+    model = load_pretrained(tiny_checkpoint)
+    with pytest.raises(DatasetError, match="asked for 4 with seed 1000"):
+        cal.load_gaits(gaits_file, model, 4, 1000)
+    # Gaits decoded by another checkpoint are refused, not silently trained on.
+    gaits = replay(model, 2, seed=5, workers=1)
+    gaits["shape"] = gaits["shape"] + 0.01
+    cal.save_gaits(tmp_path / "other.npz", gaits, 2, 5)
+    with pytest.raises(DatasetError, match="decoded by another checkpoint"):
+        cal.load_gaits(tmp_path / "other.npz", model, 2, 5)
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(DatasetError, match="not a readable calibration-gaits"):
+        cal.load_gaits(tmp_path / "junk.npz", model, 2, 5)
+
+
+def test_head_loss_l1_prefers_the_median_and_mse_the_mean():
+    from model.calibrate import head_loss
+
+    # Nine gaits that barely roll and one that rolls over: squared error prefers their mean,
+    # absolute error their median (what a median relative error rewards).
+    y = torch.zeros(10, 4)
+    y[-1, 3] = 10.0
+    mean, median = torch.full((10, 4), 0.0), torch.zeros(10, 4)
+    mean[:, 3] = 1.0
+    assert head_loss(mean, y, "mse") < head_loss(median, y, "mse")
+    assert head_loss(median, y, "l1") < head_loss(mean, y, "l1")
+    assert head_loss(median, y, "l1") == pytest.approx(10.0 / 40)
+    assert head_loss(median, y, "mse") == pytest.approx(100.0 / 40)
 
 
 def test_single_z_decode_runs_traced_and_matches_eager_exactly(tiny_checkpoint):
