@@ -87,7 +87,9 @@ class Calibrate:
     prior_samples: int = 512
     """z_B drawn from the prior; each is decoded with z_k = 0 and sampled at temperatures 0.5 and 1."""
     epochs: int = 40
-    """Fine-tuning epochs of the head."""
+    """Fine-tuning epochs of each stage (head, then path modulation)."""
+    lr: float = 3e-3
+    """Peak learning rate of both stages (Adam, cosine decay to 1% of it)."""
     seed: int = 1000
     """Seed of the z_B draws (evaluate's consistency check draws with seed 0)."""
     workers: int | None = None
@@ -296,6 +298,7 @@ def run_calibrate(cmd: Calibrate) -> dict:
             n=cmd.prior_samples,
             seed=cmd.seed,
             epochs=cmd.epochs,
+            lr=cmd.lr,
             workers=cmd.workers,
             progress=progress,
             gaits_path=cmd.gaits,

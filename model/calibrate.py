@@ -323,7 +323,7 @@ def calibrate(
     n: int = 512,
     seed: int = 1000,
     epochs: int = 40,
-    lr: float = 1e-3,
+    lr: float = 3e-3,
     batch_size: int = 128,
     workers: int | None = None,
     val_fraction: float = 0.1,
