@@ -338,8 +338,9 @@ def calibrate(
     ``data`` must be the dataset the checkpoint was trained on (its meta hash is checked): its
     training split keeps the head right on measured shapes. ``gaits``: reuse the output of
     ``replay_prior_gaits`` instead of simulating; ``gaits_path``: an .npz that is read when it
-    exists (``load_gaits``), else written after replaying. ``loss``: the head's loss (``head_loss``). Returns the calibration summary (also stored in
-    the checkpoint's ``summary.calibration``).
+    exists (``load_gaits``), else written after replaying. ``loss``: the head's loss
+    (``head_loss``). Returns the calibration summary (also stored in the checkpoint's
+    ``summary.calibration``).
     """
     t_start = time.perf_counter()
     model = load_pretrained(checkpoint)
