@@ -404,26 +404,26 @@ def calibrate(
         net.eval()
         return np.concatenate([net.predict_stats(x[i : i + 512]).numpy() for i in range(0, len(x), 512)])
 
-    def score(x: torch.Tensor, y: torch.Tensor) -> tuple[float, dict[str, float]]:
-        p = predict(x)
-        value = float(head_loss(torch.as_tensor(p), y, loss))
-        return value, median_relative_errors(
-            stats_dict(p * s_std + s_mean), stats_dict(y.numpy() * s_std + s_mean)
-        )
+    def errors(p: np.ndarray, y: torch.Tensor) -> dict[str, float]:
+        """Predicted and target normalised statistics -> median relative error per statistic."""
+        return median_relative_errors(stats_dict(p * s_std + s_mean), stats_dict(y.numpy() * s_std + s_mean))
 
     def val_loss() -> float:
         # Both held-out sets count equally: generated gaits and measured records.
-        return 0.5 * (score(x_gv, y_gv)[0] + score(x_dv, y_dv)[0])
+        return 0.5 * sum(
+            float(head_loss(torch.as_tensor(predict(x)), y, loss)) for x, y in ((x_gv, y_gv), (x_dv, y_dv))
+        )
 
     val_modes = gaits["mode"][g_val]
 
     def held_out_errors() -> dict[str, dict[str, float]]:
         """Median relative errors on the held-out generated gaits (all, and per z_k mode) and records."""
-        out = {"generated": score(x_gv, y_gv)[1], "dataset": score(x_dv, y_dv)[1]}
+        p_gv = predict(x_gv)
+        out = {"generated": errors(p_gv, y_gv), "dataset": errors(predict(x_dv), y_dv)}
         for m, mode in enumerate(MODES):
-            sel = torch.as_tensor(val_modes == m)
+            sel = val_modes == m
             if sel.any():
-                out[mode] = score(x_gv[sel], y_gv[sel])[1]
+                out[mode] = errors(p_gv[sel], y_gv[torch.as_tensor(sel)])
         return out
 
     before = held_out_errors()
