@@ -86,6 +86,8 @@ class Calibrate:
     """Checkpoint directory (default: the shipped pretrained model)."""
     prior_samples: int = 512
     """z_B drawn from the prior; each is decoded with z_k = 0 and sampled at temperatures 0.5 and 1."""
+    zero_samples: int | None = None
+    """Further z_B decoded with z_k = 0 only (default: twice --prior-samples); their own seed, --seed + 1000."""
     epochs: int = 40
     """Fine-tuning epochs of each stage (head, then path modulation)."""
     lr: float = 3e-3
@@ -285,7 +287,8 @@ def run_calibrate(cmd: Calibrate) -> dict:
     def progress(k: int) -> None:
         nonlocal bar
         if bar is None:
-            bar = tqdm(total=len(MODES) * cmd.prior_samples, unit="gait", desc="replay prior gaits")
+            extra = 2 * cmd.prior_samples if cmd.zero_samples is None else cmd.zero_samples
+            bar = tqdm(total=len(MODES) * cmd.prior_samples + extra, unit="gait", desc="replay prior gaits")
         bar.update(k)
         if bar.n >= bar.total:
             bar.close()  # before the fine-tuning's log lines
@@ -303,6 +306,7 @@ def run_calibrate(cmd: Calibrate) -> dict:
             progress=progress,
             gaits_path=cmd.gaits,
             loss=cmd.head_loss,
+            zero_samples=cmd.zero_samples,
         )
     finally:
         if bar is not None:

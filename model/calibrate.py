@@ -46,6 +46,10 @@ MODES: dict[str, float | None] = {"zk_zero": None, "zk_t0.5": 0.5, "zk_t1": 1.0}
 """z_k modes of the calibration gaits: None is z_k = 0, a number the prior's sampling temperature."""
 
 
+ZERO_SEED_OFFSET = 1000
+"""The extra z_k = 0 draws (``zero_samples``) use seed + this, apart from the n shared draws."""
+
+
 def replay_prior_gaits(
     model: GaitModel,
     n: int,
@@ -53,56 +57,64 @@ def replay_prior_gaits(
     workers: int | None = None,
     batch: int = 32,
     progress: Callable[[int], None] | None = None,
+    zero_samples: int = 0,
 ) -> dict[str, np.ndarray]:
-    """Decode n prior z_B in every ``MODES`` entry, replay each gait once and measure it.
+    """Decode n prior z_B in every ``MODES`` entry, plus ``zero_samples`` more z_B with z_k = 0
+    only, replay each gait once and measure it.
 
-    Returns arrays over the M = n * len(MODES) gaits (broken replays dropped): ``shape`` (M, 8, L, 2)
-    decoded rad, ``stats`` (M, 4) the replay's statistics vector (``model.stats``), ``body``
-    (M, 500, 6) the replay's body series at the model's rate, ``z_b`` (M, Db) and ``z_j``
-    (M, 8, Dj) the latents decoded, ``z_index`` (M,) which z_B draw, ``mode`` (M,) index into
-    ``MODES``, and ``broken`` (len(MODES),) counts.
+    Why the extra z_k = 0 draws: there a gait is a fixed function of z_B, and whether it hops
+    (vertical std 20 mm where most stay near 4 mm) is a property of the z_B that the head learns
+    only from many neighbouring draws (measured on the shipped model, ``README.md``). The extra
+    draws come from their own seed (seed + ``ZERO_SEED_OFFSET``), so adding them leaves the n
+    shared draws as they were.
+
+    Returns arrays over the M = n * len(MODES) + zero_samples gaits (broken replays dropped):
+    ``shape`` (M, 8, L, 2) decoded rad, ``stats`` (M, 4) the replay's statistics vector
+    (``model.stats``), ``body`` (M, 500, 6) the replay's body series at the model's rate, ``z_b``
+    (M, Db) and ``z_j`` (M, 8, Dj) the latents decoded, ``z_index`` (M,) which z_B draw (the
+    extra ones numbered from n), ``mode`` (M,) index into ``MODES``, and ``broken``
+    (len(MODES),) counts.
     """
-    rng = np.random.default_rng(seed)
-    z_b = rng.standard_normal((n, model.z_b_dim))
+    z_b = np.random.default_rng(seed).standard_normal((n, model.z_b_dim))
+    z_extra = np.random.default_rng(seed + ZERO_SEED_OFFSET).standard_normal((zero_samples, model.z_b_dim))
     simulator = Simulator(workers or os.cpu_count() or 1)
-    shapes, stats, bodies, z_bs, z_js, z_index, mode_index = [], [], [], [], [], [], []
+    parts: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("shape", "stats", "body", "z_b", "z_j", "z_index", "mode")
+    }
     broken = np.zeros(len(MODES), dtype=np.int64)
-    for m, (_, temperature) in enumerate(MODES.items()):
-        z_j = np.zeros((n, model.config.model.n_joints, model.z_j_dim))
+    n_joints = model.config.model.n_joints
+    draws = [(m, z_b, 0, temperature) for m, temperature in enumerate(MODES.values())]
+    if zero_samples:
+        draws.append((list(MODES.values()).index(None), z_extra, n, None))
+    for m, zb, first_index, temperature in draws:
+        z_j = np.zeros((len(zb), n_joints, model.z_j_dim))
         if temperature is not None:
-            z_j = model.sample_joint_latents(z_b, 1, seed=seed + 1 + m, temperature=temperature)[:, 0]
-        shape, _ = model.decode(z_b, z_j)
-        for start in range(0, n, batch):
-            idx = np.arange(start, min(n, start + batch))
+            z_j = model.sample_joint_latents(zb, 1, seed=seed + 1 + m, temperature=temperature)[:, 0]
+        shape, _ = model.decode(zb, z_j)
+        for start in range(0, len(zb), batch):
+            idx = np.arange(start, min(len(zb), start + batch))
             result = simulator.simulate(model.commands(shape[idx]))
             ok = np.array([f is None for f in result.failures])
             broken[m] += int((~ok).sum())
-            shapes.append(shape[idx][ok])
             body_ds = result.body[ok, ::BODY_DOWNSAMPLE]  # (b, 500, 6) at the model's rate
-            stats.append(stats_vector(body_ds, MODEL_RATE))
-            bodies.append(body_ds.astype(np.float32))
-            z_bs.append(z_b[idx][ok])
-            z_js.append(z_j[idx][ok])
-            z_index.append(idx[ok])
-            mode_index.append(np.full(int(ok.sum()), m))
+            parts["shape"].append(shape[idx][ok])
+            parts["stats"].append(stats_vector(body_ds, MODEL_RATE))
+            parts["body"].append(body_ds.astype(np.float32))
+            parts["z_b"].append(zb[idx][ok])
+            parts["z_j"].append(z_j[idx][ok])
+            parts["z_index"].append(first_index + idx[ok])
+            parts["mode"].append(np.full(int(ok.sum()), m))
             if progress is not None:
                 progress(len(idx))
-    return {
-        "shape": np.concatenate(shapes),
-        "stats": np.concatenate(stats),
-        "body": np.concatenate(bodies),
-        "z_b": np.concatenate(z_bs),
-        "z_j": np.concatenate(z_js),
-        "z_index": np.concatenate(z_index),
-        "mode": np.concatenate(mode_index),
-        "broken": broken,
-    }
+    return {**{k: np.concatenate(v) for k, v in parts.items()}, "broken": broken}
 
 
 GAIT_KEYS = ("shape", "stats", "body", "z_b", "z_j", "z_index", "mode", "broken")
 
 
-def save_gaits(path: str | Path, gaits: dict[str, np.ndarray], n: int, seed: int) -> None:
+def save_gaits(
+    path: str | Path, gaits: dict[str, np.ndarray], n: int, seed: int, zero_samples: int = 0
+) -> None:
     """Write ``replay_prior_gaits``' output to an .npz (no pickle) so a calibration can be rerun
     (other epochs, learning rate, loss) without replaying."""
     path = Path(path)
@@ -112,15 +124,19 @@ def save_gaits(path: str | Path, gaits: dict[str, np.ndarray], n: int, seed: int
         tmp,
         n=np.int64(n),
         seed=np.int64(seed),
+        zero_samples=np.int64(zero_samples),
         modes=np.array(list(MODES)),
         **{k: gaits[k] for k in GAIT_KEYS},
     )
     os.replace(tmp, path)
 
 
-def load_gaits(path: str | Path, model: GaitModel, n: int, seed: int) -> dict[str, np.ndarray]:
-    """Read gaits written by ``save_gaits``; refuse ones drawn with another n, seed or mode list, or
-    decoded by another checkpoint (their z_B and z_k are decoded again and must give the stored shapes)."""
+def load_gaits(
+    path: str | Path, model: GaitModel, n: int, seed: int, zero_samples: int = 0
+) -> dict[str, np.ndarray]:
+    """Read gaits written by ``save_gaits``; refuse ones drawn with another n, seed, number of extra
+    z_k = 0 draws or mode list, or decoded by another checkpoint (their z_B and z_k are decoded
+    again and must give the stored shapes). Files written before ``zero_samples`` existed hold none."""
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as f:
@@ -130,13 +146,16 @@ def load_gaits(path: str | Path, model: GaitModel, n: int, seed: int) -> dict[st
     missing = [k for k in (*GAIT_KEYS, "n", "seed", "modes") if k not in stored]
     if missing:
         raise DatasetError(f"{path}: not a calibration-gaits file (missing arrays {missing})")
-    if int(stored["n"]) != n or int(stored["seed"]) != seed or list(stored["modes"]) != list(MODES):
+    stored_zero = int(stored.get("zero_samples", 0))
+    drawn = (int(stored["n"]), int(stored["seed"]), stored_zero, list(stored["modes"]))
+    if drawn != (n, seed, zero_samples, list(MODES)):
         raise DatasetError(
-            f"{path}: gaits of {int(stored['n'])} z_B with seed {int(stored['seed'])} and modes "
-            f"{list(stored['modes'])}; asked for {n} with seed {seed} and modes {list(MODES)}"
+            f"{path}: gaits of {drawn[0]} z_B (+{stored_zero} at z_k = 0) with seed {drawn[1]} and modes "
+            f"{drawn[3]}; asked for {n} (+{zero_samples}) with seed {seed} and modes {list(MODES)}"
         )
     if len(stored["z_b"]):
-        check = slice(0, min(64, len(stored["z_b"])))
+        # The first and the last gaits: the shared draws and, where there are any, the extra ones.
+        check = np.unique(np.r_[np.arange(min(32, len(stored["z_b"]))), np.arange(len(stored["z_b"]))[-32:]])
         shape, _ = model.decode(stored["z_b"][check], stored["z_j"][check])
         gap = float(np.abs(shape - stored["shape"][check]).max())
         if gap > 1e-4:
@@ -332,6 +351,7 @@ def calibrate(
     gaits: dict[str, np.ndarray] | None = None,
     gaits_path: str | Path | None = None,
     loss: HeadLoss = "l1",
+    zero_samples: int | None = None,
 ) -> dict:
     """Fine-tune the statistics head of ``checkpoint`` on replays of its own prior gaits; write to ``out``.
 
@@ -339,10 +359,12 @@ def calibrate(
     training split keeps the head right on measured shapes. ``gaits``: reuse the output of
     ``replay_prior_gaits`` instead of simulating; ``gaits_path``: an .npz that is read when it
     exists (``load_gaits``), else written after replaying. ``loss``: the head's loss
-    (``head_loss``). Returns the calibration summary (also stored in the checkpoint's
+    (``head_loss``). ``zero_samples``: extra z_B decoded with z_k = 0 only (``replay_prior_gaits``;
+    None: 2 n). Returns the calibration summary (also stored in the checkpoint's
     ``summary.calibration``).
     """
     t_start = time.perf_counter()
+    zero_samples = 2 * n if zero_samples is None else zero_samples
     model = load_pretrained(checkpoint)
     config: CheckpointConfig = model.config
     ds = load_dataset(data)
@@ -355,19 +377,19 @@ def calibrate(
     if warning and log:
         log(f"warning: {warning}")
     if gaits is None and gaits_path is not None and Path(gaits_path).exists():
-        gaits = load_gaits(gaits_path, model, n, seed)
+        gaits = load_gaits(gaits_path, model, n, seed, zero_samples)
         if log:
             log(f"reusing {len(gaits['shape'])} replayed prior gaits from {gaits_path}")
     if gaits is None:
         t0 = time.perf_counter()
-        gaits = replay_prior_gaits(model, n, seed, workers, progress=progress)
+        gaits = replay_prior_gaits(model, n, seed, workers, progress=progress, zero_samples=zero_samples)
         if log:
             log(
                 f"replayed {len(gaits['shape'])} prior gaits in {time.perf_counter() - t0:.0f} s "
                 f"(broken: {dict(zip(MODES, gaits['broken'].tolist(), strict=True))})"
             )
         if gaits_path is not None:
-            save_gaits(gaits_path, gaits, n, seed)
+            save_gaits(gaits_path, gaits, n, seed, zero_samples)
     # The dataset's training split, as ``train`` drew it.
     from model.train import _split
 
@@ -460,6 +482,7 @@ def calibrate(
         )
     summary = {
         "prior_samples": n,
+        "zero_samples": zero_samples,
         "seed": seed,
         "modes": list(MODES),
         "gaits": len(gaits["shape"]),

@@ -334,7 +334,9 @@ def test_calibration_tunes_only_the_statistics_head(tiny_checkpoint, tiny_datase
 
     out = tmp_path / "calibrated"
     summary = calibrate(tiny_checkpoint, tiny_dataset_path, out, n=4, epochs=3, lr=1e-2, log=None)
-    assert summary["gaits"] + sum(summary["broken"].values()) == 4 * len(MODES)
+    # 4 z_B in every mode, and by default 2 x 4 more with z_k = 0 only.
+    assert summary["zero_samples"] == 8
+    assert summary["gaits"] + sum(summary["broken"].values()) == 4 * len(MODES) + 8
     assert (
         {"generated", "dataset"} <= set(summary["median_rel_err_after"]) <= {"generated", "dataset", *MODES}
     )
@@ -369,7 +371,14 @@ def test_calibration_gaits_file_is_reused_and_checked(
 
     gaits_file = tmp_path / "gaits.npz"
     first = cal.calibrate(
-        tiny_checkpoint, tiny_dataset_path, tmp_path / "a", n=3, epochs=2, log=None, gaits_path=gaits_file
+        tiny_checkpoint,
+        tiny_dataset_path,
+        tmp_path / "a",
+        n=3,
+        epochs=2,
+        log=None,
+        gaits_path=gaits_file,
+        zero_samples=1,
     )
     assert gaits_file.exists()
     replay = cal.replay_prior_gaits
@@ -380,7 +389,14 @@ def test_calibration_gaits_file_is_reused_and_checked(
     # The second run replays nothing and trains to the same weights.
     monkeypatch.setattr(cal, "replay_prior_gaits", no_replay)
     second = cal.calibrate(
-        tiny_checkpoint, tiny_dataset_path, tmp_path / "b", n=3, epochs=2, log=None, gaits_path=gaits_file
+        tiny_checkpoint,
+        tiny_dataset_path,
+        tmp_path / "b",
+        n=3,
+        epochs=2,
+        log=None,
+        gaits_path=gaits_file,
+        zero_samples=1,
     )
     assert first["median_rel_err_after"] == second["median_rel_err_after"]
     a, _ = load_checkpoint(tmp_path / "a")
@@ -397,13 +413,16 @@ def test_calibration_gaits_file_is_reused_and_checked(
         log=None,
         gaits_path=gaits_file,
         loss="mse",
+        zero_samples=1,
     )
     assert rel["head_loss"] == "mse" and first["head_loss"] == "l1"
     c, _ = load_checkpoint(tmp_path / "c")
     assert not torch.equal(c.state_dict()["stats_head.0.weight"], a.state_dict()["stats_head.0.weight"])
     model = load_pretrained(tiny_checkpoint)
-    with pytest.raises(DatasetError, match="asked for 4 with seed 1000"):
-        cal.load_gaits(gaits_file, model, 4, 1000)
+    with pytest.raises(DatasetError, match=r"asked for 4 \(\+1\) with seed 1000"):
+        cal.load_gaits(gaits_file, model, 4, 1000, 1)
+    with pytest.raises(DatasetError, match=r"gaits of 3 z_B \(\+1 at z_k = 0\).*asked for 3 \(\+6\)"):
+        cal.load_gaits(gaits_file, model, 3, 1000, 6)
     # Gaits decoded by another checkpoint are refused, not silently trained on.
     gaits = replay(model, 2, seed=5, workers=1)
     gaits["shape"] = gaits["shape"] + 0.01
@@ -413,6 +432,23 @@ def test_calibration_gaits_file_is_reused_and_checked(
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(DatasetError, match="not a readable calibration-gaits"):
         cal.load_gaits(tmp_path / "junk.npz", model, 2, 5)
+
+
+def test_extra_zero_draws_leave_the_shared_draws_alone(tiny_checkpoint):
+    import model.calibrate as cal
+
+    model = load_pretrained(tiny_checkpoint)
+    plain = cal.replay_prior_gaits(model, 2, seed=7, workers=1)
+    more = cal.replay_prior_gaits(model, 2, seed=7, workers=1, zero_samples=3)
+    shared = more["z_index"] < 2
+    for k in ("shape", "stats", "z_b", "z_j", "z_index", "mode"):
+        np.testing.assert_array_equal(more[k][shared], plain[k], err_msg=k)
+    extra = ~shared
+    assert extra.sum() + more["broken"].sum() - plain["broken"].sum() == 3
+    assert (more["mode"][extra] == list(cal.MODES).index("zk_zero")).all()
+    assert (more["z_j"][extra] == 0).all() and set(more["z_index"][extra]) <= {2, 3, 4}
+    # Their own seed: not the first draws again.
+    assert not np.allclose(more["z_b"][extra][:1], plain["z_b"][:1])
 
 
 def test_head_loss_l1_prefers_the_median_and_mse_the_mean():
