@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from model.api import GaitModel, load_pretrained
-from model.metrics import mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
+from model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
 from model.stats import MODEL_RATE, median_relative_errors
 from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, Simulator, load_dataset
 from sim.consistency import PREDICTABLE, compare, path_stats, perturbed_commands
@@ -138,6 +138,12 @@ def consistency(
                 progress(len(idx))
         keys = rows[0].keys() if rows else []
         summary = {k: float(np.median([r[k] for r in rows])) for k in keys}
+        for k in PREDICTABLE:  # how far another draw of gaits could move the medians that are judged
+            for part in ("err", "floor"):
+                if rows:
+                    summary[f"{k}_{part}_ci90"] = list(
+                        median_interval([r[f"{k}_{part}"] for r in rows], seed=seed)
+                    )
         summary["final_inside_fraction"] = float(np.mean([r["final_inside"] for r in rows])) if rows else 0.0
         summary["n_gaits"] = len(rows)
         summary["n_broken"] = broken
@@ -176,6 +182,11 @@ def evaluate(
     return out
 
 
+def _interval(c: dict, key: str, part: str) -> str:
+    lo, hi = c.get(f"{key}_{part}_ci90", (float("nan"), float("nan")))
+    return f"[{lo:.3f}-{hi:.3f}]"
+
+
 def format_report(r: dict) -> str:
     """Human-readable evaluation report."""
     lines = [f"WARNING: {r['robot_warning']}"] if r.get("robot_warning") else []
@@ -200,14 +211,17 @@ def format_report(r: dict) -> str:
             f"  physics' spread: final position {c.get('final_spread', float('nan')):.2f} x displacement; "
             + ", ".join(f"{k} {c.get(k + '_spread', float('nan')):.3f}" for k in PREDICTABLE)
         )
-        lines.append(
-            "  physics' floor (perturbed replays' mean vs the replay): "
-            + ", ".join(f"{k} {c.get(k + '_floor', float('nan')):.3f}" for k in PREDICTABLE)
-        )
-        lines.append(
-            "  decoded vs simulated relative error: "
-            + ", ".join(f"{k} {c.get(k + '_err', float('nan')):.3f}" for k in PREDICTABLE)
-        )
+        for part, label in (
+            ("floor", "physics' floor (perturbed replays' mean vs the replay)"),
+            ("err", "decoded vs simulated relative error"),
+        ):
+            lines.append(
+                f"  {label} [90% bootstrap interval of the median]: "
+                + ", ".join(
+                    f"{k} {c.get(f'{k}_{part}', float('nan')):.3f} {_interval(c, k, part)}"
+                    for k in PREDICTABLE
+                )
+            )
         lines.append(
             f"  xy-path R^2 {c.get('xy_r2', float('nan')):.3f}; decoded final position inside the ensemble's "
             f"spread in {100 * c['final_inside_fraction']:.0f}% (median distance {c.get('final_z', float('nan')):.1f} x RMS spread)"

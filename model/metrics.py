@@ -40,3 +40,22 @@ def mmd_null_quantile(n: int, d: int, q: float = 0.95, repeats: int = 200, seed:
     rng = np.random.default_rng(seed)
     vals = [mmd_numpy(rng.standard_normal((n, d)), rng.standard_normal((n, d))) for _ in range(repeats)]
     return float(np.quantile(vals, q))
+
+
+def median_interval(
+    values: np.ndarray, level: float = 0.9, resamples: int = 2000, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile-bootstrap interval of the median of ``values`` (1-D): (low, high) at ``level``.
+
+    Why: consistency errors are medians over a few hundred gaits whose per-gait errors can be
+    bimodal (with z_k = 0 a gait either hops or stays near the ground), so the median alone hides
+    how far another draw of gaits could move it.
+    """
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return float("nan"), float("nan")
+    idx = np.random.default_rng(seed).integers(0, len(v), (resamples, len(v)))
+    med = np.median(v[idx], axis=1)
+    tail = 0.5 * (1.0 - level)
+    return float(np.quantile(med, tail)), float(np.quantile(med, 1.0 - tail))

@@ -57,7 +57,28 @@ def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
     for mode in ("zk_zero", "zk_sampled"):
         c = report["consistency"][mode]
         assert c["n_gaits"] + c["n_broken"] == 2
-    assert "consistency (zk_zero)" in format_report(report)
+        if c["n_gaits"]:
+            for k in ("vertical_std_err", "net_roll_floor"):
+                lo, hi = c[k + "_ci90"]
+                assert lo <= c[k] <= hi
+    text = format_report(report)
+    assert "consistency (zk_zero)" in text and "90% bootstrap interval of the median" in text
+
+
+def test_median_interval_brackets_the_median_and_narrows_with_more_gaits():
+    from model.metrics import median_interval
+
+    rng = np.random.default_rng(3)
+    # Bimodal per-gait errors, like z_k = 0 vertical oscillation: most near 5%, a third near 60%.
+    small = np.where(rng.random(64) < 0.33, 0.6, 0.05) + 0.01 * rng.standard_normal(64)
+    large = np.where(rng.random(4096) < 0.33, 0.6, 0.05) + 0.01 * rng.standard_normal(4096)
+    lo_s, hi_s = median_interval(small)
+    lo_l, hi_l = median_interval(large)
+    assert lo_s <= np.median(small) <= hi_s and lo_l <= np.median(large) <= hi_l
+    assert hi_l - lo_l < 0.5 * (hi_s - lo_s)
+    assert median_interval(small) == (lo_s, hi_s)  # seeded: the report is reproducible
+    assert median_interval(np.full(10, 0.2)) == (0.2, 0.2)
+    assert all(np.isnan(median_interval(np.array([np.nan]))))
 
 
 def test_consistency_drops_broken_members_and_leaves_out_broken_gaits(checkpoint, monkeypatch):
