@@ -90,7 +90,7 @@ class Calibrate:
     """Further z_B decoded with z_k = 0 only (default: twice --prior-samples); their own seed, --seed + 1000."""
     epochs: int = 40
     """Fine-tuning epochs of each stage (head, then path modulation)."""
-    lr: float = 3e-3
+    lr: float = 1e-2
     """Peak learning rate of both stages (Adam, cosine decay to 1% of it)."""
     seed: int = 1000
     """Seed of the z_B draws (evaluate's consistency check draws with seed 0)."""

@@ -8,8 +8,9 @@ first shipped model: vertical-oscillation error 183% and net-roll error over 100
 
 Calibration closes that gap with the simulator as teacher. For ``n`` z_B drawn from the prior it
 decodes a gait in each z_k mode the designer offers (z_k = 0, and sampled at temperatures 0.5 and
-1), resynthesises the commands exactly as the designer does (``GaitModel.commands``), replays them
-once in MuJoCo and measures the body statistics of the replay. The head (signal CNN and MLP, nothing
+1), and for ``zero_samples`` (default 2 n) more z_B a gait with z_k = 0 only; it resynthesises
+the commands exactly as the designer does (``GaitModel.commands``), replays them once in MuJoCo and
+measures the body statistics of the replay. The head (signal CNN and MLP, nothing
 else) is then fine-tuned on those (decoded shape -> replayed statistics) pairs mixed with the
 dataset's own (measured shape -> statistics) training pairs.
 
@@ -342,7 +343,7 @@ def calibrate(
     n: int = 512,
     seed: int = 1000,
     epochs: int = 40,
-    lr: float = 3e-3,
+    lr: float = 1e-2,
     batch_size: int = 128,
     workers: int | None = None,
     val_fraction: float = 0.1,
