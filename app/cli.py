@@ -282,6 +282,13 @@ def run_calibrate(cmd: Calibrate) -> dict:
 
     from model.calibrate import MODES, calibrate
 
+    if cmd.prior_samples < 1 or (cmd.zero_samples or 0) < 0:
+        print(
+            "snakeloco: error: --prior-samples must be at least 1 and --zero-samples at least 0 "
+            f"(got {cmd.prior_samples}, {cmd.zero_samples})",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
     bar = None
 
     def progress(k: int) -> None:

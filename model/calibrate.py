@@ -366,6 +366,10 @@ def calibrate(
     """
     t_start = time.perf_counter()
     zero_samples = 2 * n if zero_samples is None else zero_samples
+    if n < 1 or zero_samples < 0:
+        raise ValueError(
+            f"calibration needs at least 1 prior sample and no negative extra ones (got {n}, {zero_samples})"
+        )
     model = load_pretrained(checkpoint)
     config: CheckpointConfig = model.config
     ds = load_dataset(data)

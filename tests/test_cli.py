@@ -118,3 +118,6 @@ def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpo
     assert re.search(rf"reusing \d+ replayed prior gaits from {re.escape(str(gaits))}", second.out)
     assert "replay prior gaits" not in second.err
     assert (tmp_path / "b" / "model.safetensors").exists()
+    with pytest.raises(SystemExit) as exc:
+        main([*args, "--out", str(tmp_path / "c"), "--zero-samples", "-1"])
+    assert exc.value.code == 2 and "--zero-samples at least 0" in capsys.readouterr().err

@@ -357,6 +357,8 @@ def test_calibration_tunes_only_the_statistics_head(tiny_checkpoint, tiny_datase
         s0, b0, st0 = before.generate(z)
         s1, b1, st1 = after.generate(z)
         assert torch.equal(s0, s1) and not torch.equal(st0, st1) and not torch.equal(b0, b1)
+    with pytest.raises(ValueError, match="no negative extra ones"):
+        calibrate(tiny_checkpoint, tiny_dataset_path, tmp_path / "x", n=2, zero_samples=-1, log=None)
     other = generate_dataset(GenerateConfig(num_samples=2, seed=99), tmp_path / "other.npz", workers=2)
     with pytest.raises(DatasetError, match="not the dataset this checkpoint was trained on"):
         calibrate(tiny_checkpoint, other, tmp_path / "x", n=2, epochs=1, log=None)
