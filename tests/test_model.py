@@ -372,16 +372,21 @@ def test_calibration_gaits_file_is_reused_and_checked(
     from sim import DatasetError
 
     gaits_file = tmp_path / "gaits.npz"
-    first = cal.calibrate(
-        tiny_checkpoint,
-        tiny_dataset_path,
-        tmp_path / "a",
-        n=3,
-        epochs=2,
-        log=None,
-        gaits_path=gaits_file,
-        zero_samples=1,
-    )
+
+    def run(out: str, **kwargs) -> dict:
+        return cal.calibrate(
+            tiny_checkpoint,
+            tiny_dataset_path,
+            tmp_path / out,
+            n=3,
+            epochs=2,
+            log=None,
+            gaits_path=gaits_file,
+            zero_samples=1,
+            **kwargs,
+        )
+
+    first = run("a")
     assert gaits_file.exists()
     replay = cal.replay_prior_gaits
 
@@ -390,33 +395,14 @@ def test_calibration_gaits_file_is_reused_and_checked(
 
     # The second run replays nothing and trains to the same weights.
     monkeypatch.setattr(cal, "replay_prior_gaits", no_replay)
-    second = cal.calibrate(
-        tiny_checkpoint,
-        tiny_dataset_path,
-        tmp_path / "b",
-        n=3,
-        epochs=2,
-        log=None,
-        gaits_path=gaits_file,
-        zero_samples=1,
-    )
+    second = run("b")
     assert first["median_rel_err_after"] == second["median_rel_err_after"]
     a, _ = load_checkpoint(tmp_path / "a")
     b, _ = load_checkpoint(tmp_path / "b")
     for k, v in a.state_dict().items():
         assert torch.equal(v, b.state_dict()[k]), k
     # The head's loss changes what it learns, and the summary records it.
-    rel = cal.calibrate(
-        tiny_checkpoint,
-        tiny_dataset_path,
-        tmp_path / "c",
-        n=3,
-        epochs=2,
-        log=None,
-        gaits_path=gaits_file,
-        loss="mse",
-        zero_samples=1,
-    )
+    rel = run("c", loss="mse")
     assert rel["head_loss"] == "mse" and first["head_loss"] == "l1"
     c, _ = load_checkpoint(tmp_path / "c")
     assert not torch.equal(c.state_dict()["stats_head.0.weight"], a.state_dict()["stats_head.0.weight"])
