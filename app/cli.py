@@ -280,21 +280,18 @@ def run_calibrate(cmd: Calibrate) -> dict:
     """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save."""
     from tqdm import tqdm
 
-    from model.calibrate import MODES, calibrate
+    from model.calibrate import MODES, calibrate, extra_zero_samples
 
-    if cmd.prior_samples < 1 or (cmd.zero_samples or 0) < 0:
-        print(
-            "snakeloco: error: --prior-samples must be at least 1 and --zero-samples at least 0 "
-            f"(got {cmd.prior_samples}, {cmd.zero_samples})",
-            file=sys.stderr,
-        )
-        raise SystemExit(2)
+    try:
+        extra = extra_zero_samples(cmd.prior_samples, cmd.zero_samples)
+    except ValueError as exc:
+        print(f"snakeloco: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     bar = None
 
     def progress(k: int) -> None:
         nonlocal bar
         if bar is None:
-            extra = 2 * cmd.prior_samples if cmd.zero_samples is None else cmd.zero_samples
             bar = tqdm(total=len(MODES) * cmd.prior_samples + extra, unit="gait", desc="replay prior gaits")
         bar.update(k)
         if bar.n >= bar.total:

@@ -51,6 +51,18 @@ ZERO_SEED_OFFSET = 1000
 """The extra z_k = 0 draws (``zero_samples``) use seed + this, apart from the n shared draws."""
 
 
+def extra_zero_samples(n: int, zero_samples: int | None) -> int:
+    """How many extra z_k = 0 draws a calibration of n prior samples makes: ``zero_samples``, or
+    2 n where it is None. A ValueError names bad counts (none shared, or a negative extra count)."""
+    extra = 2 * n if zero_samples is None else zero_samples
+    if n < 1 or extra < 0:
+        raise ValueError(
+            "calibration needs at least 1 prior sample and no negative extra ones: --prior-samples "
+            f"must be at least 1 and --zero-samples at least 0 (got {n}, {zero_samples})"
+        )
+    return extra
+
+
 def replay_prior_gaits(
     model: GaitModel,
     n: int,
@@ -365,11 +377,7 @@ def calibrate(
     ``summary.calibration``).
     """
     t_start = time.perf_counter()
-    zero_samples = 2 * n if zero_samples is None else zero_samples
-    if n < 1 or zero_samples < 0:
-        raise ValueError(
-            f"calibration needs at least 1 prior sample and no negative extra ones (got {n}, {zero_samples})"
-        )
+    zero_samples = extra_zero_samples(n, zero_samples)
     model = load_pretrained(checkpoint)
     config: CheckpointConfig = model.config
     ds = load_dataset(data)
