@@ -76,7 +76,7 @@ class Evaluate:
 
 @dataclass
 class Calibrate:
-    """Fine-tune the statistics head on replays of the model's own prior gaits (model/calibrate.py)."""
+    """Fine-tune the statistics head and the body decoder on replays of the model's own prior gaits (model/calibrate.py)."""
 
     data: Path
     """The dataset .npz the checkpoint was trained on (its training split is mixed in)."""
@@ -89,7 +89,7 @@ class Calibrate:
     zero_samples: int | None = None
     """Further z_B decoded with z_k = 0 only (default: twice --prior-samples); their own seed, --seed + 1000."""
     epochs: int = 40
-    """Fine-tuning epochs of each stage (head, then path modulation)."""
+    """Fine-tuning epochs of each stage (statistics head, then body decoder)."""
     lr: float = 1e-2
     """Peak learning rate of both stages (Adam, cosine decay to 1% of it)."""
     seed: int = 1000
@@ -100,6 +100,8 @@ class Calibrate:
     """Replayed calibration gaits (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same samples and seed), else written there after replaying."""
     head_loss: Literal["l1", "mse"] = "l1"
     """Loss of the statistics head on normalised statistics: l1 fits each statistic's median (what the consistency check's median relative error rewards), mse its mean (the previous default)."""
+    path_fit: Literal["decoder", "film"] = "decoder"
+    """What the second stage fits to the replayed body paths: the whole body decoder, or only its FiLM layer (the statistics' modulation; the previous default)."""
 
 
 @dataclass
@@ -311,6 +313,7 @@ def run_calibrate(cmd: Calibrate) -> dict:
             gaits_path=cmd.gaits,
             loss=cmd.head_loss,
             zero_samples=cmd.zero_samples,
+            path_fit=cmd.path_fit,
         )
     finally:
         if bar is not None:

@@ -113,11 +113,12 @@ def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpo
     main([*args, "--out", str(tmp_path / "a")])
     first = capsys.readouterr()
     assert gaits.exists() and "replay prior gaits" in first.err and "replayed" in first.out
-    main([*args, "--out", str(tmp_path / "b"), "--head-loss", "mse"])
+    main([*args, "--out", str(tmp_path / "b"), "--head-loss", "mse", "--path-fit", "film"])
     second = capsys.readouterr()
     assert re.search(rf"reusing \d+ replayed prior gaits from {re.escape(str(gaits))}", second.out)
     assert "replay prior gaits" not in second.err
-    assert (tmp_path / "b" / "model.safetensors").exists()
+    calibration = json.loads((tmp_path / "b" / "config.json").read_text())["summary"]["calibration"]
+    assert calibration["head_loss"] == "mse" and calibration["path"]["fit"] == "film"
     with pytest.raises(SystemExit) as exc:
         main([*args, "--out", str(tmp_path / "c"), "--zero-samples", "-1"])
     assert exc.value.code == 2 and "--zero-samples at least 0" in capsys.readouterr().err

@@ -327,13 +327,15 @@ def test_training_on_cuda_without_cuda_is_refused(tiny_dataset_path, tmp_path):
         )
 
 
-def test_calibration_tunes_only_the_statistics_head(tiny_checkpoint, tiny_dataset_path, tmp_path):
+def test_calibration_tunes_only_the_head_and_body_decoder(tiny_checkpoint, tiny_dataset_path, tmp_path):
     from model.calibrate import MODES, calibrate
     from model.checkpoint import load_checkpoint
     from sim import DatasetError, GenerateConfig, generate_dataset
 
-    out = tmp_path / "calibrated"
-    summary = calibrate(tiny_checkpoint, tiny_dataset_path, out, n=4, epochs=3, lr=1e-2, log=None)
+    out, gaits = tmp_path / "calibrated", tmp_path / "gaits.npz"
+    summary = calibrate(
+        tiny_checkpoint, tiny_dataset_path, out, n=4, epochs=3, lr=1e-2, log=None, gaits_path=gaits
+    )
     # 4 z_B in every mode, and by default 2 x 4 more with z_k = 0 only.
     assert summary["zero_samples"] == 8
     assert summary["gaits"] + sum(summary["broken"].values()) == 4 * len(MODES) + 8
@@ -343,12 +345,18 @@ def test_calibration_tunes_only_the_statistics_head(tiny_checkpoint, tiny_datase
     before, _ = load_checkpoint(tiny_checkpoint)
     after, config = load_checkpoint(out)
     assert config.summary.model_extra["calibration"]["prior_samples"] == 4
-    # Stage 1 tunes the statistics head, stage 2 the body decoder's statistics modulation; nothing else.
-    tuned = ("signal_net.", "stats_head.", "dec_film.")
-    changed = {k for k, v in after.state_dict().items() if not torch.equal(v, before.state_dict()[k])}
-    assert changed and all(k.startswith(tuned) for k in changed), changed
-    assert any(k.startswith("dec_film.") for k in changed)
+
+    def changed(net) -> set[str]:
+        return {k for k, v in net.state_dict().items() if not torch.equal(v, before.state_dict()[k])}
+
+    # Stage 1 tunes the statistics head, stage 2 the body decoder (by default all of it); the body
+    # encoder and the GRUs, and so the decoded shapes and the z_B posteriors, stay as trained.
+    head, decoder = ("signal_net.", "stats_head."), ("dec_in.", "dec_film.", "decoder.")
+    tuned = changed(after)
+    assert all(k.startswith(head + decoder) for k in tuned), tuned
+    assert all(any(k.startswith(p) for k in tuned) for p in head + decoder), tuned
     path = summary["path"]
+    assert path["fit"] == "decoder"
     val = {k: 0.5 * (path[k]["generated"] + path[k]["dataset"]) for k in ("mse_before", "mse_after")}
     assert path["best_epoch"] >= 0 and val["mse_after"] < val["mse_before"]
     # Decoded shapes are unchanged; the predicted statistics and the body path move.
@@ -357,6 +365,24 @@ def test_calibration_tunes_only_the_statistics_head(tiny_checkpoint, tiny_datase
         s0, b0, st0 = before.generate(z)
         s1, b1, st1 = after.generate(z)
         assert torch.equal(s0, s1) and not torch.equal(st0, st1) and not torch.equal(b0, b1)
+    # --path-fit film: stage 2 moves the FiLM layer only (same replays, read back from the file).
+    film = calibrate(
+        tiny_checkpoint,
+        tiny_dataset_path,
+        tmp_path / "film",
+        n=4,
+        epochs=3,
+        log=None,
+        gaits_path=gaits,
+        path_fit="film",
+    )
+    assert film["path"]["fit"] == "film"
+    tuned = changed(load_checkpoint(tmp_path / "film")[0])
+    assert all(k.startswith((*head, "dec_film.")) for k in tuned) and any(
+        k.startswith("dec_film.") for k in tuned
+    )
+    with pytest.raises(ValueError, match="path_fit must be 'decoder' or 'film'"):
+        calibrate(tiny_checkpoint, tiny_dataset_path, tmp_path / "x", n=2, path_fit="all", log=None)
     with pytest.raises(ValueError, match="no negative extra ones"):
         calibrate(tiny_checkpoint, tiny_dataset_path, tmp_path / "x", n=2, zero_samples=-1, log=None)
     other = generate_dataset(GenerateConfig(num_samples=2, seed=99), tmp_path / "other.npz", workers=2)
