@@ -72,6 +72,8 @@ class Evaluate:
     """Print the figures as one JSON object on the last line."""
     report: Path | None = None
     """Also write the figures, with every generated gait's statistics, to this JSON file."""
+    replays: Path | None = None
+    """Consistency replays (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same draw), else written there after replaying; re-scores a recalibrated checkpoint without simulating."""
 
 
 @dataclass
@@ -263,6 +265,7 @@ def run_evaluate(cmd: Evaluate) -> dict:
             cmd.seed,
             cmd.workers,
             progress=bar.update,
+            replays=cmd.replays,
         )
     print(format_report(report))
     if cmd.report is not None:

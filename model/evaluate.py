@@ -15,8 +15,8 @@ import numpy as np
 from model.api import GaitModel, load_pretrained
 from model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
 from model.stats import MODEL_RATE, median_relative_errors
-from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, Simulator, load_dataset
-from sim.consistency import PREDICTABLE, compare, path_stats, perturbed_commands
+from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset
+from sim.consistency import ENSEMBLE_NOISE, PREDICTABLE, compare, path_stats, perturbed_commands
 
 
 def _stats_errors(predicted: dict[str, np.ndarray], body_ds: np.ndarray) -> dict[str, float]:
@@ -87,6 +87,98 @@ def latent_health(model: GaitModel, z_b: np.ndarray, z_j: np.ndarray, shape, bod
     }
 
 
+REPLAY_MODES = ("zk_zero", "zk_sampled")
+"""The consistency check's z_k modes: z_k = 0, and z_k sampled from the learned prior."""
+
+
+def replay_ensembles(
+    model: GaitModel, shapes: np.ndarray, ensemble: int, seed: int, simulator: Simulator, progress=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Replay each decoded shape (n, 8, L, 2) as an ensemble: its commands plus ensemble-1 copies
+    with ``sim.consistency.ENSEMBLE_NOISE`` relative noise (gait i's noise seeded with seed + i).
+
+    Returns the body series at the model's rate, (n, ensemble, 500, 6) float32 (member 0 the
+    unperturbed replay; zeros where a replay broke), and (n, ensemble) bool, which replays ran.
+    """
+    n, cfg = len(shapes), model.config.model
+    bodies = np.zeros((n, ensemble, cfg.body_steps, cfg.body_channels), np.float32)
+    ok = np.zeros((n, ensemble), bool)
+    per_batch = max(1, (4 * simulator.workers) // ensemble + 1)
+    for start in range(0, n, per_batch):
+        idx = range(start, min(n, start + per_batch))
+        cmds = np.concatenate(
+            [perturbed_commands(model.commands(shapes[i]), ensemble, seed=seed + i) for i in idx]
+        )  # (b K, T, 8)
+        result = simulator.simulate(cmds)
+        for j, i in enumerate(idx):
+            members = range(j * ensemble, (j + 1) * ensemble)
+            ok[i] = [result.failures[m] is None for m in members]
+            bodies[i, ok[i]] = result.body[
+                [m for m in members if result.failures[m] is None], ::BODY_DOWNSAMPLE
+            ]
+        if progress is not None:
+            progress(len(idx))
+    return bodies, ok
+
+
+def save_replays(path: str | Path, replays: dict[str, dict[str, np.ndarray]], **drawn) -> None:
+    """Write the consistency check's replays (``consistency``'s ``replays``) to an .npz (no pickle):
+    per mode its decoded ``shapes``, ``z_j``, ``bodies`` and ``ok``, and the draw (``drawn``:
+    n_prior, ensemble, seed, temperature) with the noise level and the robot's MJCF hash."""
+    from sim import mjcf_sha256
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {f"{mode}/{k}": v for mode, r in replays.items() for k, v in r.items()}
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, noise=np.float64(ENSEMBLE_NOISE), mjcf_sha256=np.array(mjcf_sha256()), **drawn, **arrays)
+    os.replace(tmp, path)
+
+
+def load_replays(
+    path: str | Path, decoded: dict[str, np.ndarray], **drawn
+) -> dict[str, dict[str, np.ndarray]]:
+    """Read replays written by ``save_replays`` for the same draw (``drawn``) of the same decoded
+    shapes (``decoded``: mode -> (n, 8, L, 2)) on the same robot; anything else is refused with a
+    ``DatasetError`` naming the difference (a checkpoint with other decodes needs its own replays)."""
+    from sim import mjcf_sha256
+
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            stored = {k: f[k] for k in f.files}
+    except Exception as exc:  # zip, header or pickle errors all mean the same to the user
+        raise DatasetError(f"{path}: not a readable consistency-replays .npz ({exc})") from exc
+    need = [
+        "noise",
+        "mjcf_sha256",
+        *drawn,
+        *(f"{m}/{k}" for m in decoded for k in ("shapes", "bodies", "ok")),
+    ]
+    missing = [k for k in need if k not in stored]
+    if missing:
+        raise DatasetError(f"{path}: not a consistency-replays file (missing arrays {missing})")
+    asked = {"noise": ENSEMBLE_NOISE, **drawn}
+    held = {k: stored[k].item() for k in asked}
+    if held != asked:
+        raise DatasetError(f"{path}: replays of {held}; this evaluation asks for {asked}")
+    if str(stored["mjcf_sha256"]) != mjcf_sha256():
+        raise DatasetError(
+            f"{path}: replayed on another robot model (sim/snake.xml changed since); replay again"
+        )
+    out = {}
+    for mode, shapes in decoded.items():
+        r = {k.split("/", 1)[1]: v for k, v in stored.items() if k.startswith(mode + "/")}
+        gap = float(np.abs(r["shapes"] - shapes).max()) if r["shapes"].shape == shapes.shape else float("inf")
+        if gap > 1e-4:
+            raise DatasetError(
+                f"{path}: these replays are of other gaits ({mode}: the checkpoint's decodes differ by up "
+                f"to {gap:.3g} rad); replay them for this checkpoint"
+            )
+        out[mode] = r
+    return out
+
+
 def consistency(
     model: GaitModel,
     n_prior: int = 256,
@@ -95,47 +187,51 @@ def consistency(
     workers: int | None = None,
     temperature: float = 1.0,
     progress=None,
+    replays: str | Path | None = None,
 ) -> dict:
     """Decode n_prior z_B from the prior (z_k = 0 and z_k sampled), replay each as an ensemble, score.
 
     Returns per mode: medians of each figure over the gaits whose own (unperturbed) replay
     simulated cleanly, the count of those that broke (``n_broken``), and the fraction of all
     replays that broke; perturbed members that broke are left out of their gait's ensemble, as
-    the designer does.
+    the designer does. ``replays``: an .npz of the ensembles' replays, read when it exists (it must
+    hold the same draw of this checkpoint's decodes: ``load_replays``), else written after
+    replaying. A calibration that leaves the decoded shapes alone (``snakeloco calibrate``) is
+    then re-scored in seconds instead of replaying 2 n_prior ensembles.
     """
     rng = np.random.default_rng(seed)
-    simulator = Simulator(workers or os.cpu_count() or 1)
     z_b = rng.standard_normal((n_prior, model.z_b_dim))
-    modes = {
-        "zk_zero": None,
-        "zk_sampled": model.sample_joint_latents(z_b, 1, seed=seed + 1, temperature=temperature)[:, 0],
-    }
+    z_zero = np.zeros((n_prior, model.config.model.n_joints, model.z_j_dim))
+    z_sampled = model.sample_joint_latents(z_b, 1, seed=seed + 1, temperature=temperature)[:, 0]
+    modes = dict(zip(REPLAY_MODES, (z_zero, z_sampled), strict=True))
+    decoded = {name: model.decode_with_stats(z_b, z_j) for name, z_j in modes.items()}
+    drawn = {"n_prior": n_prior, "ensemble": ensemble, "seed": seed, "temperature": temperature}
+    if replays is not None and Path(replays).exists():
+        stored = load_replays(replays, {name: d[0] for name, d in decoded.items()}, **drawn)
+        if progress is not None:
+            progress(len(modes) * n_prior)
+    else:
+        simulator = Simulator(workers or os.cpu_count() or 1)
+        stored = {}
+        for name, (shapes, _, _) in decoded.items():
+            bodies, ok = replay_ensembles(model, shapes, ensemble, seed, simulator, progress)
+            stored[name] = {"shapes": shapes, "z_j": modes[name], "bodies": bodies, "ok": ok}
+        if replays is not None:
+            save_replays(replays, stored, **drawn)
     report = {}
-    per_batch = max(1, (4 * simulator.workers) // ensemble + 1)
-    for name, z_j in modes.items():
-        shapes, bodies, stats = model.decode_with_stats(z_b, z_j)
-        rows, broken, broken_members = [], 0, 0
-        for start in range(0, n_prior, per_batch):
-            idx = range(start, min(n_prior, start + per_batch))
-            cmds = np.concatenate(
-                [perturbed_commands(model.commands(shapes[i]), ensemble, seed=seed + i) for i in idx]
-            )  # (b K, T, 8)
-            result = simulator.simulate(cmds)
-            for j, i in enumerate(idx):
-                members = np.arange(j * ensemble, (j + 1) * ensemble)
-                ok = np.array([result.failures[m] is None for m in members])
-                broken_members += int((~ok).sum())
-                if not ok[0] or ok.sum() < 2:  # its own replay broke, or no spread is left
-                    broken += 1
-                    continue
-                # As the designer does: perturbed members that broke leave the ensemble (counted).
-                sim_body = result.body[members[ok], ::BODY_DOWNSAMPLE]  # (K', 500, 6) at the model's rate
-                predicted = {k: float(v[i]) for k, v in stats.items()}
-                row = compare(bodies[i], sim_body, MODEL_RATE, predicted)
-                row["ensemble_broken"] = float((~ok).sum())
-                rows.append(row)
-            if progress is not None:
-                progress(len(idx))
+    for name, (_, bodies, stats) in decoded.items():
+        sim_bodies, sim_ok = stored[name]["bodies"], stored[name]["ok"]
+        rows, broken = [], 0
+        for i in range(n_prior):
+            ok = sim_ok[i]
+            if not ok[0] or ok.sum() < 2:  # its own replay broke, or no spread is left
+                broken += 1
+                continue
+            # As the designer does: perturbed members that broke leave the ensemble (counted).
+            predicted = {k: float(v[i]) for k, v in stats.items()}
+            row = compare(bodies[i], sim_bodies[i][ok].astype(np.float64), MODEL_RATE, predicted)
+            row["ensemble_broken"] = float((~ok).sum())
+            rows.append(row)
         keys = rows[0].keys() if rows else []
         summary = {k: float(np.median([r[k] for r in rows])) for k in keys}
         for k in PREDICTABLE:  # how far another draw of gaits could move the medians that are judged
@@ -147,7 +243,7 @@ def consistency(
         summary["final_inside_fraction"] = float(np.mean([r["final_inside"] for r in rows])) if rows else 0.0
         summary["n_gaits"] = len(rows)
         summary["n_broken"] = broken
-        summary["broken_replay_fraction"] = broken_members / float(n_prior * ensemble)
+        summary["broken_replay_fraction"] = float((~sim_ok).sum()) / float(n_prior * ensemble)
         summary["n_gaits_with_a_broken_member"] = int(broken + sum(r["ensemble_broken"] > 0 for r in rows))
         summary["gaits"] = rows
         report[name] = summary
@@ -162,8 +258,9 @@ def evaluate(
     seed: int = 0,
     workers: int | None = None,
     progress=None,
+    replays: str | Path | None = None,
 ) -> dict:
-    """All evaluation figures for a checkpoint on a (held-out) dataset."""
+    """All evaluation figures for a checkpoint on a (held-out) dataset (``replays``: ``consistency``)."""
     model = load_pretrained(checkpoint)
     ds = load_dataset(data)
     shape, body_ds = ds.shape.astype(np.float64), ds.body_ds.astype(np.float64)
@@ -178,7 +275,9 @@ def evaluate(
     }
     out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=seed))
     if n_prior > 0:
-        out["consistency"] = consistency(model, n_prior, ensemble, seed, workers, progress=progress)
+        out["consistency"] = consistency(
+            model, n_prior, ensemble, seed, workers, progress=progress, replays=replays
+        )
     return out
 
 

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from app.cli import main
 from model.evaluate import evaluate, format_report
@@ -156,3 +157,51 @@ def test_figures_and_bench_commands(checkpoint, tiny_dataset_path, tmp_path, cap
     main(["bench", "model", "--json", "--checkpoint", str(checkpoint), "--calls", "20"])
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert 0 < result["decode_p50_ms"] <= result["decode_p95_ms"]
+
+
+def test_consistency_replays_are_written_reused_and_checked(
+    checkpoint, tiny_dataset_path, tmp_path, monkeypatch, capsys
+):
+    from model import evaluate as ev
+    from model.api import load_pretrained
+    from sim import DatasetError
+
+    model = load_pretrained(checkpoint)
+    replays = tmp_path / "replays.npz"
+    fresh = ev.consistency(model, n_prior=2, ensemble=3, workers=2, replays=replays)
+    assert replays.exists()
+
+    def no_simulation(self, commands):
+        raise AssertionError("stored replays must be reused, not simulated again")
+
+    monkeypatch.setattr(ev.Simulator, "simulate", no_simulation)
+    reused = ev.consistency(model, n_prior=2, ensemble=3, workers=2, replays=replays)
+    for mode in ev.REPLAY_MODES:
+        assert reused[mode]["gaits"] == fresh[mode]["gaits"]
+        assert reused[mode]["n_gaits"] + reused[mode]["n_broken"] == 2
+    # Another draw, or other decoded gaits (another checkpoint's), is refused by name.
+    with pytest.raises(DatasetError, match=r"replays of .*'seed': 0.*asks for .*'seed': 5"):
+        ev.consistency(model, n_prior=2, ensemble=3, seed=5, replays=replays)
+    other = load_pretrained(checkpoint)
+    with torch.no_grad():
+        other.net.child_out.bias.add_(0.05)  # every decoded shape moves
+    with pytest.raises(DatasetError, match="replays are of other gaits"):
+        ev.consistency(other, n_prior=2, ensemble=3, replays=replays)
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not an npz")
+    with pytest.raises(DatasetError, match="not a readable consistency-replays"):
+        ev.consistency(model, n_prior=2, ensemble=3, replays=bad)
+    # The command says so and exits 2, without a traceback.
+    with pytest.raises(SystemExit) as exc:
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(tiny_dataset_path),
+                "--checkpoint",
+                str(checkpoint),
+                "--replays",
+                str(bad),
+            ]
+        )
+    assert exc.value.code == 2 and "not a readable consistency-replays .npz" in capsys.readouterr().err
