@@ -89,7 +89,7 @@ class Calibrate:
     prior_samples: int = 512
     """z_B drawn from the prior; each is decoded with z_k = 0 and sampled at temperatures 0.5 and 1."""
     zero_samples: int | None = None
-    """Further z_B decoded with z_k = 0 only (default: twice --prior-samples); their own seed, --seed + 1000."""
+    """Further z_B decoded with z_k = 0 only (default: 4 x --prior-samples); their own seed, --seed + 1000."""
     epochs: int = 40
     """Fine-tuning epochs of each stage (statistics head, then body decoder)."""
     lr: float = 1e-2

@@ -8,7 +8,7 @@ first shipped model: vertical-oscillation error 183% and net-roll error over 100
 
 Calibration closes that gap with the simulator as teacher. For ``n`` z_B drawn from the prior it
 decodes a gait in each z_k mode the designer offers (z_k = 0, and sampled at temperatures 0.5 and
-1), and for ``zero_samples`` (default 2 n) more z_B a gait with z_k = 0 only; it resynthesises
+1), and for ``zero_samples`` (default 4 n) more z_B a gait with z_k = 0 only; it resynthesises
 the commands exactly as the designer does (``GaitModel.commands``), replays them once in MuJoCo and
 measures the body statistics of the replay. The head (signal CNN and MLP, nothing
 else) is then fine-tuned on those (decoded shape -> replayed statistics) pairs mixed with the
@@ -55,8 +55,8 @@ ZERO_SEED_OFFSET = 1000
 
 def extra_zero_samples(n: int, zero_samples: int | None) -> int:
     """How many extra z_k = 0 draws a calibration of n prior samples makes: ``zero_samples``, or
-    2 n where it is None. A ValueError names bad counts (none shared, or a negative extra count)."""
-    extra = 2 * n if zero_samples is None else zero_samples
+    4 n where it is None. A ValueError names bad counts (none shared, or a negative extra count)."""
+    extra = 4 * n if zero_samples is None else zero_samples
     if n < 1 or extra < 0:
         raise ValueError(
             "calibration needs at least 1 prior sample and no negative extra ones: --prior-samples "
@@ -394,7 +394,7 @@ def calibrate(
     ``replay_prior_gaits`` instead of simulating; ``gaits_path``: an .npz that is read when it
     exists (``load_gaits``), else written after replaying. ``loss``: the head's loss
     (``head_loss``). ``zero_samples``: extra z_B decoded with z_k = 0 only (``replay_prior_gaits``;
-    None: 2 n). ``path_fit``: what the second stage fits (``PathFit``). Returns the calibration
+    None: 4 n). ``path_fit``: what the second stage fits (``PathFit``). Returns the calibration
     summary (also stored in the checkpoint's ``summary.calibration``).
     """
     t_start = time.perf_counter()

@@ -336,9 +336,9 @@ def test_calibration_tunes_only_the_head_and_body_decoder(tiny_checkpoint, tiny_
     summary = calibrate(
         tiny_checkpoint, tiny_dataset_path, out, n=4, epochs=3, lr=1e-2, log=None, gaits_path=gaits
     )
-    # 4 z_B in every mode, and by default 2 x 4 more with z_k = 0 only.
-    assert summary["zero_samples"] == 8
-    assert summary["gaits"] + sum(summary["broken"].values()) == 4 * len(MODES) + 8
+    # 4 z_B in every mode, and by default 4 x 4 more with z_k = 0 only.
+    assert summary["zero_samples"] == 16
+    assert summary["gaits"] + sum(summary["broken"].values()) == 4 * len(MODES) + 16
     assert (
         {"generated", "dataset"} <= set(summary["median_rel_err_after"]) <= {"generated", "dataset", *MODES}
     )
