@@ -15,7 +15,7 @@ import numpy as np
 from model.api import GaitModel, load_pretrained
 from model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
 from model.stats import MODEL_RATE, median_relative_errors
-from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset
+from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset, read_npz
 from sim.consistency import ENSEMBLE_NOISE, PREDICTABLE, compare, path_stats, perturbed_commands
 
 
@@ -144,20 +144,13 @@ def load_replays(
     from sim import mjcf_sha256
 
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            stored = {k: f[k] for k in f.files}
-    except Exception as exc:  # zip, header or pickle errors all mean the same to the user
-        raise DatasetError(f"{path}: not a readable consistency-replays .npz ({exc})") from exc
     need = [
         "noise",
         "mjcf_sha256",
         *drawn,
         *(f"{m}/{k}" for m in decoded for k in ("shapes", "bodies", "ok")),
     ]
-    missing = [k for k in need if k not in stored]
-    if missing:
-        raise DatasetError(f"{path}: not a consistency-replays file (missing arrays {missing})")
+    stored = read_npz(path, "consistency-replays", need)
     asked = {"noise": ENSEMBLE_NOISE, **drawn}
     held = {k: stored[k].item() for k in asked}
     if held != asked:

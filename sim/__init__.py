@@ -11,6 +11,7 @@ from sim.dataset import (
     GenerateConfig,
     generate_dataset,
     load_dataset,
+    read_npz,
 )
 from sim.excitation import ExcitationConfig, multisine, random_phases
 from sim.physics import (
@@ -62,6 +63,7 @@ __all__ = [
     "mjcf_sha256",
     "multisine",
     "random_phases",
+    "read_npz",
     "replay",
     "servo_response",
     "shape_to_commands",

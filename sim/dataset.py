@@ -31,7 +31,7 @@ import os
 import shutil
 import tempfile
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -66,6 +66,20 @@ class GenerateConfig(BaseModel):
 
 class DatasetError(ValueError):
     """A dataset file is missing, truncated, foreign or of another schema; the message says which."""
+
+
+def read_npz(path: str | Path, what: str, need: Iterable[str]) -> dict[str, np.ndarray]:
+    """Every array of a small side file (.npz, no pickle) the tools write: ``what`` names the kind
+    in the messages; a file that cannot be read, or lacks an array of ``need``, is a DatasetError."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            stored = {k: f[k] for k in f.files}
+    except Exception as exc:  # zip, header or pickle errors all mean the same to the user
+        raise DatasetError(f"{path}: not a readable {what} .npz ({exc})") from exc
+    missing = [k for k in need if k not in stored]
+    if missing:
+        raise DatasetError(f"{path}: not a {what} file (missing arrays {missing})")
+    return stored
 
 
 @dataclass(frozen=True)

@@ -106,23 +106,15 @@ def test_consistency_drops_broken_members_and_leaves_out_broken_gaits(checkpoint
         assert np.isfinite(c["final_spread"])  # the spread of the two clean members
 
 
+def _evaluate_cli(data, checkpoint, *args) -> None:
+    """``snakeloco evaluate --data DATA --checkpoint CHECKPOINT ARGS...`` in this process."""
+    main(["evaluate", "--data", str(data), "--checkpoint", str(checkpoint), *map(str, args)])
+
+
 def test_figures_and_bench_commands(checkpoint, tiny_dataset_path, tmp_path, capsys):
     report = tmp_path / "report.json"
-    main(
-        [
-            "evaluate",
-            "--data",
-            str(tiny_dataset_path),
-            "--checkpoint",
-            str(checkpoint),
-            "--prior-samples",
-            "2",
-            "--ensemble",
-            "2",
-            "--json",
-            "--report",
-            str(report),
-        ]
+    _evaluate_cli(
+        tiny_dataset_path, checkpoint, "--prior-samples", "2", "--ensemble", "2", "--json", "--report", report
     )
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert "gaits" not in printed["consistency"]["zk_zero"]  # the summary line stays short
@@ -193,15 +185,5 @@ def test_consistency_replays_are_written_reused_and_checked(
         ev.consistency(model, n_prior=2, ensemble=3, replays=bad)
     # The command says so and exits 2, without a traceback.
     with pytest.raises(SystemExit) as exc:
-        main(
-            [
-                "evaluate",
-                "--data",
-                str(tiny_dataset_path),
-                "--checkpoint",
-                str(checkpoint),
-                "--replays",
-                str(bad),
-            ]
-        )
+        _evaluate_cli(tiny_dataset_path, checkpoint, "--replays", bad)
     assert exc.value.code == 2 and "not a readable consistency-replays .npz" in capsys.readouterr().err
