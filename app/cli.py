@@ -44,6 +44,8 @@ class Train:
     """Samples per step."""
     cycle_epochs: float = 50.0
     """Period of the cyclical learning rate (epochs); the paper's 800 scaled to a shorter run."""
+    alpha: float = 1.0
+    """Weight of the body-path reconstruction (alpha of the paper's eq. 15)."""
     beta: float = 10.0
     """Weight of MMD(q(z_k) || p(z_k))."""
     gamma: float = 10.0
@@ -244,7 +246,7 @@ def run_train(cmd: Train):
         cmd.data,
         cmd.out,
         cfg,
-        ModelConfig(beta=cmd.beta, gamma=cmd.gamma, body_sees_stats=cmd.body_sees_stats),
+        ModelConfig(alpha=cmd.alpha, beta=cmd.beta, gamma=cmd.gamma, body_sees_stats=cmd.body_sees_stats),
     )
 
 

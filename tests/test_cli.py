@@ -25,6 +25,27 @@ def test_generate_command(tmp_path, capsys, tiny_dataset):
     np.testing.assert_array_equal(load_dataset(out).body, tiny_dataset.body[:2])
 
 
+def test_train_command_passes_the_loss_weights(tmp_path, tiny_dataset_path):
+    from model import load_pretrained
+
+    out = tmp_path / "ckpt"
+    args = [
+        "train",
+        "--data",
+        str(tiny_dataset_path),
+        "--out",
+        str(out),
+        "--epochs",
+        "1",
+        "--batch-size",
+        "2",
+    ]
+    main([*args, "--alpha", "4", "--beta", "3", "--gamma", "5", "--seed", "2"])
+    cfg = load_pretrained(out).config
+    assert (cfg.model.alpha, cfg.model.beta, cfg.model.gamma) == (4.0, 3.0, 5.0)
+    assert (cfg.train["epochs"], cfg.train["seed"]) == (1, 2)
+
+
 def test_bench_sim_json(capsys):
     main(["bench", "sim", "--json", "--samples", "2", "--repeats", "1"])
     last = capsys.readouterr().out.strip().splitlines()[-1]
