@@ -44,7 +44,7 @@ import torch
 from model.api import GaitModel, load_pretrained
 from model.checkpoint import CheckpointConfig, save_checkpoint
 from model.stats import MODEL_RATE, STAT_NAMES, median_relative_errors, stats_dict, stats_vector
-from sim import BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset, read_npz
+from sim import BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset, read_npz, write_npz
 
 MODES: dict[str, float | None] = {"zk_zero": None, "zk_t0.5": 0.5, "zk_t1": 1.0}
 """z_k modes of the calibration gaits: None is z_k = 0, a number the prior's sampling temperature."""
@@ -133,18 +133,14 @@ def save_gaits(
 ) -> None:
     """Write ``replay_prior_gaits``' output to an .npz (no pickle) so a calibration can be rerun
     (other epochs, learning rate, loss) without replaying."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(
-        tmp,
+    write_npz(
+        path,
         n=np.int64(n),
         seed=np.int64(seed),
         zero_samples=np.int64(zero_samples),
         modes=np.array(list(MODES)),
         **{k: gaits[k] for k in GAIT_KEYS},
     )
-    os.replace(tmp, path)
 
 
 def load_gaits(

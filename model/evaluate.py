@@ -15,7 +15,7 @@ import numpy as np
 from model.api import GaitModel, load_pretrained
 from model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
 from model.stats import MODEL_RATE, median_relative_errors
-from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset, read_npz
+from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset, read_npz, write_npz
 from sim.consistency import ENSEMBLE_NOISE, PREDICTABLE, compare, path_stats, perturbed_commands
 
 
@@ -127,12 +127,8 @@ def save_replays(path: str | Path, replays: dict[str, dict[str, np.ndarray]], **
     n_prior, ensemble, seed, temperature) with the noise level and the robot's MJCF hash."""
     from sim import mjcf_sha256
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {f"{mode}/{k}": v for mode, r in replays.items() for k, v in r.items()}
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, noise=np.float64(ENSEMBLE_NOISE), mjcf_sha256=np.array(mjcf_sha256()), **drawn, **arrays)
-    os.replace(tmp, path)
+    write_npz(path, noise=np.float64(ENSEMBLE_NOISE), mjcf_sha256=np.array(mjcf_sha256()), **drawn, **arrays)
 
 
 def load_replays(

@@ -12,6 +12,7 @@ from sim.dataset import (
     generate_dataset,
     load_dataset,
     read_npz,
+    write_npz,
 )
 from sim.excitation import ExcitationConfig, multisine, random_phases
 from sim.physics import (
@@ -68,4 +69,5 @@ __all__ = [
     "servo_response",
     "shape_to_commands",
     "synthesis_phase",
+    "write_npz",
 ]

@@ -68,6 +68,16 @@ class DatasetError(ValueError):
     """A dataset file is missing, truncated, foreign or of another schema; the message says which."""
 
 
+def write_npz(path: str | Path, **arrays: np.ndarray) -> None:
+    """Write a small side file (.npz, no pickle) atomically: to a temporary name beside ``path``,
+    then renamed, so an interrupted write never leaves a truncated file that ``read_npz`` meets."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
 def read_npz(path: str | Path, what: str, need: Iterable[str]) -> dict[str, np.ndarray]:
     """Every array of a small side file (.npz, no pickle) the tools write: ``what`` names the kind
     in the messages; a file that cannot be read, or lacks an array of ``need``, is a DatasetError."""
