@@ -106,6 +106,8 @@ class Calibrate:
     """Loss of the statistics head on normalised statistics: l1 fits each statistic's median (what the consistency check's median relative error rewards), mse its mean (the previous default)."""
     path_fit: Literal["decoder", "film"] = "decoder"
     """What the second stage fits to the replayed body paths: the whole body decoder, or only its FiLM layer (the statistics' modulation; the previous default)."""
+    sampled_repeat: int = 1
+    """How many times the statistics head sees each sampled-z_k gait per epoch (the mix is 5 z_k = 0 gaits to 2 sampled)."""
 
 
 @dataclass
@@ -319,6 +321,7 @@ def run_calibrate(cmd: Calibrate) -> dict:
             loss=cmd.head_loss,
             zero_samples=cmd.zero_samples,
             path_fit=cmd.path_fit,
+            sampled_repeat=cmd.sampled_repeat,
         )
     finally:
         if bar is not None:

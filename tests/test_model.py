@@ -503,3 +503,17 @@ def test_single_z_decode_runs_traced_and_matches_eager_exactly(tiny_checkpoint):
     with torch.inference_mode():
         eager = m.net.sample_joints(torch.as_tensor(z_b[None], dtype=torch.float32), eps[0])
     np.testing.assert_array_equal(sampled[0], eager.numpy().astype(np.float64)[0])
+
+
+def test_head_training_gaits_repeat_only_the_sampled_training_gaits():
+    from model.calibrate import MODES, head_training_gaits
+
+    zero = list(MODES.values()).index(None)
+    sampled_mode = next(i for i, t in enumerate(MODES.values()) if t is not None)
+    mode = np.array([zero, zero, sampled_mode, sampled_mode, zero, sampled_mode])
+    held = np.array([False, False, False, True, True, False])
+    gaits = {"mode": mode}
+    np.testing.assert_array_equal(head_training_gaits(gaits, held), [0, 1, 2, 5])
+    np.testing.assert_array_equal(head_training_gaits(gaits, held, 3), [0, 1, 2, 5, 2, 5, 2, 5])
+    with pytest.raises(ValueError, match="at least 1"):
+        head_training_gaits(gaits, held, 0)
