@@ -289,10 +289,11 @@ def run_calibrate(cmd: Calibrate) -> dict:
     """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save."""
     from tqdm import tqdm
 
-    from model.calibrate import MODES, calibrate, extra_zero_samples
+    from model.calibrate import MODES, calibrate, check_sampled_repeat, extra_zero_samples
 
     try:
         extra = extra_zero_samples(cmd.prior_samples, cmd.zero_samples)
+        check_sampled_repeat(cmd.sampled_repeat)
     except ValueError as exc:
         print(f"snakeloco: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None

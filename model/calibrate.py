@@ -48,6 +48,8 @@ from sim import BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset, read_npz
 
 MODES: dict[str, float | None] = {"zk_zero": None, "zk_t0.5": 0.5, "zk_t1": 1.0}
 """z_k modes of the calibration gaits: None is z_k = 0, a number the prior's sampling temperature."""
+ZERO_MODE = list(MODES.values()).index(None)
+"""Index of the z_k = 0 mode (the ``mode`` array of the replayed gaits)."""
 
 
 ZERO_SEED_OFFSET = 1000
@@ -101,7 +103,7 @@ def replay_prior_gaits(
     n_joints = model.config.model.n_joints
     draws = [(m, z_b, 0, temperature) for m, temperature in enumerate(MODES.values())]
     if zero_samples:
-        draws.append((list(MODES.values()).index(None), z_extra, n, None))
+        draws.append((ZERO_MODE, z_extra, n, None))
     for m, zb, first_index, temperature in draws:
         z_j = np.zeros((len(zb), n_joints, model.z_j_dim))
         if temperature is not None:
@@ -179,6 +181,12 @@ layer, the FiLM layer and the transposed CNN); "film", the FiLM layer only (the 
 release)."""
 
 
+def check_sampled_repeat(sampled_repeat: int) -> None:
+    """A ValueError unless ``sampled_repeat`` (``head_training_gaits``) is at least 1."""
+    if sampled_repeat < 1:
+        raise ValueError(f"sampled_repeat must be at least 1, got {sampled_repeat}")
+
+
 def head_training_gaits(
     gaits: dict[str, np.ndarray], held_out: np.ndarray, sampled_repeat: int = 1
 ) -> np.ndarray:
@@ -188,11 +196,9 @@ def head_training_gaits(
     Why: the default mix is 2560 z_k = 0 gaits to 1024 sampled ones, and the head's error on
     sampled gaits' net roll stays ~10 points above the physics' floor (README).
     """
-    if sampled_repeat < 1:
-        raise ValueError(f"sampled_repeat must be at least 1, got {sampled_repeat}")
+    check_sampled_repeat(sampled_repeat)
     train = np.flatnonzero(~held_out)
-    zero_mode = list(MODES.values()).index(None)
-    sampled = train[gaits["mode"][train] != zero_mode]
+    sampled = train[gaits["mode"][train] != ZERO_MODE]
     return np.concatenate([train, *[sampled] * (sampled_repeat - 1)])
 
 
@@ -410,6 +416,7 @@ def calibrate(
     zero_samples = extra_zero_samples(n, zero_samples)
     model = load_pretrained(checkpoint)
     path_modules = _path_modules(model.net, path_fit)  # a bad choice is refused before any replay
+    check_sampled_repeat(sampled_repeat)  # so is this
     config: CheckpointConfig = model.config
     ds = load_dataset(data)
     if ds.meta_hash != config.dataset_meta_sha256:

@@ -143,3 +143,7 @@ def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpo
     with pytest.raises(SystemExit) as exc:
         main([*args, "--out", str(tmp_path / "c"), "--zero-samples", "-1"])
     assert exc.value.code == 2 and "--zero-samples at least 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # refused before replaying, not after
+        main([*args, "--out", str(tmp_path / "d"), "--sampled-repeat", "0"])
+    assert exc.value.code == 2 and "sampled_repeat must be at least 1" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
