@@ -92,6 +92,8 @@ class Calibrate:
     """z_B drawn from the prior; each is decoded with z_k = 0 and sampled at temperatures 0.5 and 1."""
     zero_samples: int | None = None
     """Further z_B decoded with z_k = 0 only (default: 4 x --prior-samples); their own seed, --seed + 1000."""
+    sampled_samples: int | None = None
+    """Further z_B decoded with z_k sampled at each temperature (default: 2 x --prior-samples); their own seed, --seed + 2000."""
     epochs: int = 40
     """Fine-tuning epochs of each stage (statistics head, then body decoder)."""
     lr: float = 1e-2
@@ -289,10 +291,18 @@ def run_calibrate(cmd: Calibrate) -> dict:
     """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save."""
     from tqdm import tqdm
 
-    from model.calibrate import MODES, calibrate, check_sampled_repeat, extra_zero_samples
+    from model.calibrate import (
+        MODES,
+        SAMPLED_MODES,
+        calibrate,
+        check_sampled_repeat,
+        extra_sampled_samples,
+        extra_zero_samples,
+    )
 
     try:
         extra = extra_zero_samples(cmd.prior_samples, cmd.zero_samples)
+        extra += len(SAMPLED_MODES) * extra_sampled_samples(cmd.prior_samples, cmd.sampled_samples)
         check_sampled_repeat(cmd.sampled_repeat)
     except ValueError as exc:
         print(f"snakeloco: error: {exc}", file=sys.stderr)
@@ -321,6 +331,7 @@ def run_calibrate(cmd: Calibrate) -> dict:
             gaits_path=cmd.gaits,
             loss=cmd.head_loss,
             zero_samples=cmd.zero_samples,
+            sampled_samples=cmd.sampled_samples,
             path_fit=cmd.path_fit,
             sampled_repeat=cmd.sampled_repeat,
         )

@@ -8,7 +8,8 @@ first shipped model: vertical-oscillation error 183% and net-roll error over 100
 
 Calibration closes that gap with the simulator as teacher. For ``n`` z_B drawn from the prior it
 decodes a gait in each z_k mode the designer offers (z_k = 0, and sampled at temperatures 0.5 and
-1), and for ``zero_samples`` (default 4 n) more z_B a gait with z_k = 0 only; it resynthesises
+1), for ``zero_samples`` (default 4 n) more z_B a gait with z_k = 0 only, and for
+``sampled_samples`` (default 2 n) more z_B a gait at each sampled temperature; it resynthesises
 the commands exactly as the designer does (``GaitModel.commands``), replays them once in MuJoCo and
 measures the body statistics of the replay. The head (signal CNN and MLP, nothing
 else) is then fine-tuned on those (decoded shape -> replayed statistics) pairs mixed with the
@@ -54,6 +55,11 @@ ZERO_MODE = list(MODES.values()).index(None)
 
 ZERO_SEED_OFFSET = 1000
 """The extra z_k = 0 draws (``zero_samples``) use seed + this, apart from the n shared draws."""
+SAMPLED_SEED_OFFSET = 2000
+"""The extra sampled-z_k draws (``sampled_samples``) use seed + this (z_B) and seed + this + 1 + mode
+(z_k), apart from the shared and the extra z_k = 0 draws."""
+SAMPLED_MODES = [m for m, t in enumerate(MODES.values()) if t is not None]
+"""Indices of the sampled-z_k modes."""
 
 
 def extra_zero_samples(n: int, zero_samples: int | None) -> int:
@@ -68,6 +74,15 @@ def extra_zero_samples(n: int, zero_samples: int | None) -> int:
     return extra
 
 
+def extra_sampled_samples(n: int, sampled_samples: int | None) -> int:
+    """How many extra sampled-z_k draws a calibration of n prior samples makes: ``sampled_samples``,
+    or 2 n where it is None (each is decoded in every sampled mode). A ValueError names a negative count."""
+    extra = 2 * n if sampled_samples is None else sampled_samples
+    if extra < 0:
+        raise ValueError(f"--sampled-samples must be at least 0 (got {sampled_samples})")
+    return extra
+
+
 def replay_prior_gaits(
     model: GaitModel,
     n: int,
@@ -76,38 +91,53 @@ def replay_prior_gaits(
     batch: int = 32,
     progress: Callable[[int], None] | None = None,
     zero_samples: int = 0,
+    sampled_samples: int = 0,
 ) -> dict[str, np.ndarray]:
     """Decode n prior z_B in every ``MODES`` entry, plus ``zero_samples`` more z_B with z_k = 0
-    only, replay each gait once and measure it.
+    only and ``sampled_samples`` more with z_k sampled (every sampled mode), replay each gait once
+    and measure it.
 
     Why the extra z_k = 0 draws: there a gait is a fixed function of z_B, and whether it hops
     (vertical std 20 mm where most stay near 4 mm) is a property of the z_B that the head learns
     only from many neighbouring draws (measured on the shipped model, ``README.md``). The extra
     draws come from their own seed (seed + ``ZERO_SEED_OFFSET``), so adding them leaves the n
-    shared draws as they were.
+    shared draws as they were. Why the extra sampled draws: a sampled gait's net roll is a
+    function of its whole shape, not of z_B, and the head's error on it fell with every doubling
+    of the sampled gaits it saw (``README.md``). They use seed + ``SAMPLED_SEED_OFFSET`` and come
+    last, so the gaits before them are the same with or without them.
 
-    Returns arrays over the M = n * len(MODES) + zero_samples gaits (broken replays dropped):
+    Returns arrays over the M = n * len(MODES) + zero_samples + sampled_samples * len(SAMPLED_MODES)
+    gaits (broken replays dropped):
     ``shape`` (M, 8, L, 2) decoded rad, ``stats`` (M, 4) the replay's statistics vector
     (``model.stats``), ``body`` (M, 500, 6) the replay's body series at the model's rate, ``z_b``
     (M, Db) and ``z_j`` (M, 8, Dj) the latents decoded, ``z_index`` (M,) which z_B draw (the
-    extra ones numbered from n), ``mode`` (M,) index into ``MODES``, and ``broken``
+    extra z_k = 0 ones numbered from n, the extra sampled ones from n + zero_samples), ``mode`` (M,) index into ``MODES``, and ``broken``
     (len(MODES),) counts.
     """
     z_b = np.random.default_rng(seed).standard_normal((n, model.z_b_dim))
     z_extra = np.random.default_rng(seed + ZERO_SEED_OFFSET).standard_normal((zero_samples, model.z_b_dim))
+    z_sampled = np.random.default_rng(seed + SAMPLED_SEED_OFFSET).standard_normal(
+        (sampled_samples, model.z_b_dim)
+    )
     simulator = Simulator(workers or os.cpu_count() or 1)
     parts: dict[str, list[np.ndarray]] = {
         k: [] for k in ("shape", "stats", "body", "z_b", "z_j", "z_index", "mode")
     }
     broken = np.zeros(len(MODES), dtype=np.int64)
     n_joints = model.config.model.n_joints
-    draws = [(m, z_b, 0, temperature) for m, temperature in enumerate(MODES.values())]
+    temperatures = list(MODES.values())
+    # (mode, z_B, number of its first draw, seed of its z_k samples)
+    draws = [(m, z_b, 0, seed + 1 + m) for m in range(len(MODES))]
     if zero_samples:
         draws.append((ZERO_MODE, z_extra, n, None))
-    for m, zb, first_index, temperature in draws:
+    if sampled_samples:
+        draws += [(m, z_sampled, n + zero_samples, seed + SAMPLED_SEED_OFFSET + 1 + m) for m in SAMPLED_MODES]
+    for m, zb, first_index, zk_seed in draws:
+        if not len(zb):
+            continue
         z_j = np.zeros((len(zb), n_joints, model.z_j_dim))
-        if temperature is not None:
-            z_j = model.sample_joint_latents(zb, 1, seed=seed + 1 + m, temperature=temperature)[:, 0]
+        if temperatures[m] is not None:
+            z_j = model.sample_joint_latents(zb, 1, seed=zk_seed, temperature=temperatures[m])[:, 0]
         shape, _ = model.decode(zb, z_j)
         for start in range(0, len(zb), batch):
             idx = np.arange(start, min(len(zb), start + batch))
@@ -131,7 +161,12 @@ GAIT_KEYS = ("shape", "stats", "body", "z_b", "z_j", "z_index", "mode", "broken"
 
 
 def save_gaits(
-    path: str | Path, gaits: dict[str, np.ndarray], n: int, seed: int, zero_samples: int = 0
+    path: str | Path,
+    gaits: dict[str, np.ndarray],
+    n: int,
+    seed: int,
+    zero_samples: int = 0,
+    sampled_samples: int = 0,
 ) -> None:
     """Write ``replay_prior_gaits``' output to an .npz (no pickle) so a calibration can be rerun
     (other epochs, learning rate, loss) without replaying."""
@@ -140,25 +175,34 @@ def save_gaits(
         n=np.int64(n),
         seed=np.int64(seed),
         zero_samples=np.int64(zero_samples),
+        sampled_samples=np.int64(sampled_samples),
         modes=np.array(list(MODES)),
         **{k: gaits[k] for k in GAIT_KEYS},
     )
 
 
 def load_gaits(
-    path: str | Path, model: GaitModel, n: int, seed: int, zero_samples: int = 0
+    path: str | Path,
+    model: GaitModel,
+    n: int,
+    seed: int,
+    zero_samples: int = 0,
+    sampled_samples: int = 0,
 ) -> dict[str, np.ndarray]:
     """Read gaits written by ``save_gaits``; refuse ones drawn with another n, seed, number of extra
-    z_k = 0 draws or mode list, or decoded by another checkpoint (their z_B and z_k are decoded
-    again and must give the stored shapes). Files written before ``zero_samples`` existed hold none."""
+    z_k = 0 or sampled draws or mode list, or decoded by another checkpoint (their z_B and z_k are
+    decoded again and must give the stored shapes). Files written before ``zero_samples`` or
+    ``sampled_samples`` existed hold none."""
     path = Path(path)
     stored = read_npz(path, "calibration-gaits", (*GAIT_KEYS, "n", "seed", "modes"))
     stored_zero = int(stored.get("zero_samples", 0))
-    drawn = (int(stored["n"]), int(stored["seed"]), stored_zero, list(stored["modes"]))
-    if drawn != (n, seed, zero_samples, list(MODES)):
+    stored_sampled = int(stored.get("sampled_samples", 0))
+    drawn = (int(stored["n"]), int(stored["seed"]), stored_zero, stored_sampled, list(stored["modes"]))
+    if drawn != (n, seed, zero_samples, sampled_samples, list(MODES)):
         raise DatasetError(
-            f"{path}: gaits of {drawn[0]} z_B (+{stored_zero} at z_k = 0) with seed {drawn[1]} and modes "
-            f"{drawn[3]}; asked for {n} (+{zero_samples}) with seed {seed} and modes {list(MODES)}"
+            f"{path}: gaits of {drawn[0]} z_B (+{stored_zero} at z_k = 0, +{stored_sampled} sampled) with "
+            f"seed {drawn[1]} and modes {drawn[4]}; asked for {n} (+{zero_samples}, +{sampled_samples}) "
+            f"with seed {seed} and modes {list(MODES)}"
         )
     if len(stored["z_b"]):
         # The first and the last gaits: the shared draws and, where there are any, the extra ones.
@@ -193,8 +237,10 @@ def head_training_gaits(
     """Indices of the generated gaits the statistics head trains on: those not ``held_out`` (bool
     mask), with the gaits of sampled z_k (every mode but z_k = 0) listed ``sampled_repeat`` times.
 
-    Why: the default mix is 2560 z_k = 0 gaits to 1024 sampled ones, and the head's error on
-    sampled gaits' net roll stays ~10 points above the physics' floor (README).
+    Why it was tried: without extra sampled draws the mix is 2560 z_k = 0 gaits to 1024 sampled
+    ones, and the head's error on sampled gaits' net roll stayed ~10 points above the physics'
+    floor. Repeating them did not lower it; new sampled draws (``sampled_samples``) did
+    (``docs/model-notes.md``).
     """
     check_sampled_repeat(sampled_repeat)
     train = np.flatnonzero(~held_out)
@@ -400,6 +446,7 @@ def calibrate(
     zero_samples: int | None = None,
     path_fit: PathFit = "decoder",
     sampled_repeat: int = 1,
+    sampled_samples: int | None = None,
 ) -> dict:
     """Fine-tune the statistics head of ``checkpoint`` on replays of its own prior gaits; write to ``out``.
 
@@ -408,12 +455,14 @@ def calibrate(
     ``replay_prior_gaits`` instead of simulating; ``gaits_path``: an .npz that is read when it
     exists (``load_gaits``), else written after replaying. ``loss``: the head's loss
     (``head_loss``). ``zero_samples``: extra z_B decoded with z_k = 0 only (``replay_prior_gaits``;
-    None: 4 n). ``path_fit``: what the second stage fits (``PathFit``). ``sampled_repeat``: how many
+    None: 4 n); ``sampled_samples``: extra z_B decoded with z_k sampled in every sampled mode
+    (None: 2 n). ``path_fit``: what the second stage fits (``PathFit``). ``sampled_repeat``: how many
     times the head sees each sampled-z_k gait per epoch (``head_training_gaits``). Returns the calibration
     summary (also stored in the checkpoint's ``summary.calibration``).
     """
     t_start = time.perf_counter()
     zero_samples = extra_zero_samples(n, zero_samples)
+    sampled_samples = extra_sampled_samples(n, sampled_samples)
     model = load_pretrained(checkpoint)
     path_modules = _path_modules(model.net, path_fit)  # a bad choice is refused before any replay
     check_sampled_repeat(sampled_repeat)  # so is this
@@ -428,19 +477,27 @@ def calibrate(
     if warning and log:
         log(f"warning: {warning}")
     if gaits is None and gaits_path is not None and Path(gaits_path).exists():
-        gaits = load_gaits(gaits_path, model, n, seed, zero_samples)
+        gaits = load_gaits(gaits_path, model, n, seed, zero_samples, sampled_samples)
         if log:
             log(f"reusing {len(gaits['shape'])} replayed prior gaits from {gaits_path}")
     if gaits is None:
         t0 = time.perf_counter()
-        gaits = replay_prior_gaits(model, n, seed, workers, progress=progress, zero_samples=zero_samples)
+        gaits = replay_prior_gaits(
+            model,
+            n,
+            seed,
+            workers,
+            progress=progress,
+            zero_samples=zero_samples,
+            sampled_samples=sampled_samples,
+        )
         if log:
             log(
                 f"replayed {len(gaits['shape'])} prior gaits in {time.perf_counter() - t0:.0f} s "
                 f"(broken: {dict(zip(MODES, gaits['broken'].tolist(), strict=True))})"
             )
         if gaits_path is not None:
-            save_gaits(gaits_path, gaits, n, seed, zero_samples)
+            save_gaits(gaits_path, gaits, n, seed, zero_samples, sampled_samples)
     # The dataset's training split, as ``train`` drew it.
     from model.train import _split
 
@@ -536,6 +593,7 @@ def calibrate(
     summary = {
         "prior_samples": n,
         "zero_samples": zero_samples,
+        "sampled_samples": sampled_samples,
         "seed": seed,
         "modes": list(MODES),
         "gaits": len(gaits["shape"]),

@@ -131,6 +131,7 @@ def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpo
     gaits = tmp_path / "gaits.npz"
     args = ["calibrate", "--data", str(tiny_dataset_path), "--checkpoint", str(checkpoint)]
     args += ["--prior-samples", "2", "--epochs", "1", "--workers", "1", "--gaits", str(gaits)]
+    args += ["--sampled-samples", "1"]
     main([*args, "--out", str(tmp_path / "a")])
     first = capsys.readouterr()
     assert gaits.exists() and "replay prior gaits" in first.err and "replayed" in first.out
@@ -140,6 +141,7 @@ def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpo
     assert "replay prior gaits" not in second.err
     calibration = json.loads((tmp_path / "b" / "config.json").read_text())["summary"]["calibration"]
     assert calibration["head_loss"] == "mse" and calibration["path"]["fit"] == "film"
+    assert calibration["sampled_samples"] == 1 and calibration["zero_samples"] == 8
     with pytest.raises(SystemExit) as exc:
         main([*args, "--out", str(tmp_path / "c"), "--zero-samples", "-1"])
     assert exc.value.code == 2 and "--zero-samples at least 0" in capsys.readouterr().err
@@ -147,3 +149,7 @@ def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpo
         main([*args, "--out", str(tmp_path / "d"), "--sampled-repeat", "0"])
     assert exc.value.code == 2 and "sampled_repeat must be at least 1" in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
+    with pytest.raises(SystemExit) as exc:
+        main([*args, "--out", str(tmp_path / "e"), "--sampled-samples", "-1"])
+    assert exc.value.code == 2 and "--sampled-samples must be at least 0" in capsys.readouterr().err
+    assert not (tmp_path / "e").exists()

@@ -336,9 +336,10 @@ def test_calibration_tunes_only_the_head_and_body_decoder(tiny_checkpoint, tiny_
     summary = calibrate(
         tiny_checkpoint, tiny_dataset_path, out, n=4, epochs=3, lr=1e-2, log=None, gaits_path=gaits
     )
-    # 4 z_B in every mode, and by default 4 x 4 more with z_k = 0 only.
-    assert summary["zero_samples"] == 16
-    assert summary["gaits"] + sum(summary["broken"].values()) == 4 * len(MODES) + 16
+    # 4 z_B in every mode, and by default 4 x 4 more with z_k = 0 only and 2 x 4 more in each
+    # sampled mode.
+    assert summary["zero_samples"] == 16 and summary["sampled_samples"] == 8
+    assert summary["gaits"] + sum(summary["broken"].values()) == 4 * len(MODES) + 16 + 8 * (len(MODES) - 1)
     assert (
         {"generated", "dataset"} <= set(summary["median_rel_err_after"]) <= {"generated", "dataset", *MODES}
     )
@@ -385,6 +386,8 @@ def test_calibration_tunes_only_the_head_and_body_decoder(tiny_checkpoint, tiny_
         calibrate(tiny_checkpoint, tiny_dataset_path, tmp_path / "x", n=2, path_fit="all", log=None)
     with pytest.raises(ValueError, match="no negative extra ones"):
         calibrate(tiny_checkpoint, tiny_dataset_path, tmp_path / "x", n=2, zero_samples=-1, log=None)
+    with pytest.raises(ValueError, match="--sampled-samples must be at least 0"):
+        calibrate(tiny_checkpoint, tiny_dataset_path, tmp_path / "x", n=2, sampled_samples=-1, log=None)
     other = generate_dataset(GenerateConfig(num_samples=2, seed=99), tmp_path / "other.npz", workers=2)
     with pytest.raises(DatasetError, match="not the dataset this checkpoint was trained on"):
         calibrate(tiny_checkpoint, other, tmp_path / "x", n=2, epochs=1, log=None)
@@ -409,6 +412,7 @@ def test_calibration_gaits_file_is_reused_and_checked(
             log=None,
             gaits_path=gaits_file,
             zero_samples=1,
+            sampled_samples=1,
             **kwargs,
         )
 
@@ -433,10 +437,14 @@ def test_calibration_gaits_file_is_reused_and_checked(
     c, _ = load_checkpoint(tmp_path / "c")
     assert not torch.equal(c.state_dict()["stats_head.0.weight"], a.state_dict()["stats_head.0.weight"])
     model = load_pretrained(tiny_checkpoint)
-    with pytest.raises(DatasetError, match=r"asked for 4 \(\+1\) with seed 1000"):
-        cal.load_gaits(gaits_file, model, 4, 1000, 1)
-    with pytest.raises(DatasetError, match=r"gaits of 3 z_B \(\+1 at z_k = 0\).*asked for 3 \(\+6\)"):
-        cal.load_gaits(gaits_file, model, 3, 1000, 6)
+    with pytest.raises(DatasetError, match=r"asked for 4 \(\+1, \+1\) with seed 1000"):
+        cal.load_gaits(gaits_file, model, 4, 1000, 1, 1)
+    with pytest.raises(
+        DatasetError, match=r"gaits of 3 z_B \(\+1 at z_k = 0, \+1 sampled\).*asked for 3 \(\+6, \+1\)"
+    ):
+        cal.load_gaits(gaits_file, model, 3, 1000, 6, 1)
+    with pytest.raises(DatasetError, match=r"asked for 3 \(\+1, \+0\)"):
+        cal.load_gaits(gaits_file, model, 3, 1000, 1, 0)
     # Gaits decoded by another checkpoint are refused, not silently trained on.
     gaits = replay(model, 2, seed=5, workers=1)
     gaits["shape"] = gaits["shape"] + 0.01
@@ -463,6 +471,28 @@ def test_extra_zero_draws_leave_the_shared_draws_alone(tiny_checkpoint):
     assert (more["z_j"][extra] == 0).all() and set(more["z_index"][extra]) <= {2, 3, 4}
     # Their own seed: not the first draws again.
     assert not np.allclose(more["z_b"][extra][:1], plain["z_b"][:1])
+
+
+def test_extra_sampled_draws_come_last_in_every_sampled_mode(tiny_checkpoint):
+    import model.calibrate as cal
+
+    model = load_pretrained(tiny_checkpoint)
+    before = cal.replay_prior_gaits(model, 2, seed=7, workers=1, zero_samples=1)
+    more = cal.replay_prior_gaits(model, 2, seed=7, workers=1, zero_samples=1, sampled_samples=2)
+    # The gaits before the extra sampled ones are those of a run without them.
+    head = more["z_index"] < 3
+    for k in ("shape", "stats", "z_b", "z_j", "z_index", "mode"):
+        np.testing.assert_array_equal(more[k][head], before[k], err_msg=k)
+    extra = ~head
+    assert extra.sum() + more["broken"].sum() - before["broken"].sum() == 2 * len(cal.SAMPLED_MODES)
+    assert set(more["mode"][extra]) <= set(cal.SAMPLED_MODES) and cal.ZERO_MODE not in cal.SAMPLED_MODES
+    assert set(more["z_index"][extra]) <= {3, 4}
+    # Sampled joint latents (not zeros), different in each mode, on z_B drawn from their own seed.
+    assert (np.abs(more["z_j"][extra]).max(axis=(1, 2)) > 0).all()
+    first = more["z_index"] == 3
+    if first.sum() == 2:
+        assert not np.allclose(*more["z_j"][first])
+    assert not np.isin(more["z_b"][extra][:, 0], before["z_b"][:, 0]).any()
 
 
 def test_head_loss_l1_prefers_the_median_and_mse_the_mean():
