@@ -151,11 +151,16 @@ def consistency_figure(report: str | Path, path: Path) -> Path:
         for ax, (key, label) in zip(axes, labels.items(), strict=True):
             sim = np.array([g[key + "_simulated"] for g in gaits])
             dec = np.array([g[key + "_decoded"] for g in gaits])
-            spread = np.array([g[key + "_spread"] for g in gaits]) * np.abs(sim)
+            # The ensemble's std in the statistic's units. Reports written before it was stored
+            # hold only std / |ensemble mean|, which cannot be turned back into it (the mean is
+            # not stored; near zero net roll it is no scale at all): no bars for them.
+            std = (
+                np.array([g[key + "_std"] for g in gaits]) if all(key + "_std" in g for g in gaits) else None
+            )
             ax.errorbar(
                 sim,
                 dec,
-                xerr=spread,
+                xerr=std,
                 fmt=marker,
                 ms=3,
                 alpha=0.5,

@@ -58,8 +58,8 @@ def ensemble_spread(ensemble: np.ndarray, sample_rate: float) -> dict[str, float
 
     final_spread: RMS distance of the perturbed members' final positions from member 0's, relative
     to member 0's displacement (the "predictability score": ~1 means the final position is
-    unpredictable). For each predictable statistic: the ensemble's relative std (std / |mean|)
-    (``<stat>_spread``) and the physics' floor on a prediction's error (``<stat>_floor``): the
+    unpredictable). For each predictable statistic: the ensemble's std in the statistic's units
+    (``<stat>_std``), its relative std (std / |mean|) (``<stat>_spread``) and the physics' floor on a prediction's error (``<stat>_floor``): the
     relative error of the perturbed members' mean against member 0, i.e. what a model that knew
     the ensemble's mean exactly would score (from K - 1 members, so slightly above the true floor).
     """
@@ -68,6 +68,7 @@ def ensemble_spread(ensemble: np.ndarray, sample_rate: float) -> dict[str, float
     out = {"final_spread": float(np.sqrt((d**2).mean()) / max(float(s["displacement"][0]), 1e-9))}
     for key in PREDICTABLE:
         v = s[key]
+        out[f"{key}_std"] = float(v.std())
         out[f"{key}_spread"] = float(v.std() / max(abs(float(v.mean())), 1e-9))
         # The best a predictor of this gait's statistics can do: the perturbed members' mean,
         # scored against member 0 exactly as a decoded prediction is (``compare``'s ``_err``).

@@ -47,6 +47,10 @@ def test_path_stats_and_compare():
     skewed = ensemble_spread(np.stack([body, body * 1.02, body * 1.04]), 5.0)
     assert skewed["path_length_floor"] == pytest.approx(0.03)
     assert skewed["net_roll_floor"] == pytest.approx(0.03)
+    # The ensemble's std in the statistic's own units (fig9's bars), and relative to its mean.
+    length = float(path_stats(body[None], 5.0)["path_length"][0])
+    assert skewed["path_length_std"] == pytest.approx(length * np.std([1.0, 1.02, 1.04]))
+    assert skewed["path_length_spread"] == pytest.approx(np.std([1.0, 1.02, 1.04]) / 1.02)
     assert c["path_length_floor"] == spread["path_length_floor"]
 
 
