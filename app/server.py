@@ -99,6 +99,14 @@ def _shape_points(shape: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pts.astype(np.float32), JOINT_COLORS[k]
 
 
+def _spread_text(std: float, relative: float) -> str:
+    """An ensemble's spread of one statistic for the panel: its std in the statistic's units and,
+    where the ensemble's mean is a meaningful scale, relative to it (a net roll that goes either way
+    across the ensemble has a mean near 0 and a relative spread of thousands of percent)."""
+    text = f"±{std:.2g}"
+    return text + (f" ({100 * relative:.1f}%)" if relative < 10.0 else "")
+
+
 @dataclass
 class Timing:
     """When each stage of one request finished (perf_counter seconds), for ``bench app``."""
@@ -611,11 +619,11 @@ class DesignerClient:
             )
             if gait.body_ds is not None:
                 lines += [
-                    "| | model | simulated | error | physics spread |",
+                    "| | model | simulated | error | physics spread (± std) |",
                     "|---|---|---|---|---|",
                     *[
                         f"| {label} | {f[key + '_decoded']:.3g} | {f[key + '_simulated']:.3g} | "
-                        f"{100 * f[key + '_err']:.0f}% | {100 * f[key + '_spread']:.1f}% |"
+                        f"{100 * f[key + '_err']:.0f}% | {_spread_text(f[key + '_std'], f[key + '_spread'])} |"
                         for key, label in (
                             ("path_length", "path length (m)"),
                             ("median_speed", "speed (m/s)"),

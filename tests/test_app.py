@@ -68,6 +68,8 @@ def test_slider_change_decodes_replays_and_draws(server):
         assert d.gen_path is not None and d.sim_path is not None and d.fan is not None
         assert set(d.clouds) == {"decoded", "measured"}
         assert "Predictability" in d.panel.content
+        # Each statistic's ensemble spread in its own units beside the error.
+        assert "physics spread (± std)" in d.panel.content and d.panel.content.count("| ±") == 4
         # The drawn simulated path is this gait's replay.
         np.testing.assert_allclose(d.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
     finally:
