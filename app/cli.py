@@ -52,6 +52,8 @@ class Train:
     """Weight of MMD(q(z_B) || N(0, I))."""
     body_sees_stats: bool = True
     """Modulate the body decoder by the gait's predicted statistics (README, Model)."""
+    z_b_dim: int = 6
+    """Body latent dimensions, one designer slider each (1-8; shipped: 6)."""
 
 
 @dataclass
@@ -246,12 +248,18 @@ def run_train(cmd: Train):
         batch_size=cmd.batch_size,
         cycle_epochs=cmd.cycle_epochs,
     )
-    return train(
-        cmd.data,
-        cmd.out,
-        cfg,
-        ModelConfig(alpha=cmd.alpha, beta=cmd.beta, gamma=cmd.gamma, body_sees_stats=cmd.body_sees_stats),
-    )
+    try:
+        model_cfg = ModelConfig(
+            alpha=cmd.alpha,
+            beta=cmd.beta,
+            gamma=cmd.gamma,
+            body_sees_stats=cmd.body_sees_stats,
+            z_b_dim=cmd.z_b_dim,
+        )
+    except ValueError as exc:  # pydantic's ValidationError names the field and its bounds
+        print(f"snakeloco: error: bad model setting: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    return train(cmd.data, cmd.out, cfg, model_cfg)
 
 
 def run_evaluate(cmd: Evaluate) -> dict:

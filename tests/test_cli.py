@@ -25,7 +25,7 @@ def test_generate_command(tmp_path, capsys, tiny_dataset):
     np.testing.assert_array_equal(load_dataset(out).body, tiny_dataset.body[:2])
 
 
-def test_train_command_passes_the_loss_weights(tmp_path, tiny_dataset_path):
+def test_train_command_passes_the_loss_weights(tmp_path, tiny_dataset_path, capsys):
     from model import load_pretrained
 
     out = tmp_path / "ckpt"
@@ -44,6 +44,14 @@ def test_train_command_passes_the_loss_weights(tmp_path, tiny_dataset_path):
     cfg = load_pretrained(out).config
     assert (cfg.model.alpha, cfg.model.beta, cfg.model.gamma) == (4.0, 3.0, 5.0)
     assert (cfg.train["epochs"], cfg.train["seed"]) == (1, 2)
+    # The number of sliders is a training choice, and the model decodes with it.
+    main([*args, "--out", str(tmp_path / "four"), "--z-b-dim", "4"])
+    four = load_pretrained(tmp_path / "four")
+    assert four.z_b_dim == 4 and four.decode(np.zeros((1, 4)))[0].shape[0] == 1
+    with pytest.raises(SystemExit) as exc:
+        main([*args, "--out", str(tmp_path / "nine"), "--z-b-dim", "9"])
+    assert exc.value.code == 2 and "z_b_dim" in capsys.readouterr().err
+    assert not (tmp_path / "nine").exists()
 
 
 def test_bench_sim_json(capsys):
