@@ -241,23 +241,13 @@ def run_train(cmd: Train):
 
     from model import ModelConfig, TrainConfig, train
 
-    cfg = TrainConfig(
-        epochs=cmd.epochs,
-        device=cmd.device,
-        seed=cmd.seed,
-        batch_size=cmd.batch_size,
-        cycle_epochs=cmd.cycle_epochs,
-    )
+    train_fields = ("epochs", "device", "seed", "batch_size", "cycle_epochs")
+    model_fields = ("alpha", "beta", "gamma", "body_sees_stats", "z_b_dim")
     try:
-        model_cfg = ModelConfig(
-            alpha=cmd.alpha,
-            beta=cmd.beta,
-            gamma=cmd.gamma,
-            body_sees_stats=cmd.body_sees_stats,
-            z_b_dim=cmd.z_b_dim,
-        )
+        cfg = TrainConfig(**{k: getattr(cmd, k) for k in train_fields})
+        model_cfg = ModelConfig(**{k: getattr(cmd, k) for k in model_fields})
     except ValueError as exc:  # pydantic's ValidationError names the field and its bounds
-        print(f"snakeloco: error: bad model setting: {exc}", file=sys.stderr)
+        print(f"snakeloco: error: bad training setting: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     return train(cmd.data, cmd.out, cfg, model_cfg)
 

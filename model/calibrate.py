@@ -111,8 +111,8 @@ def replay_prior_gaits(
     ``shape`` (M, 8, L, 2) decoded rad, ``stats`` (M, 4) the replay's statistics vector
     (``model.stats``), ``body`` (M, 500, 6) the replay's body series at the model's rate, ``z_b``
     (M, Db) and ``z_j`` (M, 8, Dj) the latents decoded, ``z_index`` (M,) which z_B draw (the
-    extra z_k = 0 ones numbered from n, the extra sampled ones from n + zero_samples), ``mode`` (M,) index into ``MODES``, and ``broken``
-    (len(MODES),) counts.
+    extra z_k = 0 ones numbered from n, the extra sampled ones from n + zero_samples), ``mode``
+    (M,) index into ``MODES``, and ``broken`` (len(MODES),) counts.
     """
     z_b = np.random.default_rng(seed).standard_normal((n, model.z_b_dim))
     z_extra = np.random.default_rng(seed + ZERO_SEED_OFFSET).standard_normal((zero_samples, model.z_b_dim))

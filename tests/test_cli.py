@@ -18,6 +18,13 @@ from app.headless import HeadlessClient
 from sim import load_dataset
 
 
+def _refused(capsys, argv: list[str], says: str) -> None:
+    """The command exits 2 with ``says`` in its error message (not a traceback)."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2 and says in capsys.readouterr().err
+
+
 def test_generate_command(tmp_path, capsys, tiny_dataset):
     out = tmp_path / "g.npz"
     main(["generate", "--num-samples", "2", "--seed", "11", "--out", str(out), "--workers", "1"])
@@ -48,10 +55,9 @@ def test_train_command_passes_the_loss_weights(tmp_path, tiny_dataset_path, caps
     main([*args, "--out", str(tmp_path / "four"), "--z-b-dim", "4"])
     four = load_pretrained(tmp_path / "four")
     assert four.z_b_dim == 4 and four.decode(np.zeros((1, 4)))[0].shape[0] == 1
-    with pytest.raises(SystemExit) as exc:
-        main([*args, "--out", str(tmp_path / "nine"), "--z-b-dim", "9"])
-    assert exc.value.code == 2 and "z_b_dim" in capsys.readouterr().err
+    _refused(capsys, [*args, "--out", str(tmp_path / "nine"), "--z-b-dim", "9"], "z_b_dim")
     assert not (tmp_path / "nine").exists()
+    _refused(capsys, [*args, "--out", str(tmp_path / "none"), "--epochs", "0"], "epochs")
 
 
 def test_bench_sim_json(capsys):
@@ -150,14 +156,19 @@ def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpo
     calibration = json.loads((tmp_path / "b" / "config.json").read_text())["summary"]["calibration"]
     assert calibration["head_loss"] == "mse" and calibration["path"]["fit"] == "film"
     assert calibration["sampled_samples"] == 1 and calibration["zero_samples"] == 8
-    with pytest.raises(SystemExit) as exc:
-        main([*args, "--out", str(tmp_path / "c"), "--zero-samples", "-1"])
-    assert exc.value.code == 2 and "--zero-samples at least 0" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as exc:  # refused before replaying, not after
-        main([*args, "--out", str(tmp_path / "d"), "--sampled-repeat", "0"])
-    assert exc.value.code == 2 and "sampled_repeat must be at least 1" in capsys.readouterr().err
+    _refused(
+        capsys, [*args, "--out", str(tmp_path / "c"), "--zero-samples", "-1"], "--zero-samples at least 0"
+    )
+    # Refused before replaying, not after.
+    _refused(
+        capsys,
+        [*args, "--out", str(tmp_path / "d"), "--sampled-repeat", "0"],
+        "sampled_repeat must be at least 1",
+    )
     assert not (tmp_path / "d").exists()
-    with pytest.raises(SystemExit) as exc:
-        main([*args, "--out", str(tmp_path / "e"), "--sampled-samples", "-1"])
-    assert exc.value.code == 2 and "--sampled-samples must be at least 0" in capsys.readouterr().err
+    _refused(
+        capsys,
+        [*args, "--out", str(tmp_path / "e"), "--sampled-samples", "-1"],
+        "--sampled-samples must be at least 0",
+    )
     assert not (tmp_path / "e").exists()
