@@ -111,7 +111,7 @@ class Calibrate:
     path_fit: Literal["decoder", "film"] = "decoder"
     """What the second stage fits to the replayed body paths: the whole body decoder, or only its FiLM layer (the statistics' modulation; the previous default)."""
     sampled_repeat: int = 1
-    """How many times the statistics head sees each sampled-z_k gait per epoch (the mix is 5 z_k = 0 gaits to 2 sampled)."""
+    """How many times the statistics head sees each sampled-z_k gait per epoch (new sampled draws, --sampled-samples, helped where repeats did not)."""
 
 
 @dataclass
@@ -289,18 +289,10 @@ def run_calibrate(cmd: Calibrate) -> dict:
     """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save."""
     from tqdm import tqdm
 
-    from model.calibrate import (
-        MODES,
-        SAMPLED_MODES,
-        calibrate,
-        check_sampled_repeat,
-        extra_sampled_samples,
-        extra_zero_samples,
-    )
+    from model.calibrate import calibrate, calibration_gait_count, check_sampled_repeat
 
     try:
-        extra = extra_zero_samples(cmd.prior_samples, cmd.zero_samples)
-        extra += len(SAMPLED_MODES) * extra_sampled_samples(cmd.prior_samples, cmd.sampled_samples)
+        total = calibration_gait_count(cmd.prior_samples, cmd.zero_samples, cmd.sampled_samples)
         check_sampled_repeat(cmd.sampled_repeat)
     except ValueError as exc:
         print(f"snakeloco: error: {exc}", file=sys.stderr)
@@ -310,7 +302,7 @@ def run_calibrate(cmd: Calibrate) -> dict:
     def progress(k: int) -> None:
         nonlocal bar
         if bar is None:
-            bar = tqdm(total=len(MODES) * cmd.prior_samples + extra, unit="gait", desc="replay prior gaits")
+            bar = tqdm(total=total, unit="gait", desc="replay prior gaits")
         bar.update(k)
         if bar.n >= bar.total:
             bar.close()  # before the fine-tuning's log lines

@@ -83,6 +83,15 @@ def extra_sampled_samples(n: int, sampled_samples: int | None) -> int:
     return extra
 
 
+def calibration_gait_count(n: int, zero_samples: int | None, sampled_samples: int | None) -> int:
+    """How many gaits a calibration replays (``replay_prior_gaits``' M, before broken ones are
+    dropped), with the defaults of ``extra_zero_samples`` and ``extra_sampled_samples``; their
+    ValueError names a bad count."""
+    zero = extra_zero_samples(n, zero_samples)
+    sampled = extra_sampled_samples(n, sampled_samples)
+    return n * len(MODES) + zero + sampled * len(SAMPLED_MODES)
+
+
 def replay_prior_gaits(
     model: GaitModel,
     n: int,

@@ -59,9 +59,10 @@ def ensemble_spread(ensemble: np.ndarray, sample_rate: float) -> dict[str, float
     final_spread: RMS distance of the perturbed members' final positions from member 0's, relative
     to member 0's displacement (the "predictability score": ~1 means the final position is
     unpredictable). For each predictable statistic: the ensemble's std in the statistic's units
-    (``<stat>_std``), its relative std (std / |mean|) (``<stat>_spread``) and the physics' floor on a prediction's error (``<stat>_floor``): the
-    relative error of the perturbed members' mean against member 0, i.e. what a model that knew
-    the ensemble's mean exactly would score (from K - 1 members, so slightly above the true floor).
+    (``<stat>_std``), its relative std (std / |mean|) (``<stat>_spread``) and the physics' floor
+    on a prediction's error (``<stat>_floor``): the relative error of the perturbed members' mean
+    against member 0, i.e. what a model that knew the ensemble's mean exactly would score (from
+    K - 1 members, so slightly above the true floor).
     """
     s = path_stats(ensemble, sample_rate)
     d = np.linalg.norm(s["final_xy"][1:] - s["final_xy"][0], axis=-1)
