@@ -101,10 +101,11 @@ def _shape_points(shape: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _spread_text(std: float, relative: float) -> str:
     """An ensemble's spread of one statistic for the panel: its std in the statistic's units and,
-    where the ensemble's mean is a meaningful scale, relative to it (a net roll that goes either way
-    across the ensemble has a mean near 0 and a relative spread of thousands of percent)."""
+    where the ensemble's mean is a meaningful scale (larger than the spread), relative to it. A net
+    roll that goes either way across the ensemble has a mean near 0: its relative spread (e.g. ±15 rad
+    about a mean of 1.9, 789%) says nothing the std does not."""
     text = f"±{std:.2g}"
-    return text + (f" ({100 * relative:.1f}%)" if relative < 10.0 else "")
+    return text + (f" ({100 * relative:.1f}%)" if relative < 1.0 else "")
 
 
 @dataclass
@@ -618,26 +619,31 @@ class DesignerClient:
                 f"**Predictability** (ensemble final-position spread / distance travelled): **{f['final_spread']:.2f}**"
             )
             if gait.body_ds is not None:
-                lines += [
+                table = [
                     "| | model | simulated | error | physics spread (± std) |",
                     "|---|---|---|---|---|",
                     *[
-                        f"| {label} | {f[key + '_decoded']:.3g} | {f[key + '_simulated']:.3g} | "
-                        f"{100 * f[key + '_err']:.0f}% | {_spread_text(f[key + '_std'], f[key + '_spread'])} |"
-                        for key, label in (
-                            ("path_length", "path length (m)"),
-                            ("median_speed", "speed (m/s)"),
-                            ("vertical_std", "vertical osc. (m)"),
-                            ("net_roll", "net roll (rad)"),
+                        f"| {label} | {unit * f[key + '_decoded']:.3g} | {unit * f[key + '_simulated']:.3g} | "
+                        f"{100 * f[key + '_err']:.0f}% | "
+                        f"{_spread_text(unit * f[key + '_std'], f[key + '_spread'])} |"
+                        for key, label, unit in (
+                            ("path_length", "path length (m)", 1.0),
+                            ("median_speed", "speed (m/s)", 1.0),
+                            ("vertical_std", "vertical osc. (mm)", 1000.0),
+                            ("net_roll", "net roll (rad)", 1.0),
                         )
                     ],
+                ]
+                lines += [
+                    "\n".join(table),
                     f"xy-path R²: {f['xy_r2']:.2f} · decoded final position "
                     + ("**inside**" if f["final_inside"] else "**outside**")
                     + f" the ensemble spread ({f['final_z']:.1f}× RMS)",
                 ]
             if f.get("ensemble_broken"):
                 lines.append(f"{int(f['ensemble_broken'])} ensemble member(s) broke and were left out.")
-        return "\n\n".join(lines[:2]) + ("\n\n" + "\n".join(lines[2:]) if len(lines) > 2 else "")
+        # Paragraphs apart: a line right after a markdown table would be drawn as one more table row.
+        return "\n\n".join(lines)
 
     def _set_origin(self, qpos0: np.ndarray) -> None:
         m, d = self._kin_model, self._kin_data

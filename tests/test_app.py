@@ -12,7 +12,7 @@ import pytest
 
 from app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
 from app.headless import HeadlessClient
-from app.server import DesignerServer
+from app.server import DesignerServer, _spread_text
 from app.session import LatestWorker
 
 
@@ -70,6 +70,8 @@ def test_slider_change_decodes_replays_and_draws(server):
         assert "Predictability" in d.panel.content
         # Each statistic's ensemble spread in its own units beside the error.
         assert "physics spread (± std)" in d.panel.content and d.panel.content.count("| ±") == 4
+        # The table ends before the next line (markdown would draw that line as a fifth row).
+        assert re.search(r"\|\n\nxy-path R²", d.panel.content)
         # The drawn simulated path is this gait's replay.
         np.testing.assert_allclose(d.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
     finally:
@@ -343,3 +345,11 @@ def test_large_freed_buffers_go_back_to_the_os_on_glibc():
 
     on_glibc = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
     assert return_freed_buffers_to_the_os() is on_glibc
+
+
+def test_panel_spread_is_relative_only_where_the_mean_is_a_scale():
+    assert _spread_text(1.0, 0.023) == "±1 (2.3%)"
+    assert _spread_text(0.0091, 0.273) == "±0.0091 (27.3%)"
+    # A net roll going both ways: std above the mean's size, so no percentage.
+    assert _spread_text(15.0, 7.894) == "±15"
+    assert _spread_text(2.0, 1.0) == "±2"
