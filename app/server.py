@@ -41,7 +41,8 @@ from model.api import GaitModel, load_pretrained
 from sim import LINK_RADIUS, SimulationError, joint_shape, load_model
 from sim.physics import Simulator
 
-HELP_PATH = Path(__file__).resolve().parent.parent / "static" / "help.md"
+HELP_PATH = Path(__file__).resolve().parent / "help.md"
+"""The Help panel's text; package data, so a non-editable install shows it too."""
 SLIDER_RANGE = 3.0
 """Sliders span +/- 3 prior standard deviations of z_B ~ N(0, I)."""
 JOINT_COLORS = np.array(
@@ -76,7 +77,7 @@ server's priority, so a niced thread never holds the GIL that slider decoding wa
 
 
 def _help_text() -> str:
-    return HELP_PATH.read_text() if HELP_PATH.is_file() else "snakeloco gait designer"
+    return HELP_PATH.read_text(encoding="utf-8")
 
 
 def _polyline(points: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import pytest
 
 from app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
 from app.headless import HeadlessClient
-from app.server import DesignerServer, _spread_text
+from app.server import HELP_PATH, DesignerServer, _help_text, _spread_text
 from app.session import LatestWorker
 
 
@@ -353,3 +353,10 @@ def test_panel_spread_is_relative_only_where_the_mean_is_a_scale():
     # A net roll going both ways: std above the mean's size, so no percentage.
     assert _spread_text(15.0, 7.894) == "±15"
     assert _spread_text(2.0, 1.0) == "±2"
+
+
+def test_help_text_is_package_data():
+    # Inside the app package (pyproject's package-data), so `pip install .` shows it, not only -e.
+    assert HELP_PATH.parent.name == "app" and HELP_PATH.is_file()
+    text = _help_text()
+    assert "Export CSV" in text and "Import CSV" in text and "z_k mode" in text
