@@ -258,9 +258,15 @@ def run_evaluate(cmd: Evaluate) -> dict:
 
     from model.evaluate import evaluate, format_report
 
-    with tqdm(
-        total=2 * cmd.prior_samples, unit="gait", desc="consistency", disable=cmd.prior_samples == 0
-    ) as bar:
+    bar = None
+
+    def progress(k: int) -> None:  # the bar appears with the first replays, after the inputs are checked
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=2 * cmd.prior_samples, unit="gait", desc="consistency")
+        bar.update(k)
+
+    try:
         report = evaluate(
             cmd.checkpoint,
             cmd.data,
@@ -268,9 +274,12 @@ def run_evaluate(cmd: Evaluate) -> dict:
             cmd.ensemble,
             cmd.seed,
             cmd.workers,
-            progress=bar.update,
+            progress=progress,
             replays=cmd.replays,
         )
+    finally:
+        if bar is not None:
+            bar.close()
     print(format_report(report))
     if cmd.report is not None:
         cmd.report.parent.mkdir(parents=True, exist_ok=True)
@@ -442,11 +451,15 @@ def run_bench_app(cmd: BenchApp) -> dict:
 def main(args: list[str] | None = None) -> None:
     """Entry point of the ``snakeloco`` console script.
 
-    A bad input file (dataset, checkpoint) ends the command with a one-line message naming the
-    problem and exit status 2, not a traceback.
+    A bad input file (dataset, checkpoint, evaluate report), a path that cannot be read or written,
+    a missing CUDA device, diverged training or a dataset sample that breaks the simulation in every
+    phase draw ends the command with a one-line message naming the problem and exit status 2, not
+    a traceback.
     """
     from model.checkpoint import CheckpointError
-    from sim import DatasetError
+    from model.figures import ReportError
+    from model.train import TrainingError
+    from sim import DatasetError, SimulationError
 
     args = list(sys.argv[1:] if args is None else args)
     if args[:1] == ["bench"]:
@@ -469,8 +482,12 @@ def main(args: list[str] | None = None) -> None:
     }
     try:
         runners[type(cmd)](cmd)
-    except (CheckpointError, DatasetError) as exc:
+    except (CheckpointError, DatasetError, ReportError, TrainingError, SimulationError) as exc:
         print(f"snakeloco: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except OSError as exc:  # e.g. --out under a read-only or missing directory, a disk that is full
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"snakeloco: error: {where}{exc.strerror or exc}", file=sys.stderr)
         raise SystemExit(2) from None
 
 

@@ -6,7 +6,7 @@ The network and training know nothing of MuJoCo; only evaluation replays gaits t
 from model.api import GaitModel, load_pretrained
 from model.checkpoint import CheckpointConfig, CheckpointError, load_checkpoint, save_checkpoint
 from model.network import HierarchicalVAE, ModelConfig, gaussian_mmd, loss_terms
-from model.train import TrainConfig, cyclic_lr, train
+from model.train import TrainConfig, TrainingError, cyclic_lr, train
 
 __all__ = [
     "CheckpointConfig",
@@ -15,6 +15,7 @@ __all__ = [
     "HierarchicalVAE",
     "ModelConfig",
     "TrainConfig",
+    "TrainingError",
     "cyclic_lr",
     "gaussian_mmd",
     "load_checkpoint",

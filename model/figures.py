@@ -10,6 +10,48 @@ from model.api import load_pretrained
 from sim import BODY_CHANNELS, load_dataset
 
 _T = np.arange(500) / 5.0  # model body time axis (s)
+_STAT_LABELS = {
+    "path_length": "path length over 100 s (m)",
+    "median_speed": "median speed (m/s)",
+    "vertical_std": "vertical oscillation std (m)",
+    "net_roll": "net roll (rad)",
+}
+
+
+class ReportError(ValueError):
+    """An ``--report`` file that is not a ``snakeloco evaluate --report`` file with consistency gaits."""
+
+
+def load_report(path: str | Path) -> dict:
+    """Read and check an evaluate report for the consistency figure.
+
+    Raises:
+        ReportError: unreadable, not JSON, or without per-gait consistency results (e.g. evaluated
+            with ``--prior-samples 0``), naming what is missing.
+    """
+    import json
+
+    try:
+        r = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ReportError(f"report {path}: not a readable JSON file ({exc})") from None
+    modes = r.get("consistency") if isinstance(r, dict) else None
+    if not isinstance(modes, dict) or not modes:
+        raise ReportError(
+            f"report {path}: no 'consistency' results (write one with snakeloco evaluate "
+            "--prior-samples N --report FILE, N > 0)"
+        )
+    need = [k + s for k in _STAT_LABELS for s in ("_simulated", "_decoded")]
+    for mode, c in modes.items():
+        gaits = c.get("gaits") if isinstance(c, dict) else None
+        if not isinstance(gaits, list):
+            raise ReportError(f"report {path}: consistency mode {mode!r} has no per-gait results")
+        missing = sorted({k for g in gaits for k in need if not isinstance(g, dict) or k not in g})
+        if gaits:  # a mode whose every replay broke has no medians, and no points to draw
+            missing += [k + "_err" for k in _STAT_LABELS if k + "_err" not in c]
+        if missing:
+            raise ReportError(f"report {path}: consistency mode {mode!r} lacks {', '.join(missing)}")
+    return r
 
 
 def _plt():
@@ -33,6 +75,7 @@ def figures(
     With ``report`` (JSON from ``snakeloco evaluate --report``), also the consistency figure.
     """
     plt = _plt()
+    report_data = load_report(report) if report is not None else None  # before any figure is written
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = load_pretrained(checkpoint)
@@ -123,7 +166,7 @@ def figures(
     plt.close(fig7)
     plt.close(fig8)
     if report is not None:
-        paths.append(consistency_figure(report, out / "fig9_consistency.png"))
+        paths.append(consistency_figure(report_data, out / "fig9_consistency.png"))
     return paths
 
 
@@ -133,21 +176,19 @@ def _floor_text(summary: dict, key: str) -> str:
     return "" if floor is None else f", physics' floor {100 * floor:.0f}%"
 
 
-def consistency_figure(report: str | Path, path: Path) -> Path:
-    """Predicted vs simulated body statistics of prior-generated gaits, with the physics' spread."""
-    import json
+def consistency_figure(report: str | Path | dict, path: Path) -> Path:
+    """Predicted vs simulated body statistics of prior-generated gaits, with the physics' spread.
 
+    ``report``: an evaluate report's path (checked by ``load_report``) or its loaded contents.
+    """
     plt = _plt()
-    r = json.loads(Path(report).read_text())
-    labels = {
-        "path_length": "path length over 100 s (m)",
-        "median_speed": "median speed (m/s)",
-        "vertical_std": "vertical oscillation std (m)",
-        "net_roll": "net roll (rad)",
-    }
+    r = report if isinstance(report, dict) else load_report(report)
+    labels = _STAT_LABELS
     fig, axes = plt.subplots(1, 4, figsize=(20, 5))
     for (mode, c), marker in zip(r["consistency"].items(), ("o", "x"), strict=False):
         gaits = c["gaits"]
+        if not gaits:
+            continue
         for ax, (key, label) in zip(axes, labels.items(), strict=True):
             sim = np.array([g[key + "_simulated"] for g in gaits])
             dec = np.array([g[key + "_decoded"] for g in gaits])

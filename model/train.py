@@ -27,6 +27,10 @@ from model.stats import stats_vector
 from sim import BODY_DOWNSAMPLE, load_dataset, mjcf_sha256, servo_response, synthesis_phase
 
 
+class TrainingError(RuntimeError):
+    """Training cannot run or went wrong: the asked-for device is missing, or the loss diverged."""
+
+
 class TrainConfig(BaseModel):
     """Optimisation settings (the model's own are in ``ModelConfig``)."""
 
@@ -130,11 +134,14 @@ def train(
     cfg = cfg or TrainConfig()
     model_cfg = model_cfg or ModelConfig()
     t_start = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     device = torch.device(cfg.device)
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("--device cuda was asked for, but torch sees no CUDA device")
+        raise TrainingError(
+            f"--device cuda was asked for, but torch {torch.__version__} sees no CUDA device "
+            "(a CPU-only build, or no GPU/driver); train with --device cpu"
+        )
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     ds = load_dataset(data)
     shape_np = ds.shape.astype(np.float64)  # (N, K, L, 2) rad
@@ -194,7 +201,10 @@ def train(
             for k, v in terms.items():
                 sums[k] = sums.get(k, 0.0) + v.item() / steps_per_epoch
         if not math.isfinite(sums.get("loss", float("nan"))):
-            raise RuntimeError(f"training diverged at epoch {epoch}: loss {sums.get('loss')}")
+            raise TrainingError(
+                f"training diverged at epoch {epoch}: loss {sums.get('loss')}; the best checkpoint so "
+                f"far (if any) is in {out}"
+            )
         val = evaluate_batches(net, s_va, b_va, st_va, 512, seed=cfg.seed)
         row = {
             "epoch": epoch,

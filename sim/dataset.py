@@ -40,7 +40,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from sim.excitation import ExcitationConfig, multisine, random_phases
-from sim.physics import SimConfig, Simulator
+from sim.physics import SimConfig, SimulationError, Simulator
 from sim.robot import N_JOINTS, mjcf_sha256
 from sim.spectra import joint_shape
 
@@ -169,7 +169,7 @@ def simulate_samples(cfg: GenerateConfig, simulator: Simulator, indices: np.ndar
         todo = todo[failed]
         if len(todo) == 0:
             return chunk
-    raise RuntimeError(
+    raise SimulationError(
         f"samples {indices[todo].tolist()} broke the simulation in all {cfg.max_attempts} phase draws; "
         f"last reasons: {[f['reason'] for f in chunk.failures[-len(todo) :]]}"
     )

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+import torch
 
 from app.cli import main
 from app.headless import HeadlessClient
@@ -86,6 +87,53 @@ def test_bad_checkpoint_and_dataset_end_with_a_clear_message(tmp_path, capsys, c
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("snakeloco: error:") and "bad.npz" in err
+    # With replays asked for, the progress bar waits for the inputs to pass: the error is all there is.
+    _refused(capsys, ["evaluate", "--data", str(bad), "--checkpoint", str(checkpoint)], "bad.npz")
+
+
+def test_bad_report_output_path_and_device_end_with_a_clear_message(
+    tmp_path, capsys, checkpoint, tiny_dataset_path
+):
+    figures = ["figures", "--data", str(tiny_dataset_path), "--checkpoint", str(checkpoint)]
+    not_json = tmp_path / "notes.md"
+    not_json.write_text("# not a report")
+    _refused(
+        capsys, [*figures, "--out", str(tmp_path / "a"), "--report", str(not_json)], "not a readable JSON"
+    )
+    no_consistency = tmp_path / "r0.json"
+    no_consistency.write_text(json.dumps({"r2_body": 0.6}))  # evaluate --prior-samples 0 writes such
+    _refused(
+        capsys, [*figures, "--out", str(tmp_path / "a"), "--report", str(no_consistency)], "no 'consistency'"
+    )
+    short = tmp_path / "r1.json"
+    short.write_text(json.dumps({"consistency": {"zk_zero": {"gaits": [{"path_length_simulated": 40.0}]}}}))
+    _refused(capsys, [*figures, "--out", str(tmp_path / "a"), "--report", str(short)], "path_length_decoded")
+    assert not (tmp_path / "a").exists()  # the report is checked before any figure is written
+    _refused(
+        capsys,
+        [*figures, "--report", str(tmp_path / "missing.json"), "--out", str(tmp_path / "b")],
+        "missing.json",
+    )
+    # An --out that cannot be a directory (under a file).
+    _refused(capsys, [*figures, "--out", str(not_json / "figs")], "notes.md")
+    if not torch.cuda.is_available():
+        out = tmp_path / "gpu"
+        _refused(
+            capsys,
+            [
+                "train",
+                "--data",
+                str(tiny_dataset_path),
+                "--out",
+                str(out),
+                "--epochs",
+                "1",
+                "--device",
+                "cuda",
+            ],
+            "no CUDA device",
+        )
+        assert not out.exists()
 
 
 def _free_port() -> int:
