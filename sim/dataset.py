@@ -81,6 +81,11 @@ def write_npz(path: str | Path, **arrays: np.ndarray) -> None:
 def read_npz(path: str | Path, what: str, need: Iterable[str]) -> dict[str, np.ndarray]:
     """Every array of a small side file (.npz, no pickle) the tools write: ``what`` names the kind
     in the messages; a file that cannot be read, or lacks an array of ``need``, is a DatasetError."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such {what} file")
+    if not zipfile.is_zipfile(path):  # np.load would call a text file "pickled (object) data"
+        raise DatasetError(f"{path}: not a {what} .npz (no zip archive inside: truncated or another format)")
     try:
         with np.load(path, allow_pickle=False) as f:
             stored = {k: f[k] for k in f.files}

@@ -185,9 +185,9 @@ def test_consistency_replays_are_written_reused_and_checked(
         ev.consistency(other, n_prior=2, ensemble=3, replays=replays)
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not an npz")
-    with pytest.raises(DatasetError, match="not a readable consistency-replays"):
+    with pytest.raises(DatasetError, match=r"not a consistency-replays \.npz \(no zip archive"):
         ev.consistency(model, n_prior=2, ensemble=3, replays=bad)
     # The command says so and exits 2, without a traceback.
     with pytest.raises(SystemExit) as exc:
         _evaluate_cli(tiny_dataset_path, checkpoint, "--replays", bad)
-    assert exc.value.code == 2 and "not a readable consistency-replays .npz" in capsys.readouterr().err
+    assert exc.value.code == 2 and "not a consistency-replays .npz" in capsys.readouterr().err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import zipfile
 
 import numpy as np
 import pytest
@@ -452,8 +453,12 @@ def test_calibration_gaits_file_is_reused_and_checked(
     with pytest.raises(DatasetError, match="decoded by another checkpoint"):
         cal.load_gaits(tmp_path / "other.npz", model, 2, 5)
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(DatasetError, match="not a readable calibration-gaits"):
+    with pytest.raises(DatasetError, match=r"not a calibration-gaits \.npz \(no zip archive"):
         cal.load_gaits(tmp_path / "junk.npz", model, 2, 5)
+    with zipfile.ZipFile(tmp_path / "garbled.npz", "w") as zf:
+        zf.writestr("shape.npy", b"\x93NUMPY garbled header")
+    with pytest.raises(DatasetError, match="not a readable calibration-gaits"):
+        cal.load_gaits(tmp_path / "garbled.npz", model, 2, 5)
 
 
 def test_extra_zero_draws_leave_the_shared_draws_alone(tiny_checkpoint):
