@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json as jsonlib
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -219,6 +221,60 @@ COMMANDS: dict[str, type] = {
     "bench": Bench,
 }
 BENCHES: dict[str, type] = {"sim": BenchSim, "model": BenchModel, "app": BenchApp, "load": BenchLoad}
+
+# The range of every numeric option, wherever it appears: (smallest, largest), None for no bound.
+_LIMITS: dict[str, tuple[float | None, float | None]] = {
+    "num_samples": (1, None),
+    "workers": (1, None),
+    "seed": (0, None),  # numpy's generators take no negative seed
+    "epochs": (1, None),
+    "batch_size": (2, None),  # the MMD and batch statistics need two samples
+    "z_b_dim": (1, 8),
+    "alpha": (0, None),
+    "beta": (0, None),
+    "gamma": (0, None),
+    "prior_samples": (0, None),
+    "zero_samples": (0, None),
+    "sampled_samples": (0, None),
+    "sampled_repeat": (1, None),
+    "ensemble": (2, None),  # the replay and at least one perturbed copy: a spread needs two
+    "calls": (1, None),
+    "moves": (1, None),
+    "clients": (1, None),
+    "samples": (1, None),
+    "repeats": (1, None),
+    "port": (0, 65535),  # 0: any free port
+}
+_LIMITS_OF: dict[type, dict[str, tuple[float | None, float | None]]] = {
+    Calibrate: {
+        "prior_samples": (1, None)
+    },  # evaluate's 0 skips its consistency check; calibrate needs gaits
+}
+_POSITIVE = ("cycle_epochs", "lr", "seconds")
+
+
+def argument_problem(cmd: object) -> str | None:
+    """What is wrong with a parsed command's numeric options (naming the flag), or None.
+
+    Checked before any work starts, so a value out of range ends the command with one line
+    instead of a traceback from deep inside (a negative seed in numpy, a zero ensemble in a
+    division, a port number in bind).
+    """
+    limits = _LIMITS | _LIMITS_OF.get(type(cmd), {})
+    for field in dataclasses.fields(cmd):
+        value = getattr(cmd, field.name)
+        if value is None or isinstance(value, bool) or not isinstance(value, int | float):
+            continue
+        flag = "--" + field.name.replace("_", "-")
+        if not math.isfinite(value):
+            return f"{flag} must be a finite number, got {value}"
+        if field.name in _POSITIVE and value <= 0:
+            return f"{flag} must be positive, got {value}"
+        lo, hi = limits.get(field.name, (None, None))
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            span = f"at least {lo:g}" if hi is None else f"between {lo:g} and {hi:g}"
+            return f"{flag} must be {span}, got {value:g}"
+    return None
 
 
 def run_generate(cmd: Generate) -> Path:
@@ -480,6 +536,10 @@ def main(args: list[str] | None = None) -> None:
         BenchApp: run_bench_app,
         BenchLoad: run_bench_load,
     }
+    problem = argument_problem(cmd)
+    if problem is not None:
+        print(f"snakeloco: error: {problem}", file=sys.stderr)
+        raise SystemExit(2)
     try:
         runners[type(cmd)](cmd)
     except (CheckpointError, DatasetError, ReportError, TrainingError, SimulationError) as exc:

@@ -56,9 +56,33 @@ def test_train_command_passes_the_loss_weights(tmp_path, tiny_dataset_path, caps
     main([*args, "--out", str(tmp_path / "four"), "--z-b-dim", "4"])
     four = load_pretrained(tmp_path / "four")
     assert four.z_b_dim == 4 and four.decode(np.zeros((1, 4)))[0].shape[0] == 1
-    _refused(capsys, [*args, "--out", str(tmp_path / "nine"), "--z-b-dim", "9"], "z_b_dim")
+    _refused(capsys, [*args, "--out", str(tmp_path / "nine"), "--z-b-dim", "9"], "--z-b-dim")
     assert not (tmp_path / "nine").exists()
     _refused(capsys, [*args, "--out", str(tmp_path / "none"), "--epochs", "0"], "epochs")
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["generate", "--num-samples", "0", "--out", "g.npz"], "--num-samples must be at least 1, got 0"),
+        (["evaluate", "--data", "h.npz", "--ensemble", "1"], "--ensemble must be at least 2, got 1"),
+        (["evaluate", "--data", "h.npz", "--prior-samples", "-1"], "--prior-samples must be at least 0"),
+        (
+            ["calibrate", "--data", "d.npz", "--out", "c", "--prior-samples", "0"],
+            "--prior-samples must be at least 1",
+        ),
+        (["calibrate", "--data", "d.npz", "--out", "c", "--lr", "0"], "--lr must be positive"),
+        (["train", "--data", "d.npz", "--out", "t", "--seed", "-1"], "--seed must be at least 0, got -1"),
+        (["train", "--data", "d.npz", "--out", "t", "--alpha", "nan"], "--alpha must be a finite number"),
+        (["serve", "--port", "70000"], "--port must be between 0 and 65535, got 70000"),
+        (["bench", "load", "--clients", "0"], "--clients must be at least 1, got 0"),
+        (["bench", "sim", "--workers", "0"], "--workers must be at least 1, got 0"),
+    ],
+)
+def test_out_of_range_options_are_refused_before_any_work(argv, says, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # none of the named files exist: the range check comes first
+    _refused(capsys, argv, says)
+    assert not any(tmp_path.iterdir())
 
 
 def test_bench_sim_json(capsys):
@@ -205,13 +229,15 @@ def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpo
     assert calibration["head_loss"] == "mse" and calibration["path"]["fit"] == "film"
     assert calibration["sampled_samples"] == 1 and calibration["zero_samples"] == 8
     _refused(
-        capsys, [*args, "--out", str(tmp_path / "c"), "--zero-samples", "-1"], "--zero-samples at least 0"
+        capsys,
+        [*args, "--out", str(tmp_path / "c"), "--zero-samples", "-1"],
+        "--zero-samples must be at least 0",
     )
     # Refused before replaying, not after.
     _refused(
         capsys,
         [*args, "--out", str(tmp_path / "d"), "--sampled-repeat", "0"],
-        "sampled_repeat must be at least 1",
+        "--sampled-repeat must be at least 1",
     )
     assert not (tmp_path / "d").exists()
     _refused(

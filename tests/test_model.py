@@ -328,6 +328,18 @@ def test_training_on_cuda_without_cuda_is_refused(tiny_dataset_path, tmp_path):
         )
 
 
+def test_calibration_counts_are_checked_in_the_api():
+    from model.calibrate import calibration_gait_count, check_sampled_repeat
+
+    assert calibration_gait_count(2, None, None) == 2 * 3 + 8 + 4 * 2  # defaults 4n and 2n
+    with pytest.raises(ValueError, match="--zero-samples at least 0"):
+        calibration_gait_count(2, -1, None)
+    with pytest.raises(ValueError, match="--sampled-samples must be at least 0"):
+        calibration_gait_count(2, None, -1)
+    with pytest.raises(ValueError, match="sampled_repeat must be at least 1"):
+        check_sampled_repeat(0)
+
+
 def test_calibration_tunes_only_the_head_and_body_decoder(tiny_checkpoint, tiny_dataset_path, tmp_path):
     from model.calibrate import MODES, calibrate
     from model.checkpoint import load_checkpoint
