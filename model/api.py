@@ -19,6 +19,14 @@ from model.network import HierarchicalVAE, trace_single
 from model.stats import stats_dict
 
 
+def _finite(name: str, a: np.ndarray) -> np.ndarray:
+    """``a`` unchanged; a ValueError naming ``name`` if it holds NaN or inf (they would decode to NaN
+    joint commands that no simulator can replay)."""
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name} holds {int((~np.isfinite(a)).sum())} non-finite values (NaN or inf)")
+    return a
+
+
 class GaitModel:
     """A loaded checkpoint ready for encoding and decoding. Thread-safe (calls are serialised)."""
 
@@ -114,6 +122,8 @@ class GaitModel:
             raise ValueError(
                 f"body_ds must be ({shape.shape[0]}, {cfg.body_steps}, {cfg.body_channels}), got {body_ds.shape}"
             )
+        _finite("shape", shape)
+        _finite("body_ds", body_ds)
         with self._lock, torch.inference_mode():
             mu, _ = self.net.encode_body(self._norm_body(body_ds))
             joints = self.net.run_joints(mu, self._norm_shape(shape), sample_posterior=False)
@@ -132,12 +142,14 @@ class GaitModel:
         Names (``model.stats.STAT_NAMES``): path_length (m over the 100 s), median_speed (m/s),
         vertical_std (m), net_roll (rad); as ``sim.consistency.path_stats`` measures them at 5 Hz.
         """
-        z_b = np.atleast_2d(np.asarray(z_b, np.float32))
-        if z_b.shape[1] != self.z_b_dim:
-            raise ValueError(f"z_b must be (B, {self.z_b_dim}), got {z_b.shape}")
+        z_b = self._check_z_b(z_b)
         zj = None
         if z_j is not None:
-            zj = torch.as_tensor(np.asarray(z_j, np.float32).reshape(z_b.shape[0], -1, self.z_j_dim))
+            z_j = np.asarray(z_j, np.float32)
+            want = (z_b.shape[0], self.config.model.n_joints, self.z_j_dim)
+            if z_j.shape != want:
+                raise ValueError(f"z_j must be {want} for {z_b.shape[0]} z_b, got {z_j.shape}")
+            zj = torch.as_tensor(_finite("z_j", z_j))
         with self._lock, torch.inference_mode():
             shape, body, stats = self._generate(torch.as_tensor(z_b), zj)
         shape_p, body_p = self._phys(shape, body)
@@ -146,6 +158,14 @@ class GaitModel:
             body_p,
             stats_dict(stats.numpy().astype(np.float64) * self._stats_std + self._stats_mean),
         )
+
+    def _check_z_b(self, z_b: np.ndarray) -> np.ndarray:
+        """z_b as float32 (B, Db) (one (Db,) vector becomes B = 1); a ValueError names a wrong shape
+        or a non-finite value."""
+        z_b = np.atleast_2d(np.asarray(z_b, np.float32))
+        if z_b.ndim != 2 or z_b.shape[1] != self.z_b_dim:
+            raise ValueError(f"z_b must be (B, {self.z_b_dim}), got {z_b.shape}")
+        return _finite("z_b", z_b)
 
     def _single(self, method: str):
         """The traced one-z_B graph of ``net.<method>`` (``network.trace_single``), or None where
@@ -168,8 +188,13 @@ class GaitModel:
 
     def predict_stats(self, shape: np.ndarray) -> dict[str, np.ndarray]:
         """Body statistics the model predicts for the gaits of joint shapes (B, 8, L, 2) rad."""
+        shape = np.asarray(shape, np.float64)
+        cfg = self.config.model
+        if shape.ndim != 4 or shape.shape[1:] != (cfg.n_joints, cfg.n_components, 2):
+            raise ValueError(f"shape must be (B, {cfg.n_joints}, {cfg.n_components}, 2), got {shape.shape}")
+        _finite("shape", shape)
         with self._lock, torch.inference_mode():
-            v = self.net.predict_stats(self._norm_shape(np.asarray(shape)))
+            v = self.net.predict_stats(self._norm_shape(shape))
         return stats_dict(v.numpy().astype(np.float64) * self._stats_std + self._stats_mean)
 
     def sample_joint_latents(
@@ -179,9 +204,10 @@ class GaitModel:
 
         ``temperature`` scales the prior's standard deviation (0: its mean).
         """
-        z = np.asarray(z_b, np.float32)
-        single = z.ndim == 1
-        z = np.atleast_2d(z)
+        single = np.ndim(z_b) == 1
+        z = self._check_z_b(z_b)
+        if n < 1 or not np.isfinite(temperature) or temperature < 0:
+            raise ValueError(f"n must be at least 1 and temperature finite and >= 0, got {n}, {temperature}")
         gen = torch.Generator().manual_seed(int(seed))
         eps = (
             torch.randn(z.shape[0], n, self.config.model.n_joints, self.z_j_dim, generator=gen) * temperature

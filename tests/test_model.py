@@ -203,6 +203,21 @@ def test_gait_model_api_units_and_shapes(tiny_checkpoint, tiny_dataset):
     assert model.sample_joint_latents(z_b, 2, seed=0).shape == (2, 2, 8, 4)
     with pytest.raises(ValueError, match="z_b must be"):
         model.decode(np.zeros((1, 5)))
+    # Wrong shapes and non-finite values are named, not reshaped or decoded to NaN commands.
+    with pytest.raises(ValueError, match=r"z_j must be \(2, 8, 4\) for 2 z_b, got \(2, 8, 2\)"):
+        model.decode(z_b, np.zeros((2, 8, 2)))
+    with pytest.raises(ValueError, match="z_b holds 1 non-finite"):
+        model.decode(np.array([[0.0, np.nan, 0.0]]))
+    bad_z_j = np.zeros((1, 8, 4))
+    bad_z_j[0, 2, 1] = np.inf
+    with pytest.raises(ValueError, match="z_j holds 1 non-finite"):
+        model.decode(z_b[:1], bad_z_j)
+    with pytest.raises(ValueError, match="body_ds holds"):
+        model.encode(tiny_dataset.shape[:1], np.full((1, 500, 6), np.nan))
+    with pytest.raises(ValueError, match="shape must be"):
+        model.predict_stats(tiny_dataset.shape[0])
+    with pytest.raises(ValueError, match="n must be at least 1"):
+        model.sample_joint_latents(z_b[0], 0)
     # Trained on this robot: no warning; a checkpoint of another MJCF says so.
     assert model.robot_warning() is None
     other = type(model)(model.net, model.config.model_copy(update={"mjcf_sha256": "f" * 64}))
