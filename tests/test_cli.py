@@ -33,21 +33,16 @@ def test_generate_command(tmp_path, capsys, tiny_dataset):
     np.testing.assert_array_equal(load_dataset(out).body, tiny_dataset.body[:2])
 
 
+def _train_argv(data, out, *more: str) -> list[str]:
+    """``snakeloco train`` for one epoch of DATA into OUT, then MORE options."""
+    return ["train", "--data", str(data), "--out", str(out), "--epochs", "1", *more]
+
+
 def test_train_command_passes_the_loss_weights(tmp_path, tiny_dataset_path, capsys):
     from model import load_pretrained
 
     out = tmp_path / "ckpt"
-    args = [
-        "train",
-        "--data",
-        str(tiny_dataset_path),
-        "--out",
-        str(out),
-        "--epochs",
-        "1",
-        "--batch-size",
-        "2",
-    ]
+    args = _train_argv(tiny_dataset_path, out, "--batch-size", "2")
     main([*args, "--alpha", "4", "--beta", "3", "--gamma", "5", "--seed", "2"])
     cfg = load_pretrained(out).config
     assert (cfg.model.alpha, cfg.model.beta, cfg.model.gamma) == (4.0, 3.0, 5.0)
@@ -142,21 +137,7 @@ def test_bad_report_output_path_and_device_end_with_a_clear_message(
     _refused(capsys, [*figures, "--out", str(not_json / "figs")], "notes.md")
     if not torch.cuda.is_available():
         out = tmp_path / "gpu"
-        _refused(
-            capsys,
-            [
-                "train",
-                "--data",
-                str(tiny_dataset_path),
-                "--out",
-                str(out),
-                "--epochs",
-                "1",
-                "--device",
-                "cuda",
-            ],
-            "no CUDA device",
-        )
+        _refused(capsys, _train_argv(tiny_dataset_path, out, "--device", "cuda"), "no CUDA device")
         assert not out.exists()
 
 
