@@ -19,6 +19,7 @@ import ctypes
 import ctypes.util
 import os
 import signal
+import socket
 import sys
 import threading
 import time
@@ -780,6 +781,24 @@ def return_freed_buffers_to_the_os(threshold: int = 1 << 20) -> bool:
 _M_MMAP_THRESHOLD = -3  # glibc malloc.h
 
 
+def check_bindable(host: str) -> None:
+    """An OSError naming ``host`` unless a TCP server can bind to it on this machine.
+
+    Why: viser (1.1) binds in a background thread and, on any OSError, tries the next port, forever
+    when the host itself is wrong (a typo, another machine's address), while its constructor waits
+    for that thread: ``serve --host 999.1.1.1`` hung without a word.
+    """
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+    except socket.gaierror as exc:
+        raise OSError(f"--host {host}: not a host name or address ({exc.strerror})") from None
+    try:
+        with socket.socket(family, kind, proto) as probe:
+            probe.bind(address)
+    except OSError as exc:
+        raise OSError(f"--host {host}: cannot serve on it here ({exc.strerror})") from None
+
+
 class DesignerServer:
     """The viser server with one ``DesignerClient`` per connected tab."""
 
@@ -792,6 +811,7 @@ class DesignerServer:
         workers: int | None = None,
         verbose: bool = True,
     ) -> None:
+        check_bindable(host)
         self.model = load_pretrained(checkpoint)
         # One decode is a small, GIL-bound graph (~5 ms): intra-op threads do not speed it up, and
         # with several tabs decoding at once their OpenMP teams only compete for the cores.
