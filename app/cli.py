@@ -512,6 +512,7 @@ def main(args: list[str] | None = None) -> None:
     phase draw ends the command with a one-line message naming the problem and exit status 2, not
     a traceback.
     """
+    from app.load import MissingBrowserError
     from model.checkpoint import CheckpointError
     from model.figures import ReportError
     from model.train import TrainingError
@@ -542,7 +543,14 @@ def main(args: list[str] | None = None) -> None:
         raise SystemExit(2)
     try:
         runners[type(cmd)](cmd)
-    except (CheckpointError, DatasetError, ReportError, TrainingError, SimulationError) as exc:
+    except (
+        CheckpointError,
+        DatasetError,
+        ReportError,
+        TrainingError,
+        SimulationError,
+        MissingBrowserError,
+    ) as exc:
         print(f"snakeloco: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     except OSError as exc:  # e.g. --out under a read-only or missing directory, a disk that is full

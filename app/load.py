@@ -47,6 +47,10 @@ CATCH_UP_S = 120.0
 """How long a page may take, after the drags end, to show the final sliders and deliver an export."""
 
 
+class MissingBrowserError(RuntimeError):
+    """``bench load`` needs Playwright and Debian chromium; one of them is missing."""
+
+
 def split_cpus() -> tuple[list[int], list[int]] | None:
     """(server CPUs, browser CPUs): the first and second half of this process's CPUs, or None
     where there are fewer than two or affinity cannot be set (then everything shares them)."""
@@ -407,10 +411,16 @@ def bench_load(
     """Run the single-client and ``clients``-client phases and summarise them (see module docstring)."""
     import tempfile
 
-    import playwright.sync_api  # noqa: F401 (fail here, before the server starts, if it is missing)
-
+    try:
+        import playwright.sync_api  # noqa: F401 (fail here, before the server starts, if it is missing)
+    except ImportError:
+        raise MissingBrowserError(
+            "bench load drives Chromium through Playwright, which is not installed: pip install -e '.[test]'"
+        ) from None
     if not Path(CHROMIUM).exists():
-        raise RuntimeError(f"bench load drives Debian chromium at {CHROMIUM}: apt-get install -y chromium")
+        raise MissingBrowserError(
+            f"bench load drives Debian chromium at {CHROMIUM}, which is missing: apt-get install -y chromium"
+        )
     split = split_cpus() if pin_cpus else None
     all_cpus = sorted(os.sched_getaffinity(0)) if split else None
     if split:

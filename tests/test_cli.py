@@ -83,6 +83,13 @@ def test_out_of_range_options_are_refused_before_any_work(argv, says, capsys, tm
     assert not any(tmp_path.iterdir())
 
 
+def test_bench_load_without_chromium_says_what_to_install(capsys, monkeypatch, tmp_path):
+    import app.load
+
+    monkeypatch.setattr(app.load, "CHROMIUM", str(tmp_path / "no-chromium"))
+    _refused(capsys, ["bench", "load", "--clients", "1", "--seconds", "1"], "apt-get install -y chromium")
+
+
 def test_bench_sim_json(capsys):
     main(["bench", "sim", "--json", "--samples", "2", "--repeats", "1"])
     last = capsys.readouterr().out.strip().splitlines()[-1]
