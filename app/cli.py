@@ -5,7 +5,9 @@ from __future__ import annotations
 import dataclasses
 import json as jsonlib
 import math
+import os
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -253,6 +255,44 @@ _LIMITS_OF: dict[type, dict[str, tuple[float | None, float | None]]] = {
 _POSITIVE = ("cycle_epochs", "lr", "seconds")
 
 
+# What each command writes: "dir" (a directory it fills) or "file"; a "file" that already exists
+# where the option is also an input (--replays, --gaits: reused when present) is not written.
+_OUTPUTS: dict[type, dict[str, str]] = {
+    Generate: {"out": "file"},
+    Train: {"out": "dir"},
+    Evaluate: {"report": "file", "replays": "file"},
+    Calibrate: {"out": "dir", "gaits": "file"},
+    Figures: {"out": "dir"},
+}
+_REUSED_WHEN_PRESENT = {"replays", "gaits"}
+
+
+def output_problem(path: Path, kind: str) -> str | None:
+    """Why ``path`` (a "dir" to fill or a "file" to write) cannot be written, or None.
+
+    Checked before a command starts, without leaving anything behind (a probe file in the nearest
+    existing directory, removed at once), so that an evaluation or a calibration does not run for
+    most of an hour only to fail when it saves.
+    """
+    path = Path(path)
+    if kind == "dir" and path.exists() and not path.is_dir():
+        return f"{path}: exists and is not a directory"
+    if kind == "file" and path.is_dir():
+        return f"{path}: is a directory, not a file"
+    existing = path if kind == "dir" else path.parent
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{path}: {existing} is not a directory"
+    try:
+        fd, probe = tempfile.mkstemp(dir=existing, prefix=".snakeloco-write-test-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        return f"{path}: cannot write in {existing} ({exc.strerror})"
+    return None
+
+
 def argument_problem(cmd: object) -> str | None:
     """What is wrong with a parsed command's numeric options (naming the flag), or None.
 
@@ -274,6 +314,13 @@ def argument_problem(cmd: object) -> str | None:
         if (lo is not None and value < lo) or (hi is not None and value > hi):
             span = f"at least {lo:g}" if hi is None else f"between {lo:g} and {hi:g}"
             return f"{flag} must be {span}, got {value:g}"
+    for name, kind in _OUTPUTS.get(type(cmd), {}).items():
+        path = getattr(cmd, name)
+        if path is None or (name in _REUSED_WHEN_PRESENT and Path(path).is_file()):
+            continue
+        problem = output_problem(path, kind)
+        if problem is not None:
+            return f"--{name.replace('_', '-')} {problem}"
     return None
 
 

@@ -75,6 +75,13 @@ def test_train_command_passes_the_loss_weights(tmp_path, tiny_dataset_path, caps
         (["serve", "--host", "192.0.2.1", "--port", "0"], "--host 192.0.2.1: cannot serve on it here"),
         (["bench", "load", "--clients", "0"], "--clients must be at least 1, got 0"),
         (["bench", "sim", "--workers", "0"], "--workers must be at least 1, got 0"),
+        # Outputs are checked before an hour of replays, not when they are saved.
+        (["evaluate", "--data", "h.npz", "--report", "."], "--report .: is a directory, not a file"),
+        (
+            ["calibrate", "--data", "d.npz", "--out", "/dev/null/c"],
+            "--out /dev/null/c: /dev/null is not a directory",
+        ),
+        (["evaluate", "--data", "h.npz", "--replays", "/dev/null/r.npz"], "/dev/null is not a directory"),
     ],
 )
 def test_out_of_range_options_are_refused_before_any_work(argv, says, capsys, tmp_path, monkeypatch):
