@@ -120,7 +120,7 @@ class Calibrate:
 
 @dataclass
 class Figures:
-    """Write PNG figures like the paper's Figs. 5-8 (fit, prior sweep, z_k samples, joint shapes)."""
+    """Write PNG figures like the paper's Figs. 5-8 (fit, prior sweep, z_k samples, joint shapes) and, with --report, fig. 9 (consistency)."""
 
     data: Path
     """Dataset .npz for the fit figure."""
@@ -210,7 +210,7 @@ class BenchSim:
 
 @dataclass
 class Bench:
-    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load} --help`."""
 
 
 COMMANDS: dict[str, type] = {
