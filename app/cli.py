@@ -294,11 +294,11 @@ def output_problem(path: Path, kind: str) -> str | None:
 
 
 def argument_problem(cmd: object) -> str | None:
-    """What is wrong with a parsed command's numeric options (naming the flag), or None.
+    """What is wrong with a parsed command's numeric options or output paths (naming the flag), or None.
 
     Checked before any work starts, so a value out of range ends the command with one line
     instead of a traceback from deep inside (a negative seed in numpy, a zero ensemble in a
-    division, a port number in bind).
+    division, a port number in bind), and an unwritable output before the work it would hold.
     """
     limits = _LIMITS | _LIMITS_OF.get(type(cmd), {})
     for field in dataclasses.fields(cmd):
@@ -344,14 +344,11 @@ def run_train(cmd: Train):
 
     from model import ModelConfig, TrainConfig, train
 
+    # The bounds of these settings are checked before (``argument_problem``), naming the flag.
     train_fields = ("epochs", "device", "seed", "batch_size", "cycle_epochs")
     model_fields = ("alpha", "beta", "gamma", "body_sees_stats", "z_b_dim")
-    try:
-        cfg = TrainConfig(**{k: getattr(cmd, k) for k in train_fields})
-        model_cfg = ModelConfig(**{k: getattr(cmd, k) for k in model_fields})
-    except ValueError as exc:  # pydantic's ValidationError names the field and its bounds
-        print(f"snakeloco: error: bad training setting: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
+    cfg = TrainConfig(**{k: getattr(cmd, k) for k in train_fields})
+    model_cfg = ModelConfig(**{k: getattr(cmd, k) for k in model_fields})
     return train(cmd.data, cmd.out, cfg, model_cfg)
 
 
@@ -401,14 +398,10 @@ def run_calibrate(cmd: Calibrate) -> dict:
     """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save."""
     from tqdm import tqdm
 
-    from model.calibrate import calibrate, calibration_gait_count, check_sampled_repeat
+    from model.calibrate import calibrate, calibration_gait_count
 
-    try:
-        total = calibration_gait_count(cmd.prior_samples, cmd.zero_samples, cmd.sampled_samples)
-        check_sampled_repeat(cmd.sampled_repeat)
-    except ValueError as exc:
-        print(f"snakeloco: error: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
+    # The counts' bounds are checked before (``argument_problem``), naming the flag.
+    total = calibration_gait_count(cmd.prior_samples, cmd.zero_samples, cmd.sampled_samples)
     bar = None
 
     def progress(k: int) -> None:

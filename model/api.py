@@ -114,15 +114,12 @@ class GaitModel:
 
     def encode(self, shape: np.ndarray, body_ds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Posterior means: shape (B, 8, L, 2), body_ds (B, 500, 6) -> z_b (B, Db), z_j (B, 8, Dj)."""
-        shape, body_ds = np.asarray(shape, np.float64), np.asarray(body_ds, np.float64)
+        shape, body_ds = self._check_shape(shape), np.asarray(body_ds, np.float64)
         cfg = self.config.model
-        if shape.ndim != 4 or shape.shape[1:] != (cfg.n_joints, cfg.n_components, 2):
-            raise ValueError(f"shape must be (B, {cfg.n_joints}, {cfg.n_components}, 2), got {shape.shape}")
         if body_ds.shape != (shape.shape[0], cfg.body_steps, cfg.body_channels):
             raise ValueError(
                 f"body_ds must be ({shape.shape[0]}, {cfg.body_steps}, {cfg.body_channels}), got {body_ds.shape}"
             )
-        _finite("shape", shape)
         _finite("body_ds", body_ds)
         with self._lock, torch.inference_mode():
             mu, _ = self.net.encode_body(self._norm_body(body_ds))
@@ -159,6 +156,14 @@ class GaitModel:
             stats_dict(stats.numpy().astype(np.float64) * self._stats_std + self._stats_mean),
         )
 
+    def _check_shape(self, shape: np.ndarray) -> np.ndarray:
+        """Joint shapes as float64 (B, 8, L, 2); a ValueError names a wrong shape or a non-finite value."""
+        shape = np.asarray(shape, np.float64)
+        cfg = self.config.model
+        if shape.ndim != 4 or shape.shape[1:] != (cfg.n_joints, cfg.n_components, 2):
+            raise ValueError(f"shape must be (B, {cfg.n_joints}, {cfg.n_components}, 2), got {shape.shape}")
+        return _finite("shape", shape)
+
     def _check_z_b(self, z_b: np.ndarray) -> np.ndarray:
         """z_b as float32 (B, Db) (one (Db,) vector becomes B = 1); a ValueError names a wrong shape
         or a non-finite value."""
@@ -188,11 +193,7 @@ class GaitModel:
 
     def predict_stats(self, shape: np.ndarray) -> dict[str, np.ndarray]:
         """Body statistics the model predicts for the gaits of joint shapes (B, 8, L, 2) rad."""
-        shape = np.asarray(shape, np.float64)
-        cfg = self.config.model
-        if shape.ndim != 4 or shape.shape[1:] != (cfg.n_joints, cfg.n_components, 2):
-            raise ValueError(f"shape must be (B, {cfg.n_joints}, {cfg.n_components}, 2), got {shape.shape}")
-        _finite("shape", shape)
+        shape = self._check_shape(shape)
         with self._lock, torch.inference_mode():
             v = self.net.predict_stats(self._norm_shape(shape))
         return stats_dict(v.numpy().astype(np.float64) * self._stats_std + self._stats_mean)

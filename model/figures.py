@@ -183,13 +183,12 @@ def consistency_figure(report: str | Path | dict, path: Path) -> Path:
     """
     plt = _plt()
     r = report if isinstance(report, dict) else load_report(report)
-    labels = _STAT_LABELS
     fig, axes = plt.subplots(1, 4, figsize=(20, 5))
     for (mode, c), marker in zip(r["consistency"].items(), ("o", "x"), strict=False):
         gaits = c["gaits"]
         if not gaits:
             continue
-        for ax, (key, label) in zip(axes, labels.items(), strict=True):
+        for ax, (key, label) in zip(axes, _STAT_LABELS.items(), strict=True):
             sim = np.array([g[key + "_simulated"] for g in gaits])
             dec = np.array([g[key + "_decoded"] for g in gaits])
             # The ensemble's std in the statistic's units. Reports written before it was stored
