@@ -16,13 +16,20 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
 
-from sim import COMMAND_LIMIT, N_JOINTS
+from snakeloco.sim import COMMAND_LIMIT, N_JOINTS, RECORD
+from snakeloco.sim.consistency import PREDICTABLE
 
-N_ROWS = 2000
-TIME_STEP = 0.05
+N_ROWS = RECORD.n_samples
+"""One record: 2000 rows."""
+TIME_STEP = 1.0 / RECORD.sample_rate
+"""0.05 s between rows (20 Hz)."""
 HEADER = ["time_s", *[f"joint_{k}" for k in range(1, N_JOINTS + 1)]]
 MAX_BYTES = 2 * 2**20
 """Largest accepted upload: a 2000-row gait written at full precision is ~0.4 MB."""
+
+
+EXPORT_FIGURES = ("final_spread", *(f"{k}_err" for k in PREDICTABLE), "xy_r2")
+"""Consistency figures an exported CSV records in its comments."""
 
 
 class GaitCSVError(ValueError):
@@ -147,3 +154,29 @@ def read_gait_csv(data: bytes | str) -> GaitTable:
         errors = getattr(exc, "errors", None)
         msg = "; ".join(e["msg"].removeprefix("Value error, ") for e in errors()) if errors else str(exc)
         raise GaitCSVError(msg) from None
+
+
+def gait_comments(
+    gait, sim, checkpoint_sha256: str, encoded_z: tuple[float, ...] | None = None
+) -> dict[str, str]:
+    """The comment lines Export CSV writes above a gait: where it came from (z_B and the z_k mode, or
+    the imported file and where it encodes), the checkpoint, and its consistency figures.
+
+    ``gait``: the tab's ``DecodedGait``; ``sim``: its ``SimulatedGait`` or None.
+    """
+    comments = {"snakeloco gait": "commands (rad) at 20 Hz, replay with `snakeloco` or sim.replay"}
+    if gait.latents is not None:
+        lat = gait.latents
+        comments["z_B"] = "[" + ", ".join(f"{v:.4f}" for v in lat.z_b) + "]"
+        comments["z_k mode"] = lat.zk_mode + (
+            f" (seed {lat.seed}, temperature {lat.temperature})" if lat.zk_mode == "sampled" else ""
+        )
+    else:
+        comments["source"] = gait.source
+        if encoded_z is not None:
+            comments["z_B (encoded)"] = "[" + ", ".join(f"{v:.4f}" for v in encoded_z) + "]"
+    comments["checkpoint sha256"] = checkpoint_sha256
+    if sim is not None and sim.figures:
+        f = sim.figures
+        comments["consistency"] = ", ".join(f"{k} {f[k]:.4g}" for k in EXPORT_FIGURES if k in f)
+    return comments

@@ -1,13 +1,12 @@
 """One designer's gait pipeline, free of any UI: latents -> decode -> commands -> replay -> figures.
 
-``GaitSession`` is what each browser tab owns; the viser layer (app/server.py) only draws its
+``GaitSession`` is what each browser tab owns; the viser layer (``tab.py``) only draws its
 results. ``LatestWorker`` runs a session's jobs on one thread, coalescing bursts of requests so
 that only the newest is computed (latest wins).
 """
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -16,10 +15,9 @@ from typing import Literal
 
 import numpy as np
 
-from model.api import GaitModel
-from model.stats import MODEL_RATE
-from sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape
-from sim.consistency import compare, perturbed_commands
+from snakeloco.model.api import GaitModel
+from snakeloco.sim import BODY_DOWNSAMPLE, BODY_RATE, SimulationError, Simulator, joint_shape
+from snakeloco.sim.consistency import ENSEMBLE_SIZE, compare, perturbed_commands
 
 ZkMode = Literal["zero", "sampled"]
 
@@ -62,13 +60,29 @@ class SimulatedGait:
     error: str | None = None
 
 
+@dataclass
+class Timing:
+    """When each stage of one request finished (perf_counter seconds), for ``bench app``."""
+
+    version: int
+    submitted: float
+    started: float = float("nan")  # the decode worker picked the request up
+    decoded: float = float("nan")
+    replayed: float = float("nan")
+    ensembled: float = float("nan")
+    decode_ms: float = float("nan")
+    replay_ms: float = float("nan")
+    ensemble_ms: float = float("nan")
+    failed: str | None = None
+
+
 class GaitSession:
     """Per-client pipeline state. Not thread-safe on its own: drive it from one ``LatestWorker``."""
 
     def __init__(
         self,
         model: GaitModel,
-        ensemble: int = 8,
+        ensemble: int = ENSEMBLE_SIZE,
         workers: int | None = None,
         physics_nice: int = 0,
         simulator: Simulator | None = None,
@@ -84,7 +98,7 @@ class GaitSession:
         if simulator is None:
             self._owned = [
                 Simulator(workers=1, nice=physics_nice),
-                Simulator(workers=workers or os.cpu_count() or 1, nice=physics_nice),
+                Simulator(workers, nice=physics_nice),
             ]
         self._replayer, self._ensembler = self._owned or (simulator, simulator)
 
@@ -97,9 +111,9 @@ class GaitSession:
         """Decode latents to a joint shape, a body path and resynthesised commands."""
         t0 = time.perf_counter()
         z_b = np.asarray(latents.z_b, dtype=np.float64)[None]
-        z_j = None
+        z_j = None  # z_k = 0: decode's own zeros
         if latents.zk_mode == "sampled":
-            z_j = self.model.sample_joint_latents(z_b[0], 1, latents.seed, latents.temperature)
+            z_j = self.model.joint_latents(z_b, latents.temperature, seed=latents.seed)
         shape, body, stats = self.model.decode_with_stats(z_b, z_j)
         commands = self.model.commands(shape[0])
         return DecodedGait(
@@ -136,9 +150,9 @@ class GaitSession:
         decoded = gait.body_ds if gait.source == "model" else None
         ds = sim.ensemble_body[:, ::BODY_DOWNSAMPLE]
         if decoded is not None:
-            sim.figures = compare(decoded, ds, MODEL_RATE, gait.stats)
+            sim.figures = compare(decoded, ds, BODY_RATE, gait.stats)
         else:
-            sim.figures = compare(ds[0], ds, MODEL_RATE)  # imported gait: spread only
+            sim.figures = compare(ds[0], ds, BODY_RATE)  # imported gait: spread only
         sim.figures["ensemble_broken"] = float(len(members) - len(ok))
         return sim
 
@@ -232,4 +246,12 @@ class LatestWorker:
                     self._cv.notify_all()
 
 
-__all__ = ["DecodedGait", "GaitSession", "Latents", "LatestWorker", "SimulatedGait", "SimulationError"]
+__all__ = [
+    "DecodedGait",
+    "GaitSession",
+    "Latents",
+    "LatestWorker",
+    "SimulatedGait",
+    "SimulationError",
+    "Timing",
+]

@@ -1,20 +1,26 @@
-"""snakeloco generative model: the hierarchical VAE, its training, checkpoints and evaluation.
+"""snakeloco generative model: the hierarchical VAE, its training, checkpoints and inference API.
 
-The network and training know nothing of MuJoCo; only evaluation replays gaits through ``sim``.
+Importing this package, the network, training and ``GaitModel`` never import MuJoCo (tested in a
+subprocess); only evaluation and calibration (``snakeloco.model.evaluate``, ``.calibrate``, through
+``.replays``) replay gaits in ``snakeloco.sim``'s simulator.
 """
 
-from model.api import GaitModel, load_pretrained
-from model.checkpoint import CheckpointConfig, CheckpointError, load_checkpoint, save_checkpoint
-from model.network import HierarchicalVAE, ModelConfig, gaussian_mmd, loss_terms
-from model.train import TrainConfig, TrainingError, cyclic_lr, train
+from snakeloco.model.api import GaitModel, load_pretrained
+from snakeloco.model.checkpoint import CheckpointConfig, CheckpointError, load_checkpoint, save_checkpoint
+from snakeloco.model.config import ModelConfig
+from snakeloco.model.losses import gaussian_mmd, loss_terms
+from snakeloco.model.network import HierarchicalVAE
+from snakeloco.model.train import PRESETS, TrainConfig, TrainingError, TrainPreset, cyclic_lr, train
 
 __all__ = [
+    "PRESETS",
     "CheckpointConfig",
     "CheckpointError",
     "GaitModel",
     "HierarchicalVAE",
     "ModelConfig",
     "TrainConfig",
+    "TrainPreset",
     "TrainingError",
     "cyclic_lr",
     "gaussian_mmd",

@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint
-from model.network import HierarchicalVAE, trace_single
-from model.stats import stats_dict
+from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint
+from snakeloco.model.network import HierarchicalVAE
+from snakeloco.model.stats import stats_dict
+from snakeloco.model.tracing import trace_single
 
 
 def _finite(name: str, a: np.ndarray) -> np.ndarray:
@@ -68,7 +69,7 @@ class GaitModel:
         measured complex gain before the inverse FFT (``sim.shape_to_commands(..., response=...)``);
         a checkpoint without that gain resynthesises the shape as is.
         """
-        from sim import shape_to_commands
+        from snakeloco.sim import shape_to_commands
 
         return shape_to_commands(shape, self.freqs, response=self._servo_response)
 
@@ -78,7 +79,7 @@ class GaitModel:
         A changed MJCF (joints, servos, integrator) changes what a decoded gait does when replayed,
         so predictions and consistency figures then describe another robot.
         """
-        from sim import mjcf_sha256
+        from snakeloco.sim import mjcf_sha256
 
         here = mjcf_sha256()
         if self.config.mjcf_sha256 == here:
@@ -96,13 +97,24 @@ class GaitModel:
             return ""
         return hashlib.sha256((self.path / WEIGHTS).read_bytes()).hexdigest()
 
-    # --- normalisation ---------------------------------------------------------------------------
+    # --- normalisation: the network's units --------------------------------------------------------
 
-    def _norm_shape(self, shape: np.ndarray) -> torch.Tensor:
+    def normalize_shape(self, shape: np.ndarray) -> torch.Tensor:
+        """Joint shapes (..., 8, L, 2) rad -> the network's normalised float32 tensor."""
         return torch.as_tensor((shape - self._shape_mean) / self._shape_std, dtype=torch.float32)
 
-    def _norm_body(self, body: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor((body - self._body_mean) / self._body_std, dtype=torch.float32)
+    def normalize_body(self, body_ds: np.ndarray) -> torch.Tensor:
+        """Body series (..., 500, 6) m and rad -> the network's normalised float32 tensor."""
+        return torch.as_tensor((body_ds - self._body_mean) / self._body_std, dtype=torch.float32)
+
+    def normalize_stats(self, stats: np.ndarray) -> torch.Tensor:
+        """Statistics vectors (..., 4) (``model.stats.stats_vector``) -> normalised float32 tensor."""
+        return torch.as_tensor((stats - self._stats_mean) / self._stats_std, dtype=torch.float32)
+
+    def stats_from_network(self, stats: torch.Tensor | np.ndarray) -> dict[str, np.ndarray]:
+        """The network's normalised statistics (..., 4) -> {name: (...)} in physical units."""
+        v = np.asarray(stats, np.float64)
+        return stats_dict(v * self._stats_std + self._stats_mean)
 
     def _phys(self, shape: torch.Tensor, body: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         return (
@@ -122,9 +134,16 @@ class GaitModel:
             )
         _finite("body_ds", body_ds)
         with self._lock, torch.inference_mode():
-            mu, _ = self.net.encode_body(self._norm_body(body_ds))
-            joints = self.net.run_joints(mu, self._norm_shape(shape), sample_posterior=False)
+            mu, _ = self.net.encode_body(self.normalize_body(body_ds))
+            joints = self.net.run_joints(mu, self.normalize_shape(shape), sample_posterior=False)
         return mu.numpy().astype(np.float64), joints["z_j"].numpy().astype(np.float64)
+
+    def encode_body(self, body_ds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """q(z_B | x_B): body series (B, 500, 6) -> posterior mean and log-variance, each (B, Db)."""
+        body_ds = _finite("body_ds", np.asarray(body_ds, np.float64))
+        with self._lock, torch.inference_mode():
+            mu, logvar = self.net.encode_body(self.normalize_body(body_ds))
+        return mu.numpy().astype(np.float64), logvar.numpy().astype(np.float64)
 
     def decode(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """z_b (B, Db) and z_j (B, 8, Dj) (None: zeros, the paper's setting (a)) -> shape, body_ds."""
@@ -150,11 +169,7 @@ class GaitModel:
         with self._lock, torch.inference_mode():
             shape, body, stats = self._generate(torch.as_tensor(z_b), zj)
         shape_p, body_p = self._phys(shape, body)
-        return (
-            shape_p,
-            body_p,
-            stats_dict(stats.numpy().astype(np.float64) * self._stats_std + self._stats_mean),
-        )
+        return shape_p, body_p, self.stats_from_network(stats.numpy())
 
     def _check_shape(self, shape: np.ndarray) -> np.ndarray:
         """Joint shapes as float64 (B, 8, L, 2); a ValueError names a wrong shape or a non-finite value."""
@@ -173,7 +188,7 @@ class GaitModel:
         return _finite("z_b", z_b)
 
     def _single(self, method: str):
-        """The traced one-z_B graph of ``net.<method>`` (``network.trace_single``), or None where
+        """The traced one-z_B graph of ``net.<method>`` (``tracing.trace_single``), or None where
         this torch cannot trace (then the eager method gives the same numbers)."""
         if method not in self._traced:
             try:
@@ -195,8 +210,8 @@ class GaitModel:
         """Body statistics the model predicts for the gaits of joint shapes (B, 8, L, 2) rad."""
         shape = self._check_shape(shape)
         with self._lock, torch.inference_mode():
-            v = self.net.predict_stats(self._norm_shape(shape))
-        return stats_dict(v.numpy().astype(np.float64) * self._stats_std + self._stats_mean)
+            v = self.net.predict_stats(self.normalize_shape(shape))
+        return self.stats_from_network(v.numpy())
 
     def sample_joint_latents(
         self, z_b: np.ndarray, n: int = 1, seed: int = 0, temperature: float = 1.0
@@ -222,6 +237,15 @@ class GaitModel:
         out = out.numpy().astype(np.float64)
         return out[0] if single else out
 
+    def joint_latents(self, z_b: np.ndarray, temperature: float | None, seed: int = 0) -> np.ndarray:
+        """One z_{1:8} per z_b (B, Db) -> (B, 8, Dj): zeros where ``temperature`` is None (the
+        paper's generation setting (a), the designer's "zero" mode), else a draw from the learned
+        prior at that temperature (``sample_joint_latents``; the designer's "sampled" mode)."""
+        z = self._check_z_b(z_b)
+        if temperature is None:
+            return np.zeros((len(z), self.config.model.n_joints, self.z_j_dim))
+        return self.sample_joint_latents(z, 1, seed=seed, temperature=temperature)[:, 0]
+
 
 def load_pretrained(path: str | Path | None = None) -> GaitModel:
     """Load a checkpoint directory (None: the shipped pretrained model) as a ``GaitModel``.
@@ -229,7 +253,7 @@ def load_pretrained(path: str | Path | None = None) -> GaitModel:
     Raises:
         CheckpointError: the checkpoint is missing, corrupt or mismatched (the message says which).
     """
-    from model.checkpoint import PRETRAINED_DIR
+    from snakeloco.model.checkpoint import PRETRAINED_DIR
 
     directory = PRETRAINED_DIR if path is None else Path(path)
     net, config = load_checkpoint(directory)

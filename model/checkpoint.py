@@ -16,7 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from model.network import HierarchicalVAE, ModelConfig
+from snakeloco.model.config import ModelConfig
+from snakeloco.model.network import HierarchicalVAE
 
 SCHEMA_VERSION = 3
 """2: the body-statistics head (signal CNN, MLP, inverse-transform buffers) and its normalisation.

@@ -7,20 +7,20 @@ body path is scored beside the ensemble's spread (``sim.consistency``).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
-from model.api import GaitModel, load_pretrained
-from model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
-from model.stats import MODEL_RATE, median_relative_errors
-from sim import BODY_CHANNELS, BODY_DOWNSAMPLE, DatasetError, Simulator, load_dataset, read_npz, write_npz
-from sim.consistency import ENSEMBLE_NOISE, PREDICTABLE, compare, path_stats, perturbed_commands
+from snakeloco.model.api import GaitModel, load_pretrained
+from snakeloco.model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
+from snakeloco.model.replays import check_same_gaits, load_side_file, replay_shapes, save_side_file
+from snakeloco.model.stats import median_relative_errors
+from snakeloco.sim import BODY_CHANNELS, BODY_RATE, Simulator, load_dataset
+from snakeloco.sim.consistency import ENSEMBLE_SIZE, PREDICTABLE, compare, path_stats
 
 
 def _stats_errors(predicted: dict[str, np.ndarray], body_ds: np.ndarray) -> dict[str, float]:
-    return median_relative_errors(predicted, path_stats(body_ds, MODEL_RATE))
+    return median_relative_errors(predicted, path_stats(body_ds, BODY_RATE))
 
 
 def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, batch: int = 512) -> dict:
@@ -60,11 +60,8 @@ def latent_health(model: GaitModel, z_b: np.ndarray, z_j: np.ndarray, shape, bod
     rng = np.random.default_rng(seed)
     n = min(len(z_b), 1024)
     # Samples of the aggregate posterior q(z_B): posterior means plus their own noise.
-    import torch
-
-    with model._lock, torch.inference_mode():
-        _, logvar = model.net.encode_body(model._norm_body(body_ds[:n]))
-    std = np.exp(0.5 * logvar.numpy())
+    _, logvar = model.encode_body(body_ds[:n])
+    std = np.exp(0.5 * logvar)
     q = z_b[:n] + std * rng.standard_normal(std.shape)
     mmd = mmd_numpy(q, rng.standard_normal(q.shape))
     null95 = mmd_null_quantile(n, q.shape[1], 0.95, seed=seed)
@@ -87,94 +84,18 @@ def latent_health(model: GaitModel, z_b: np.ndarray, z_j: np.ndarray, shape, bod
     }
 
 
-REPLAY_MODES = ("zk_zero", "zk_sampled")
-"""The consistency check's z_k modes: z_k = 0, and z_k sampled from the learned prior."""
-
-
-def replay_ensembles(
-    model: GaitModel, shapes: np.ndarray, ensemble: int, seed: int, simulator: Simulator, progress=None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Replay each decoded shape (n, 8, L, 2) as an ensemble: its commands plus ensemble-1 copies
-    with ``sim.consistency.ENSEMBLE_NOISE`` relative noise (gait i's noise seeded with seed + i).
-
-    Returns the body series at the model's rate, (n, ensemble, 500, 6) float32 (member 0 the
-    unperturbed replay; zeros where a replay broke), and (n, ensemble) bool, which replays ran.
-    """
-    n, cfg = len(shapes), model.config.model
-    bodies = np.zeros((n, ensemble, cfg.body_steps, cfg.body_channels), np.float32)
-    ok = np.zeros((n, ensemble), bool)
-    per_batch = max(1, (4 * simulator.workers) // ensemble + 1)
-    for start in range(0, n, per_batch):
-        idx = range(start, min(n, start + per_batch))
-        cmds = np.concatenate(
-            [perturbed_commands(model.commands(shapes[i]), ensemble, seed=seed + i) for i in idx]
-        )  # (b K, T, 8)
-        result = simulator.simulate(cmds)
-        for j, i in enumerate(idx):
-            members = range(j * ensemble, (j + 1) * ensemble)
-            ok[i] = [result.failures[m] is None for m in members]
-            bodies[i, ok[i]] = result.body[
-                [m for m in members if result.failures[m] is None], ::BODY_DOWNSAMPLE
-            ]
-        if progress is not None:
-            progress(len(idx))
-    return bodies, ok
-
-
-def save_replays(path: str | Path, replays: dict[str, dict[str, np.ndarray]], **drawn) -> None:
-    """Write the consistency check's replays (``consistency``'s ``replays``) to an .npz (no pickle):
-    per mode its decoded ``shapes``, ``z_j``, ``bodies`` and ``ok``, and the draw (``drawn``:
-    n_prior, ensemble, seed, temperature) with the noise level and the robot's MJCF hash."""
-    from sim import mjcf_sha256
-
-    arrays = {f"{mode}/{k}": v for mode, r in replays.items() for k, v in r.items()}
-    write_npz(path, noise=np.float64(ENSEMBLE_NOISE), mjcf_sha256=np.array(mjcf_sha256()), **drawn, **arrays)
-
-
-def load_replays(
-    path: str | Path, decoded: dict[str, np.ndarray], **drawn
-) -> dict[str, dict[str, np.ndarray]]:
-    """Read replays written by ``save_replays`` for the same draw (``drawn``) of the same decoded
-    shapes (``decoded``: mode -> (n, 8, L, 2)) on the same robot; anything else is refused with a
-    ``DatasetError`` naming the difference (a checkpoint with other decodes needs its own replays)."""
-    from sim import mjcf_sha256
-
-    path = Path(path)
-    need = [
-        "noise",
-        "mjcf_sha256",
-        *drawn,
-        *(f"{m}/{k}" for m in decoded for k in ("shapes", "bodies", "ok")),
-    ]
-    stored = read_npz(path, "consistency-replays", need)
-    asked = {"noise": ENSEMBLE_NOISE, **drawn}
-    held = {k: stored[k].item() for k in asked}
-    if held != asked:
-        raise DatasetError(f"{path}: replays of {held}; this evaluation asks for {asked}")
-    if str(stored["mjcf_sha256"]) != mjcf_sha256():
-        raise DatasetError(
-            f"{path}: replayed on another robot model (sim/snake.xml changed since); replay again"
-        )
-    out = {}
-    for mode, shapes in decoded.items():
-        r = {k.split("/", 1)[1]: v for k, v in stored.items() if k.startswith(mode + "/")}
-        gap = float(np.abs(r["shapes"] - shapes).max()) if r["shapes"].shape == shapes.shape else float("inf")
-        if gap > 1e-4:
-            raise DatasetError(
-                f"{path}: these replays are of other gaits ({mode}: the checkpoint's decodes differ by up "
-                f"to {gap:.3g} rad); replay them for this checkpoint"
-            )
-        out[mode] = r
-    return out
+ZK_MODES: dict[str, float | None] = {"zk_zero": None, "zk_sampled": 1.0}
+"""The consistency check's z_k modes (report keys): z_k = 0, and z_k sampled from the learned prior
+at this temperature (``GaitModel.joint_latents``)."""
+REPLAYS = "consistency-replays"
 
 
 def consistency(
     model: GaitModel,
     n_prior: int = 256,
-    ensemble: int = 8,
+    ensemble: int = ENSEMBLE_SIZE,
     seed: int = 0,
     workers: int | None = None,
-    temperature: float = 1.0,
     progress=None,
     replays: str | Path | None = None,
 ) -> dict:
@@ -184,29 +105,35 @@ def consistency(
     simulated cleanly, the count of those that broke (``n_broken``), and the fraction of all
     replays that broke; perturbed members that broke are left out of their gait's ensemble, as
     the designer does. ``replays``: an .npz of the ensembles' replays, read when it exists (it must
-    hold the same draw of this checkpoint's decodes: ``load_replays``), else written after
+    hold the same draw of this checkpoint's decodes: ``model.replays``), else written after
     replaying. A calibration that leaves the decoded shapes alone (``snakeloco calibrate``) is
     then re-scored in seconds instead of replaying 2 n_prior ensembles.
     """
-    rng = np.random.default_rng(seed)
-    z_b = rng.standard_normal((n_prior, model.z_b_dim))
-    z_zero = np.zeros((n_prior, model.config.model.n_joints, model.z_j_dim))
-    z_sampled = model.sample_joint_latents(z_b, 1, seed=seed + 1, temperature=temperature)[:, 0]
-    modes = dict(zip(REPLAY_MODES, (z_zero, z_sampled), strict=True))
+    z_b = np.random.default_rng(seed).standard_normal((n_prior, model.z_b_dim))
+    modes = {
+        name: model.joint_latents(z_b, temperature, seed=seed + 1) for name, temperature in ZK_MODES.items()
+    }
     decoded = {name: model.decode_with_stats(z_b, z_j) for name, z_j in modes.items()}
-    drawn = {"n_prior": n_prior, "ensemble": ensemble, "seed": seed, "temperature": temperature}
+    drawn = {"n_prior": n_prior, "ensemble": ensemble, "seed": seed, "temperature": ZK_MODES["zk_sampled"]}
     if replays is not None and Path(replays).exists():
-        stored = load_replays(replays, {name: d[0] for name, d in decoded.items()}, **drawn)
+        need = [f"{name}/{k}" for name in modes for k in ("shapes", "bodies", "ok")]
+        file = load_side_file(replays, REPLAYS, drawn, need)
+        stored = {}
+        for name, (shapes, _, _) in decoded.items():
+            stored[name] = {k: file[f"{name}/{k}"] for k in ("shapes", "bodies", "ok")}
+            check_same_gaits(replays, stored[name]["shapes"], shapes, name)
         if progress is not None:
             progress(len(modes) * n_prior)
     else:
-        simulator = Simulator(workers or os.cpu_count() or 1)
+        simulator = Simulator(workers)
         stored = {}
         for name, (shapes, _, _) in decoded.items():
-            bodies, ok = replay_ensembles(model, shapes, ensemble, seed, simulator, progress)
+            bodies, ok = replay_shapes(model, shapes, simulator, ensemble, seed, progress)
             stored[name] = {"shapes": shapes, "z_j": modes[name], "bodies": bodies, "ok": ok}
+        simulator.close()
         if replays is not None:
-            save_replays(replays, stored, **drawn)
+            arrays = {f"{name}/{k}": v for name, r in stored.items() for k, v in r.items()}
+            save_side_file(replays, drawn, **arrays)
     report = {}
     for name, (_, bodies, stats) in decoded.items():
         sim_bodies, sim_ok = stored[name]["bodies"], stored[name]["ok"]
@@ -218,7 +145,7 @@ def consistency(
                 continue
             # As the designer does: perturbed members that broke leave the ensemble (counted).
             predicted = {k: float(v[i]) for k, v in stats.items()}
-            row = compare(bodies[i], sim_bodies[i][ok].astype(np.float64), MODEL_RATE, predicted)
+            row = compare(bodies[i], sim_bodies[i][ok].astype(np.float64), BODY_RATE, predicted)
             row["ensemble_broken"] = float((~ok).sum())
             rows.append(row)
         keys = rows[0].keys() if rows else []
@@ -243,7 +170,7 @@ def evaluate(
     checkpoint: str | Path | None,
     data: str | Path,
     n_prior: int = 256,
-    ensemble: int = 8,
+    ensemble: int = ENSEMBLE_SIZE,
     seed: int = 0,
     workers: int | None = None,
     progress=None,

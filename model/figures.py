@@ -6,10 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from model.api import load_pretrained
-from sim import BODY_CHANNELS, load_dataset
+from snakeloco.model.api import load_pretrained
+from snakeloco.sim import BODY_CHANNELS, BODY_TIMES, load_dataset
 
-_T = np.arange(500) / 5.0  # model body time axis (s)
 _STAT_LABELS = {
     "path_length": "path length over 100 s (m)",
     "median_speed": "median speed (m/s)",
@@ -101,8 +100,8 @@ def figures(
         ax.set_ylabel("imag (rad)")
         for ch in range(6):
             ax = axes[row, ch + 1]
-            ax.plot(_T, body[row, :, ch], "k", lw=1, label="data")
-            ax.plot(_T, b_hat[row, :, ch], "r", lw=1, label="model")
+            ax.plot(BODY_TIMES, body[row, :, ch], "k", lw=1, label="data")
+            ax.plot(BODY_TIMES, b_hat[row, :, ch], "r", lw=1, label="model")
             ax.set_title(BODY_CHANNELS[ch])
             ax.set_xlabel("t (s)")
         axes[row, 1].legend()

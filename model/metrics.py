@@ -25,7 +25,7 @@ def r2_overall(target: np.ndarray, pred: np.ndarray, scale: np.ndarray | None = 
 
 
 def mmd_numpy(x: np.ndarray, y: np.ndarray) -> float:
-    """Squared Gaussian-kernel MMD (V-statistic, sigma^2 = D), as ``model.network.gaussian_mmd``."""
+    """Squared Gaussian-kernel MMD (V-statistic, sigma^2 = D), as ``model.losses.gaussian_mmd``."""
     d = x.shape[1]
 
     def k(a: np.ndarray, b: np.ndarray) -> np.ndarray:

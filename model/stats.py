@@ -9,38 +9,28 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim import BODY_DOWNSAMPLE
-from sim.consistency import path_stats
+from snakeloco.sim import BODY_RATE
+from snakeloco.sim.consistency import PREDICTABLE, path_stats
 
-STAT_NAMES = ("path_length", "median_speed", "vertical_std", "net_roll")
-MODEL_RATE = 20.0 / BODY_DOWNSAMPLE
-"""Sample rate of the model's body series (Hz): the 20 Hz record, every ``BODY_DOWNSAMPLE``-th sample."""
+STAT_NAMES = PREDICTABLE
+"""The statistics' names, in the vector's order (``sim.consistency.PREDICTABLE``)."""
 _FLOOR = 1e-6
 
 
-def stats_vector(body_ds: np.ndarray, rate: float = MODEL_RATE) -> np.ndarray:
+LOGGED = dict(zip(STAT_NAMES, (True, True, True, False), strict=True))
+"""Which statistics the vector holds as logs: the positive ones, whose errors are judged relative."""
+
+
+def stats_vector(body_ds: np.ndarray, rate: float = BODY_RATE) -> np.ndarray:
     """Body series (..., T, 6) -> (..., 4) statistics vector (logs of the positive ones)."""
     s = path_stats(np.asarray(body_ds, np.float64), rate)
-    return np.stack(
-        [
-            np.log(np.maximum(s["path_length"], _FLOOR)),
-            np.log(np.maximum(s["median_speed"], _FLOOR)),
-            np.log(np.maximum(s["vertical_std"], _FLOOR)),
-            s["net_roll"],
-        ],
-        axis=-1,
-    )
+    return np.stack([np.log(np.maximum(s[k], _FLOOR)) if LOGGED[k] else s[k] for k in STAT_NAMES], axis=-1)
 
 
 def stats_dict(vector: np.ndarray) -> dict[str, np.ndarray]:
     """(..., 4) statistics vector -> {name: (...)} in physical units."""
     v = np.asarray(vector, np.float64)
-    return {
-        "path_length": np.exp(v[..., 0]),
-        "median_speed": np.exp(v[..., 1]),
-        "vertical_std": np.exp(v[..., 2]),
-        "net_roll": v[..., 3],
-    }
+    return {k: np.exp(v[..., i]) if LOGGED[k] else v[..., i] for i, k in enumerate(STAT_NAMES)}
 
 
 def median_relative_errors(predicted: dict, true: dict) -> dict[str, float]:

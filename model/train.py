@@ -15,16 +15,25 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from model.checkpoint import SCHEMA_VERSION, CheckpointConfig, Normalization, TrainSummary, save_checkpoint
-from model.metrics import r2_overall, r2_per_channel
-from model.network import HierarchicalVAE, ModelConfig, loss_terms
-from model.stats import stats_vector
-from sim import BODY_DOWNSAMPLE, load_dataset, mjcf_sha256, servo_response, synthesis_phase
+from snakeloco.model.checkpoint import (
+    SCHEMA_VERSION,
+    CheckpointConfig,
+    Normalization,
+    TrainSummary,
+    save_checkpoint,
+)
+from snakeloco.model.config import ModelConfig
+from snakeloco.model.losses import loss_terms
+from snakeloco.model.metrics import r2_overall, r2_per_channel
+from snakeloco.model.network import HierarchicalVAE
+from snakeloco.model.stats import stats_vector
+from snakeloco.sim import BODY_DOWNSAMPLE, load_dataset, mjcf_sha256, servo_response, synthesis_phase
 
 
 class TrainingError(RuntimeError):
@@ -34,18 +43,40 @@ class TrainingError(RuntimeError):
 class TrainConfig(BaseModel):
     """Optimisation settings (the model's own are in ``ModelConfig``)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    epochs: int = Field(300, ge=1)
-    batch_size: int = Field(128, ge=2)
-    lr_min: float = 2e-4
-    lr_max: float = 4e-3
-    cycle_epochs: float = Field(100.0, gt=0, description="Period of the triangular cycle (epochs).")
+    epochs: int = Field(300, ge=1, description="Training epochs (the shipped model: 140, preset paper).")
+    batch_size: int = Field(
+        128, ge=2, description="Records per step (the MMD and batch statistics need two)."
+    )
+    lr_min: float = Field(2e-4, gt=0, description="Floor of the cyclical learning rate (paper).")
+    lr_max: float = Field(4e-3, gt=0, description="First peak of the cyclical learning rate (paper).")
+    cycle_epochs: float = Field(
+        50.0,
+        gt=0,
+        description="Period of the triangular learning-rate cycle (epochs); the paper's 800 scaled to a "
+        "140-epoch CPU run.",
+    )
     peak_decay: float = Field(0.5, gt=0, le=1, description="Peak multiplier per completed cycle.")
-    val_fraction: float = Field(0.1, gt=0, lt=1)
-    seed: int = 0
-    device: str = "cpu"
-    grad_clip: float = 10.0
+    val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of records held out for validation.")
+    seed: int = Field(0, ge=0, description="Seed of the split, initialisation and batches.")
+    device: Literal["cpu", "cuda"] = Field("cpu", description="Torch device; cuda only where present.")
+    grad_clip: float = Field(10.0, gt=0, description="Gradient-norm clip.")
+
+
+class TrainPreset(NamedTuple):
+    """A named training recipe: the settings that made a shipped checkpoint."""
+
+    train: TrainConfig
+    model: ModelConfig
+
+
+PRESETS: dict[str, TrainPreset] = {
+    "paper": TrainPreset(TrainConfig(epochs=140), ModelConfig()),
+}
+"""``snakeloco train --preset NAME`` starts from these (any option still overrides them). ``paper``:
+the shipped checkpoint of the paper family (``model/pretrained``), 140 epochs on the 4096-record
+dataset (docs/model.md)."""
 
 
 def cyclic_lr(epoch: float, cfg: TrainConfig) -> float:
@@ -82,7 +113,9 @@ def init_signal_source(net: HierarchicalVAE, freqs: np.ndarray, norm: Normalizat
     )
 
 
-def _split(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def split_records(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted (train, validation) record indices of a dataset of ``n``: a seeded permutation's first
+    ``val_fraction`` (at least one) validates. Calibration redraws the split of a checkpoint with it."""
     perm = np.random.default_rng(seed).permutation(n)
     n_val = max(1, round(n * val_fraction))
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
@@ -146,7 +179,7 @@ def train(
     ds = load_dataset(data)
     shape_np = ds.shape.astype(np.float64)  # (N, K, L, 2) rad
     body_np = ds.body_ds.astype(np.float64)  # (N, 500, 6)
-    train_idx, val_idx = _split(len(ds), cfg.val_fraction, cfg.seed)
+    train_idx, val_idx = split_records(len(ds), cfg.val_fraction, cfg.seed)
     stats_np = stats_vector(body_np)  # (N, 4)
     norm = Normalization.fit(shape_np[train_idx], body_np[train_idx], stats_np[train_idx])
     a = norm.arrays()
@@ -232,7 +265,7 @@ def train(
             save_checkpoint(out, net, CheckpointConfig(**ckpt_cfg, summary=summary))
     summary.wall_time_s = time.perf_counter() - t_start
     # Rewrite the config with the whole run's summary (weights stay the best epoch's).
-    from model.checkpoint import load_checkpoint
+    from snakeloco.model.checkpoint import load_checkpoint
 
     best_net, _ = load_checkpoint(out)
     save_checkpoint(out, best_net, CheckpointConfig(**ckpt_cfg, summary=summary))

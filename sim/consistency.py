@@ -15,6 +15,8 @@ import numpy as np
 
 ENSEMBLE_NOISE = 1e-3
 """Relative command noise of the ensemble members."""
+ENSEMBLE_SIZE = 8
+"""Replays per gait by default (the designer's fan, evaluation): the commands and 7 noisy copies."""
 
 
 def perturbed_commands(

@@ -1,4 +1,6 @@
-"""Training dataset: generation (batched, deterministic, atomic) and validated loading.
+"""Training dataset files: the format, an atomic writer and the validated reader (numpy only).
+
+Generation (``sim.generate``) simulates the records and writes them with ``DatasetWriter``.
 
 File format: one ``.npz`` (uncompressed zip of ``.npy`` members), float32 unless noted:
 
@@ -26,30 +28,34 @@ failure is logged in ``meta["failures"]`` and counted in ``attempts``. No NaN is
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
 import tempfile
 import zipfile
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
-import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from sim.excitation import ExcitationConfig, multisine, random_phases
-from sim.physics import SimConfig, SimulationError, Simulator
-from sim.robot import N_JOINTS, mjcf_sha256
-from sim.spectra import joint_shape
+from snakeloco.sim.body import BODY_CHANNELS
+from snakeloco.sim.command_rule import SimConfig
+from snakeloco.sim.excitation import RECORD, ExcitationConfig
+from snakeloco.sim.robot import N_JOINTS
 
 SCHEMA_VERSION = 1
 BODY_DOWNSAMPLE = 4
 """The model sees the body series at 20 Hz / 4 = 5 Hz (500 steps)."""
-N_BODY = 6
-_MEMORY_BUDGET = 512 * 2**20
-"""Bytes of rollout buffers per chunk; bounds peak memory whatever the dataset size."""
+BODY_RATE = RECORD.sample_rate / BODY_DOWNSAMPLE
+"""Sample rate of the model's body series (Hz): the 20 Hz record, every ``BODY_DOWNSAMPLE``-th sample."""
+BODY_STEPS = -(-RECORD.n_samples // BODY_DOWNSAMPLE)
+"""Steps of the model's body series: 500 (every 4th of the 2000 record samples)."""
+BODY_TIMES = RECORD.times[::BODY_DOWNSAMPLE]
+"""(500,) time stamps (s) of the model's body series: 0, 0.2, ... 99.8."""
+N_BODY = len(BODY_CHANNELS)
 
 
 class GenerateConfig(BaseModel):
@@ -57,11 +63,20 @@ class GenerateConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    num_samples: int = Field(4096, gt=0, description="Number of records N.")
+    num_samples: int = Field(4096, ge=1, description="Number of records N.")
     seed: int = Field(0, ge=0, description="Seed of the phase draws; sample i, attempt a uses (seed, i, a).")
     max_attempts: int = Field(5, ge=1, description="Phase draws tried per sample before giving up.")
-    excitation: ExcitationConfig = ExcitationConfig()
-    sim: SimConfig = SimConfig()
+    excitation: ExcitationConfig = Field(
+        RECORD,
+        description="The record's sampling grid and multisine; fixed by the product (the gait CSV and "
+        "the model's 500 body steps assume it), so not a command-line option.",
+        json_schema_extra={"cli": False},
+    )
+    sim: SimConfig = Field(
+        SimConfig(),
+        description="The command rule and break limits (``sim.command_rule``); fixed like the excitation.",
+        json_schema_extra={"cli": False},
+    )
 
 
 class DatasetError(ValueError):
@@ -103,7 +118,7 @@ class _Member:
     dtype: str
 
 
-def _members(cfg: GenerateConfig) -> dict[str, _Member]:
+def dataset_members(cfg: GenerateConfig) -> dict[str, _Member]:
     t, n_l = cfg.excitation.n_samples, cfg.excitation.n_components
     n = cfg.num_samples
     return {
@@ -119,134 +134,52 @@ def _members(cfg: GenerateConfig) -> dict[str, _Member]:
     }
 
 
-def default_chunk_size(simulator: Simulator) -> int:
-    """Samples per rollout call: all threads busy, rollout buffers within the memory budget."""
-    m = simulator.model
-    per_step = 8 * (mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS) + m.nsensordata + 4 * m.nu)
-    per_sample = per_step * simulator.n_steps
-    return max(simulator.workers, _MEMORY_BUDGET // per_sample)
+class DatasetWriter:
+    """Writes a dataset file atomically, record chunk by record chunk, with bounded memory.
 
-
-@dataclass
-class _Chunk:
-    commands: np.ndarray  # (B, T, 8) float32
-    joint_angles: np.ndarray  # (B, T, 8) float32
-    body: np.ndarray  # (B, T, 6) float32
-    phases: np.ndarray  # (B, 8, L) float64
-    amplitude: np.ndarray  # (B,)
-    attempts: np.ndarray  # (B,) int32
-    failures: list[dict] = field(default_factory=list)
-
-
-def _draw(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarray, np.ndarray, float]:
-    rng = np.random.default_rng([cfg.seed, index, attempt])
-    phases = random_phases(rng, cfg.excitation)
-    commands, amplitude = multisine(phases, cfg.excitation)
-    # The float32 commands are stored; simulate exactly those, so a replay of the file matches.
-    return phases, commands.astype(np.float32), amplitude
-
-
-def simulate_samples(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray) -> _Chunk:
-    """Draw, simulate and measure samples ``indices`` (regenerating broken ones)."""
-    b = len(indices)
-    t, n_l = cfg.excitation.n_samples, cfg.excitation.n_components
-    chunk = _Chunk(
-        commands=np.empty((b, t, N_JOINTS), np.float32),
-        joint_angles=np.empty((b, t, N_JOINTS), np.float32),
-        body=np.empty((b, t, N_BODY), np.float32),
-        phases=np.empty((b, N_JOINTS, n_l)),
-        amplitude=np.empty(b, np.float32),
-        attempts=np.zeros(b, np.int32),
-    )
-    todo = np.arange(b)
-    for attempt in range(cfg.max_attempts):
-        for j in todo:
-            chunk.phases[j], chunk.commands[j], chunk.amplitude[j] = _draw(cfg, int(indices[j]), attempt)
-            chunk.attempts[j] = attempt + 1
-        result = simulator.simulate(chunk.commands[todo])
-        chunk.joint_angles[todo] = result.joint_angles
-        chunk.body[todo] = result.body
-        failed = [i for i, f in enumerate(result.failures) if f is not None]
-        for i in failed:
-            chunk.failures.append(
-                {"index": int(indices[todo[i]]), "attempt": attempt + 1, "reason": result.failures[i]}
-            )
-        todo = todo[failed]
-        if len(todo) == 0:
-            return chunk
-    raise SimulationError(
-        f"samples {indices[todo].tolist()} broke the simulation in all {cfg.max_attempts} phase draws; "
-        f"last reasons: {[f['reason'] for f in chunk.failures[-len(todo) :]]}"
-    )
-
-
-def generate_dataset(
-    cfg: GenerateConfig,
-    out: str | Path,
-    *,
-    workers: int | None = None,
-    chunk_size: int | None = None,
-    progress: Callable[[int], None] | None = None,
-) -> Path:
-    """Generate a dataset and write it atomically to ``out`` (a partial run never leaves a file there).
-
-    Args:
-        cfg: what to generate.
-        out: destination ``.npz`` path.
-        workers: simulation threads (default: all cores).
-        chunk_size: samples per rollout call (default: bounded by a 512 MiB buffer budget).
-        progress: called with the number of samples finished after each chunk.
-
-    Returns:
-        The written path.
+    Each array is filled in a memory-mapped ``.npy`` in a temporary folder beside ``out``; ``finish``
+    streams them into the zip and renames it to ``out``. Used as a context manager: leaving it
+    without ``finish`` (an error, Ctrl-C) removes the temporary folder and leaves ``out`` as it was.
     """
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    simulator = Simulator(workers or os.cpu_count() or 1, cfg.excitation, cfg.sim)
-    chunk_size = chunk_size or default_chunk_size(simulator)
-    members = _members(cfg)
-    tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        # Each array is filled chunk by chunk in a memory-mapped .npy on disk, so memory stays
-        # bounded by one chunk whatever N is; the members are then streamed into the zip.
-        arrays = {
-            key: np.lib.format.open_memmap(tmp_dir / f"{key}.npy", "w+", np.dtype(m.dtype), m.shape)
-            for key, m in members.items()
+
+    def __init__(self, cfg: GenerateConfig, out: str | Path) -> None:
+        self.cfg = cfg
+        self.out = Path(out)
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self._members = dataset_members(cfg)
+        self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", dir=self.out.parent))
+        self._arrays = {
+            key: np.lib.format.open_memmap(self._tmp / f"{key}.npy", "w+", np.dtype(m.dtype), m.shape)
+            for key, m in self._members.items()
             if key != "freqs"
         }
-        failures: list[dict] = []
-        n = cfg.num_samples
-        for start in range(0, n, chunk_size):
-            idx = np.arange(start, min(n, start + chunk_size))
-            chunk = simulate_samples(cfg, simulator, idx)
-            sl = slice(idx[0], idx[-1] + 1)
-            for key in ("commands", "joint_angles", "body", "phases", "amplitude", "attempts"):
-                arrays[key][sl] = getattr(chunk, key)
-            arrays["body_ds"][sl] = chunk.body[:, ::BODY_DOWNSAMPLE]
-            arrays["shape"][sl] = joint_shape(chunk.joint_angles, cfg.excitation)
-            failures.extend(chunk.failures)
-            if progress is not None:
-                progress(len(idx))
-        for arr in arrays.values():
+
+    def __enter__(self) -> DatasetWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._arrays.clear()
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def write(self, start: int, **arrays: np.ndarray) -> None:
+        """Store records ``start``, ``start + 1``, ... of each named per-record array."""
+        for key, value in arrays.items():
+            self._arrays[key][start : start + len(value)] = value
+
+    def finish(self, meta: dict) -> Path:
+        """Write ``freqs`` and ``meta`` (schema version added), zip every member and rename to ``out``."""
+        for arr in self._arrays.values():
             arr.flush()
-        del arrays
-        np.save(tmp_dir / "freqs.npy", cfg.excitation.freqs.astype(np.float64))
-        meta = {
-            "schema_version": SCHEMA_VERSION,
-            "config": cfg.model_dump(mode="json"),
-            "mujoco_version": mujoco.__version__,
-            "mjcf_sha256": mjcf_sha256(),
-            "failures": failures,
-        }
-        np.save(tmp_dir / "meta.npy", np.array(json.dumps(meta)))
-        tmp_file = tmp_dir / "dataset.npz"
+        self._arrays.clear()
+        np.save(self._tmp / "freqs.npy", self.cfg.excitation.freqs.astype(np.float64))
+        meta = {"schema_version": SCHEMA_VERSION, "config": self.cfg.model_dump(mode="json"), **meta}
+        np.save(self._tmp / "meta.npy", np.array(json.dumps(meta)))
+        tmp_file = self._tmp / "dataset.npz"
         with zipfile.ZipFile(tmp_file, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
-            for key in [*members, "meta"]:
-                zf.write(tmp_dir / f"{key}.npy", arcname=f"{key}.npy")
-        os.replace(tmp_file, out)
-    finally:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
-    return out
+            for key in [*self._members, "meta"]:
+                zf.write(self._tmp / f"{key}.npy", arcname=f"{key}.npy")
+        os.replace(tmp_file, self.out)
+        return self.out
 
 
 class Dataset:
@@ -267,7 +200,7 @@ class Dataset:
         return self.config.num_samples
 
     def __getattr__(self, key: str) -> np.ndarray:
-        if key.startswith("_") or key not in _members(self.config):
+        if key.startswith("_") or key not in dataset_members(self.config):
             raise AttributeError(key)
         if key not in self._cache:
             try:
@@ -280,8 +213,6 @@ class Dataset:
     @property
     def meta_hash(self) -> str:
         """sha256 of the meta JSON: identifies the dataset a checkpoint was trained on."""
-        import hashlib
-
         return hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode()).hexdigest()
 
 
@@ -335,7 +266,7 @@ def load_dataset(path: str | Path) -> Dataset:
         config = GenerateConfig.model_validate(meta.get("config"))
     except ValidationError as exc:
         raise DatasetError(f"{path}: invalid generating config in meta: {exc}") from exc
-    expected = _members(config)
+    expected = dataset_members(config)
     missing = sorted(set(expected) - set(headers))
     if missing:
         raise DatasetError(f"{path}: missing arrays {missing}")

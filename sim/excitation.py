@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from sim.robot import COMMAND_LIMIT, N_JOINTS
+from snakeloco.sim.robot import COMMAND_LIMIT, N_JOINTS
 
 
 class ExcitationConfig(BaseModel):
@@ -64,6 +64,11 @@ class ExcitationConfig(BaseModel):
 def _round_bins(cfg: ExcitationConfig) -> np.ndarray:
     target = np.geomspace(cfg.f_min, cfg.f_max, cfg.n_components)
     return np.round(target * cfg.n_samples / cfg.sample_rate).astype(np.int64)
+
+
+RECORD = ExcitationConfig()
+"""The product's record: 20 Hz, 2000 samples (100 s), 8 bins from 0.05 to 3 Hz, peak 2.2 rad. Datasets,
+gait CSVs, the model's time axes and the designer all use it."""
 
 
 def random_phases(rng: np.random.Generator, cfg: ExcitationConfig) -> np.ndarray:

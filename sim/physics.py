@@ -1,22 +1,8 @@
-"""Open-loop simulation of joint commands: the one command rule, batched rollouts, measurement.
+"""Open-loop simulation of joint commands in MuJoCo: batched rollouts and measurement.
 
-Command rule (used identically by data generation, ``replay`` and CSV import):
-
-1. Commands are 20 Hz samples u[n], n = 0..T-1, treated as one period of a periodic gait.
-2. Lead-in: before the record the snake, lying straight and at rest, runs the last ``lead_in``
-   samples of the gait (its periodic continuation), faded in by a raised-cosine ramp over the first
-   ``ramp`` of them; this lets the servos and the body settle before t = 0. Nothing of the lead-in is
-   measured.
-3. Between samples the servo target is linearly interpolated from u[n] to u[n+1] (u[T] = u[0]),
-   updated every physics step (2.5 ms, 20 steps per sample).
-4. Measurements at record sample n are taken at t_n = n / 20 s, at the start of the interval whose
-   target starts at u[n].
-
-Body states (6 channels, in this order): vertical, forward, sideways position (m) and roll, pitch,
-yaw (rad) of the middle link's frame (site ``body_frame`` at the centre of link 5: where an IMU on the
-central module of the real robot would be), expressed in the frame of that link's position and heading
-at t = 0: positions are R_z(-yaw_0) (p(t) - p(0)), angles are the Z-Y-X (yaw, pitch, roll) Euler
-angles of R_z(-yaw_0) R(t). Yaw and roll are unwrapped over time (the snake may roll over and over).
+Commands become servo targets by the command rule (``sim.command_rule``); the measured body states
+are those of ``sim.body``. A rollout that diverges, is reset by MuJoCo or throws the snake counts
+as broken (``SimConfig`` holds the limits) and is named, never returned as data.
 """
 
 from __future__ import annotations
@@ -28,40 +14,13 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 from mujoco import rollout as mj_rollout
-from pydantic import BaseModel, ConfigDict, Field
 
-from sim.excitation import ExcitationConfig
-from sim.robot import BODY_SITE, N_JOINTS, load_model
-
-BODY_CHANNELS = ("vertical", "forward", "sideways", "roll", "pitch", "yaw")
-"""Order of the 6 body channels: 3 positions (m), then 3 angles (rad)."""
+from snakeloco.sim.body import body_states
+from snakeloco.sim.command_rule import SimConfig, SimulationError, expand_commands
+from snakeloco.sim.excitation import ExcitationConfig
+from snakeloco.sim.robot import BODY_SITE, N_JOINTS, load_model
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
-
-
-class SimConfig(BaseModel):
-    """How commands are applied and when a simulation counts as broken."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    lead_in: int = Field(60, ge=0, description="Lead-in samples before the record (3 s at 20 Hz).")
-    ramp: int = Field(40, ge=1, description="Raised-cosine fade-in over this many lead-in samples.")
-    max_com_height: float = Field(
-        1.0,
-        gt=0,
-        description="Centre-of-mass height (m) above which the snake counts as thrown. A 0.9 m snake "
-        "standing on its end has it at 0.48 m; healthy 100 s runs peaked at 0.58 m (128 samples).",
-    )
-    max_com_speed: float = Field(
-        10.0,
-        gt=0,
-        description="Centre-of-mass speed (m/s) above which the run counts as diverged; healthy runs "
-        "peaked at 3.0 m/s (128 samples).",
-    )
-
-
-class SimulationError(RuntimeError):
-    """A simulation diverged or threw the snake; the message says how and when."""
 
 
 @dataclass(frozen=True)
@@ -88,81 +47,6 @@ class BatchResult:
     body: np.ndarray  # (B, T, 6)
     failures: list[str | None]
     qpos: np.ndarray  # (B, T, nq) at the sample times
-
-
-def lead_in_window(cfg: SimConfig) -> np.ndarray:
-    """Fade-in weights of the lead-in samples, shape (lead_in,), from 0 up to 1."""
-    j = np.arange(cfg.lead_in)
-    return np.where(j < cfg.ramp, 0.5 - 0.5 * np.cos(np.pi * j / cfg.ramp), 1.0)
-
-
-def expand_commands(commands: np.ndarray, substeps: int, cfg: SimConfig) -> np.ndarray:
-    """Per-physics-step servo targets for a batch of records (the command rule above).
-
-    Args:
-        commands: (B, T, 8) rad.
-        substeps: physics steps per command sample.
-        cfg: lead-in settings.
-
-    Returns:
-        (B, (lead_in + T) * substeps, 8) float64 servo targets (rad).
-    """
-    if cfg.lead_in > commands.shape[1]:
-        raise ValueError(f"lead-in of {cfg.lead_in} samples exceeds the record ({commands.shape[1]})")
-    pre = commands[:, commands.shape[1] - cfg.lead_in :] * lead_in_window(cfg)[None, :, None]
-    held = np.concatenate([pre, commands], axis=1)  # (B, lead+T, 8)
-    nxt = np.concatenate([held[:, 1:], commands[:, :1]], axis=1)  # u[n+1], periodic at the end
-    frac = (np.arange(substeps) / substeps)[None, None, :, None]  # (1, 1, S, 1)
-    ctrl = held[:, :, None] + (nxt - held)[:, :, None] * frac  # (B, lead+T, S, 8)
-    return ctrl.reshape(commands.shape[0], -1, N_JOINTS)
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions wxyz -> (..., 3, 3) rotation matrices (frame to world)."""
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
-def body_states(pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
-    """Body channels in the initial heading frame.
-
-    Args:
-        pos: (B, T, 3) world position of the body frame (m).
-        quat: (B, T, 4) world orientation of the body frame, wxyz.
-
-    Returns:
-        (B, T, 6): vertical, forward, sideways (m), roll, pitch, yaw (rad), yaw and roll unwrapped.
-    """
-    rot = _quat_to_matrix(quat)  # (B, T, 3, 3)
-    yaw0 = np.arctan2(rot[:, 0, 1, 0], rot[:, 0, 0, 0])  # (B,) heading of the link's x axis at t=0
-    c, s = np.cos(yaw0), np.sin(yaw0)
-    zero, one = np.zeros_like(c), np.ones_like(c)
-    undo = np.stack(
-        [np.stack([c, s, zero], -1), np.stack([-s, c, zero], -1), np.stack([zero, zero, one], -1)], -2
-    )  # (B, 3, 3) = R_z(-yaw0)
-    rel_pos = np.einsum("bij,btj->bti", undo, pos - pos[:, :1])  # (B, T, 3) x fwd, y side, z up
-    rel_rot = np.einsum("bij,btjk->btik", undo, rot)  # (B, T, 3, 3)
-    yaw = np.arctan2(rel_rot[..., 1, 0], rel_rot[..., 0, 0])
-    pitch = np.arcsin(np.clip(-rel_rot[..., 2, 0], -1.0, 1.0))
-    roll = np.arctan2(rel_rot[..., 2, 1], rel_rot[..., 2, 2])
-    return np.stack(
-        [
-            rel_pos[..., 2],
-            rel_pos[..., 0],
-            rel_pos[..., 1],
-            np.unwrap(roll, axis=1),
-            pitch,
-            np.unwrap(yaw, axis=1),
-        ],
-        axis=-1,
-    )
 
 
 def set_thread_nice(value: int | None) -> int | None:
@@ -233,6 +117,11 @@ def _start_pool(nthread: int, nice: int) -> mj_rollout.Rollout:
     return made[0]
 
 
+def resolve_workers(workers: int | None) -> int:
+    """Simulation threads to use: ``workers``, or one per core of this machine where it is None."""
+    return max(1, int(workers)) if workers is not None else (os.cpu_count() or 1)
+
+
 class Simulator:
     """Batched open-loop rollouts of the snake on ``workers`` native threads (``mujoco.rollout``).
 
@@ -245,7 +134,7 @@ class Simulator:
 
     def __init__(
         self,
-        workers: int = 1,
+        workers: int | None = 1,
         excitation: ExcitationConfig | None = None,
         config: SimConfig | None = None,
         nice: int = 0,
@@ -254,7 +143,7 @@ class Simulator:
         self.excitation = excitation or ExcitationConfig()
         self.config = config or SimConfig()
         self.model = load_model()
-        self.workers = max(1, int(workers))
+        self.workers = resolve_workers(workers)
         # Records rolled out per call: a rollout keeps every physics step (~16 MB per record), so a
         # larger batch runs as consecutive calls of this many (2 per thread keeps both balanced).
         self.max_batch = max(1, int(max_batch or 2 * self.workers))

@@ -1,7 +1,8 @@
 """The snake robot: MJCF file, model loading and the constants every other module shares.
 
 Units: metres, kilograms, seconds, radians. The MJCF (``sim/snake.xml``) documents each physical
-number and the reason for it.
+number and the reason for it. Importing this module does not import MuJoCo (``load_model`` does):
+the model package reads the constants and the MJCF hash without the simulator.
 """
 
 from __future__ import annotations
@@ -9,8 +10,10 @@ from __future__ import annotations
 import hashlib
 from functools import cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import mujoco
+if TYPE_CHECKING:
+    import mujoco
 
 MJCF_PATH = Path(__file__).with_name("snake.xml")
 
@@ -27,6 +30,8 @@ JOINT_RANGE = 2.3
 """Joint stops at +/- this angle (rad)."""
 COMMAND_LIMIT = 2.2
 """Every joint command is clipped to +/- this angle (rad), inside the joint range."""
+LINK_GEOMS = tuple(f"link{i}" for i in range(1, N_LINKS + 1))
+"""MJCF names of the link capsules, head (link 1) to tail."""
 BODY_SITE = "body_frame"
 """Site at the middle link's (link 5) centre whose pose is the measured body state."""
 
@@ -39,4 +44,6 @@ def mjcf_sha256() -> str:
 
 def load_model() -> mujoco.MjModel:
     """Compile a fresh MjModel of the snake (each caller gets its own, so threads never share one)."""
+    import mujoco
+
     return mujoco.MjModel.from_xml_path(str(MJCF_PATH))

@@ -10,13 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.excitation import ExcitationConfig
-from sim.robot import COMMAND_LIMIT, N_JOINTS
-
-DEFAULT_EXCITATION = ExcitationConfig()
+from snakeloco.sim.excitation import RECORD, ExcitationConfig
+from snakeloco.sim.robot import COMMAND_LIMIT, N_JOINTS
 
 
-def joint_shape(angles: np.ndarray, cfg: ExcitationConfig = DEFAULT_EXCITATION) -> np.ndarray:
+def joint_shape(angles: np.ndarray, cfg: ExcitationConfig = RECORD) -> np.ndarray:
     """Single-sided spectrum of joint signals at the excited bins.
 
     Args:
@@ -38,8 +36,8 @@ def joint_shape(angles: np.ndarray, cfg: ExcitationConfig = DEFAULT_EXCITATION) 
 def synthesis_phase(
     freqs: np.ndarray,
     *,
-    n_samples: int = DEFAULT_EXCITATION.n_samples,
-    sample_rate: float = DEFAULT_EXCITATION.sample_rate,
+    n_samples: int = RECORD.n_samples,
+    sample_rate: float = RECORD.sample_rate,
     stride: int = 1,
 ) -> np.ndarray:
     """Phases 2 pi f_l t_n of the inverse transform at t_n = n / sample_rate, n = 0, stride, ... < T.
@@ -66,8 +64,8 @@ def shape_to_commands(
     shape: np.ndarray,
     freqs: np.ndarray | None = None,
     *,
-    n_samples: int = DEFAULT_EXCITATION.n_samples,
-    sample_rate: float = DEFAULT_EXCITATION.sample_rate,
+    n_samples: int = RECORD.n_samples,
+    sample_rate: float = RECORD.sample_rate,
     limit: float = COMMAND_LIMIT,
     response: np.ndarray | None = None,
 ) -> np.ndarray:
@@ -91,7 +89,7 @@ def shape_to_commands(
         (..., T, 8) float64 commands (rad).
     """
     shape = np.asarray(shape, dtype=np.float64)
-    freqs = DEFAULT_EXCITATION.freqs if freqs is None else np.asarray(freqs, dtype=np.float64)
+    freqs = RECORD.freqs if freqs is None else np.asarray(freqs, dtype=np.float64)
     if shape.ndim < 3 or shape.shape[-3:] != (N_JOINTS, freqs.shape[0], 2):
         raise ValueError(f"expected (..., {N_JOINTS}, {freqs.shape[0]}, 2) shape, got {shape.shape}")
     if response is not None:
@@ -111,7 +109,7 @@ def shape_to_commands(
 def servo_response(
     commands: np.ndarray,
     joint_angles: np.ndarray,
-    cfg: ExcitationConfig = DEFAULT_EXCITATION,
+    cfg: ExcitationConfig = RECORD,
     chunk: int = 256,
 ) -> np.ndarray:
     """Mean complex gain measured/commanded of each joint at each excited frequency.

@@ -1,13 +1,27 @@
 """Shared fixtures, made once per test session: a tiny dataset (4 records, ~2 s on 2 cores) and a
-one-epoch checkpoint of the small test model trained on it (read-only for the tests that use it)."""
+two-epoch checkpoint of the small test model trained on it (read-only for the tests that use it)."""
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
-from sim import GenerateConfig, generate_dataset, load_dataset
+from snakeloco.sim import GenerateConfig, generate_dataset, load_dataset
+
+from helpers import SMALL
 
 TINY = GenerateConfig(num_samples=4, seed=11)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _work_outside_the_repo(tmp_path_factory):
+    """MuJoCo writes MUJOCO_LOG.TXT into the working directory when a simulation warns (the tests of
+    diverging gaits make it warn): the tests run from a scratch folder, so nothing lands in the repo."""
+    here = os.getcwd()
+    os.chdir(tmp_path_factory.mktemp("cwd"))
+    yield
+    os.chdir(here)
 
 
 @pytest.fixture(scope="session")
@@ -23,10 +37,10 @@ def tiny_dataset(tiny_dataset_path):
 
 @pytest.fixture(scope="session")
 def checkpoint(tiny_dataset_path, tmp_path_factory):
-    from model import TrainConfig, train
-
-    from .test_model import SMALL
+    """The one tiny checkpoint every test shares: SMALL trained for 2 epochs on the tiny dataset."""
+    from snakeloco.model import TrainConfig, train
 
     out = tmp_path_factory.mktemp("ckpt_tiny")
-    train(tiny_dataset_path, out, TrainConfig(epochs=1, batch_size=2), SMALL, log=None, progress=False)
+    cfg = TrainConfig(epochs=2, batch_size=2, val_fraction=0.25)
+    train(tiny_dataset_path, out, cfg, SMALL, log=None, progress=False)
     return out

@@ -10,10 +10,12 @@ import time
 import numpy as np
 import pytest
 
-from app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
-from app.headless import HeadlessClient
-from app.server import HELP_PATH, DesignerServer, _help_text, _spread_text
-from app.session import LatestWorker
+from snakeloco.app.bench.headless import HeadlessClient
+from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
+from snakeloco.app.panel import spread_text
+from snakeloco.app.server import DesignerServer
+from snakeloco.app.session import LatestWorker
+from snakeloco.sim import replay
 
 
 @pytest.fixture
@@ -65,19 +67,23 @@ def test_slider_change_decodes_replays_and_draws(server):
         last = d.timings[-1]
         assert last.version > first.version and last.decoded <= last.replayed <= last.ensembled
         assert d.simulated is not None and d.simulated.ensemble_body.shape == (3, 2000, 6)
-        assert d.gen_path is not None and d.sim_path is not None and d.fan is not None
-        assert set(d.clouds) == {"decoded", "measured"}
-        assert "Predictability" in d.panel.content
+        assert d.scene.gen_path is not None and d.scene.sim_path is not None and d.scene.fan is not None
+        assert set(d.scene.clouds) == {"decoded", "measured"}
+        assert "Predictability" in d.controls.panel.content
         # Each statistic's ensemble spread in its own units beside the error.
-        assert "physics spread (± std)" in d.panel.content and d.panel.content.count("| ±") == 4
+        assert (
+            "physics spread (± std)" in d.controls.panel.content
+            and d.controls.panel.content.count("| ±") == 4
+        )
         # The table ends before the next line (markdown would draw that line as a fifth row).
-        assert re.search(r"\|\n\nxy-path R²", d.panel.content)
+        assert re.search(r"\|\n\nxy-path R²", d.controls.panel.content)
         # The drawn simulated path is this gait's replay.
-        np.testing.assert_allclose(d.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
+        np.testing.assert_allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
     finally:
         client.close()
 
 
+@pytest.mark.slow
 def test_export_import_export_round_trips_exactly(server):
     client, d = _connect(server)
     try:
@@ -97,8 +103,11 @@ def test_export_import_export_round_trips_exactly(server):
         assert _data_rows(second) == rows
         np.testing.assert_array_equal(read_gait_csv(second).commands, read_gait_csv(first).commands)
         assert "# z_B (encoded)" in second
-        # The imported commands were replayed exactly as written.
-        np.testing.assert_array_equal(d.simulated.joint_angles.shape, (2000, 8))
+        # The imported commands were replayed exactly as written: the tab's replay is the one the
+        # simulator gives those commands, to the bit.
+        expected = replay(read_gait_csv(first).commands)
+        np.testing.assert_array_equal(d.simulated.joint_angles, expected.joint_angles)
+        np.testing.assert_array_equal(d.simulated.body, expected.body)
         # Moving a slider afterwards replaces the imported gait with a decoded one.
         d.sliders[0].value = 0.5
         time.sleep(0.2)
@@ -163,6 +172,7 @@ def test_bad_import_keeps_the_current_gait(server):
         client.close()
 
 
+@pytest.mark.slow
 def test_two_clients_are_independent(server):
     c1, d1 = _connect(server)
     c2, d2 = _connect(server)
@@ -222,8 +232,9 @@ def test_gait_csv_round_trip():
     np.testing.assert_array_equal(read_gait_csv(text.replace("\n", "\r\n").encode()).commands, u)
 
 
+@pytest.mark.slow
 def test_bench_app_json(checkpoint, capsys):
-    from app.cli import main
+    from snakeloco.app.cli import main
 
     main(["bench", "app", "--json", "--checkpoint", str(checkpoint), "--moves", "2"])
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -273,14 +284,16 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
         d.sliders[0].value = -1.0
         time.sleep(0.2)
         assert d.wait_idle(60)
-        assert d.simulated is None and d.gen_path is not None
-        assert "Replay failed" in d.panel.content and "thrown into the air" in d.panel.content
-        assert "Resample z_k" not in d.panel.content  # z_k = 0: no sampling to blame
+        assert d.simulated is None and d.scene.gen_path is not None
+        assert (
+            "Replay failed" in d.controls.panel.content and "thrown into the air" in d.controls.panel.content
+        )
+        assert "Resample z_k" not in d.controls.panel.content  # z_k = 0: no sampling to blame
         assert d.timings[-1].failed and server.errors == []
-        d.zk_mode.value = "sampled"  # a sampled gait that breaks gets told what to try
+        d.controls.zk_mode.value = "sampled"  # a sampled gait that breaks gets told what to try
         time.sleep(0.2)
         assert d.wait_idle(60)
-        assert "Replay failed" in d.panel.content and "Resample z_k" in d.panel.content
+        assert "Replay failed" in d.controls.panel.content and "Resample z_k" in d.controls.panel.content
     finally:
         client.close()
 
@@ -312,7 +325,7 @@ def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server
         # The held (stale) replay finished but was never drawn; the newest one was.
         assert replayed == [1.0, 1.6]
         assert not np.isfinite(first.replayed) and np.isfinite(d.timings[-1].ensembled)
-        np.testing.assert_allclose(d.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
+        np.testing.assert_allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
         assert d.decoded.latents.z_b[0] == 1.6
     finally:
         client.close()
@@ -341,22 +354,15 @@ def test_server_stop_leaves_no_threads(checkpoint):
 def test_large_freed_buffers_go_back_to_the_os_on_glibc():
     import platform
 
-    from app.server import return_freed_buffers_to_the_os
+    from snakeloco.app.server import return_freed_buffers_to_the_os
 
     on_glibc = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
     assert return_freed_buffers_to_the_os() is on_glibc
 
 
 def test_panel_spread_is_relative_only_where_the_mean_is_a_scale():
-    assert _spread_text(1.0, 0.023) == "±1 (2.3%)"
-    assert _spread_text(0.0091, 0.273) == "±0.0091 (27.3%)"
+    assert spread_text(1.0, 0.023) == "±1 (2.3%)"
+    assert spread_text(0.0091, 0.273) == "±0.0091 (27.3%)"
     # A net roll going both ways: std above the mean's size, so no percentage.
-    assert _spread_text(15.0, 7.894) == "±15"
-    assert _spread_text(2.0, 1.0) == "±2"
-
-
-def test_help_text_is_package_data():
-    # Inside the app package (pyproject's package-data), so `pip install .` shows it, not only -e.
-    assert HELP_PATH.parent.name == "app" and HELP_PATH.is_file()
-    text = _help_text()
-    assert "Export CSV" in text and "Import CSV" in text and "z_k mode" in text
+    assert spread_text(15.0, 7.894) == "±15"
+    assert spread_text(2.0, 1.0) == "±2"

@@ -5,25 +5,17 @@ Skipped with a reason where chromium or Playwright is missing; CI installs both 
 
 from __future__ import annotations
 
-import shutil
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from app.gait_csv import read_gait_csv
-from app.load import CHROMIUM, CHROMIUM_ARGS, wait_until
-from app.server import DesignerServer
+from snakeloco.app.bench.load import CHROMIUM, CHROMIUM_ARGS, wait_until
+from snakeloco.app.gait_csv import read_gait_csv
+from snakeloco.app.server import DesignerServer
+
+from helpers import BROWSER
 
 ARGS = CHROMIUM_ARGS
-SCREENSHOT = Path(__file__).resolve().parent.parent / "static" / "designer_test.png"
-
-pytestmark = [
-    pytest.mark.browser,
-    pytest.mark.skipif(
-        not Path(CHROMIUM).exists() and not shutil.which("chromium"), reason="Debian chromium not installed"
-    ),
-]
+pytestmark = BROWSER
 
 
 def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
@@ -71,10 +63,9 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
             assert d.idle() and d.decoded.source == "import: gait.csv"
             np.testing.assert_array_equal(d.decoded.commands, table.commands)
             page.wait_for_timeout(1500)
-            SCREENSHOT.parent.mkdir(exist_ok=True)
-            page.screenshot(path=str(tmp_path / "designer.png"))
-            shutil.copy(tmp_path / "designer.png", SCREENSHOT)
-            assert SCREENSHOT.stat().st_size > 10_000
+            screenshot = tmp_path / "designer.png"  # under the test's own folder: nothing goes into the repo
+            page.screenshot(path=str(screenshot))
+            assert screenshot.read_bytes()[:4] == b"\x89PNG" and screenshot.stat().st_size > 10_000
             browser.close()
     finally:
         srv.stop()

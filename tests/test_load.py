@@ -12,17 +12,14 @@ import os
 import numpy as np
 import pytest
 
-from app.load import CHROMIUM
+from helpers import BROWSER
 
-from .test_browser import pytestmark as browser_marks
-
-pytestmark = [*browser_marks, pytest.mark.load]
+pytestmark = [*BROWSER, pytest.mark.load]
 
 
 def test_bench_load_two_tabs(checkpoint, capsys):
     pytest.importorskip("playwright.sync_api")
-    assert CHROMIUM
-    from app.cli import main
+    from snakeloco.app.cli import main
 
     cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
     main(

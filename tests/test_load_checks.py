@@ -6,7 +6,7 @@ import threading
 import time
 from types import SimpleNamespace
 
-import app.load as load
+import snakeloco.app.bench.load as load
 
 
 class _Tab:

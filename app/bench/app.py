@@ -7,13 +7,13 @@ import time
 import mujoco
 import numpy as np
 
-from app.headless import HeadlessClient
-from app.server import DesignerServer
-from sim import Simulator, expand_commands, load_model
-from sim.consistency import perturbed_commands
+from snakeloco.app.bench.headless import HeadlessClient
+from snakeloco.app.server import DesignerServer, tune_process
+from snakeloco.sim import Simulator, expand_commands, load_model
+from snakeloco.sim.consistency import ENSEMBLE_SIZE, perturbed_commands
 
 
-def bench_app(checkpoint=None, moves: int = 20, ensemble: int = 8, seed: int = 0) -> dict:
+def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, seed: int = 0) -> dict:
     """Move a slider ``moves`` times (waiting for each gait to finish) and time every stage.
 
     Reports slider -> decoded view and slider -> replay ready latency p50/p95 (ms, measured on the
@@ -21,6 +21,7 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = 8, seed: int = 0
     replay time over a bare single-thread ``mj_step`` loop of the same steps (``replay_ratio``) and
     the ensemble time over a bare ``mujoco.rollout`` of the same batch (``ensemble_ratio``).
     """
+    tune_process()  # as `snakeloco serve` runs it
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
     client = HeadlessClient(server.port)
     try:
@@ -33,7 +34,7 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = 8, seed: int = 0
         rng = np.random.default_rng(seed)
         model = load_model()
         data = mujoco.MjData(model)
-        bare_sim = Simulator(workers=designer.session._ensembler.workers)
+        bare_sim = Simulator(workers=server.simulator.workers)
         rows = []
         for _ in range(moves):
             designer.sliders[int(rng.integers(len(designer.sliders)))].value = float(

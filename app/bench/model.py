@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from model.api import load_pretrained
+from snakeloco.model.api import load_pretrained
 
 
 def bench_model(checkpoint=None, n: int = 200, batch: int = 256) -> dict:

@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
-import os
 import time
 
 import mujoco
 import numpy as np
 
-from sim.dataset import GenerateConfig, _draw, simulate_samples
-from sim.physics import Simulator, expand_commands, replay
-from sim.robot import load_model
-from sim.spectra import joint_shape
+from snakeloco.sim import (
+    BODY_DOWNSAMPLE,
+    GenerateConfig,
+    Simulator,
+    expand_commands,
+    joint_shape,
+    load_model,
+    replay,
+)
+from snakeloco.sim.generate import draw_sample, simulate_samples
 
 
 def _best(fn, repeats: int) -> float:
@@ -36,19 +41,19 @@ def bench_sim(samples: int | None = None, workers: int | None = None, repeats: i
 
     Each figure is the best of ``repeats`` runs, raw and generator runs interleaved.
     """
-    workers = workers or os.cpu_count() or 1
+    simulator = Simulator(workers)
+    workers = simulator.workers
     samples = samples or 4 * workers
     cfg = GenerateConfig(num_samples=samples, seed=12345)
-    simulator = Simulator(workers, cfg.excitation, cfg.sim)
     indices = np.arange(samples)
     # The generator's own first draws, so both runs simulate the very same trajectories.
-    commands = np.stack([_draw(cfg, int(i), 0)[1] for i in indices]).astype(np.float64)
+    commands = np.stack([draw_sample(cfg, int(i), 0)[1] for i in indices]).astype(np.float64)
     ctrl = expand_commands(commands, simulator.substeps, cfg.sim)  # (B, n_steps, 8), fixed
     steps = samples * simulator.n_steps
 
     def generator() -> None:
         chunk = simulate_samples(cfg, simulator, indices)
-        chunk.body[:, ::4].copy()
+        chunk.body[:, ::BODY_DOWNSAMPLE].copy()
         joint_shape(chunk.joint_angles, cfg.excitation)
 
     raw_t, gen_t = float("inf"), float("inf")

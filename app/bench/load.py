@@ -1,7 +1,7 @@
 """``snakeloco bench load``: real browser tabs drag sliders on one designer server at the same time.
 
 The server runs in this process; each client is a Chromium page (Playwright, Debian ``chromium``,
-driven from a separate process: ``app.load_driver`` says why)
+driven from a separate process: ``load_driver`` says why)
 whose mouse drags a z_B slider thumb back and forth without pause. Two phases run side by side in
 one call: one client alone, then ``clients`` at once, each for ``seconds``. Reported per client:
 
@@ -31,16 +31,25 @@ process to the second half.
 from __future__ import annotations
 
 import os
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from app import load_driver
-from app.gait_csv import read_gait_csv
-from app.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until  # noqa: F401 (the browser tests' too)
-from app.server import DesignerClient, DesignerServer
+from snakeloco.app.bench import load_driver
+from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until  # noqa: F401 (the browser tests' too)
+from snakeloco.app.bench.processes import (
+    BrowserNice,
+    RssSampler,
+    pin_process,
+    rss_mb,
+    slope_mb_per_min,
+    split_cpus,
+)
+from snakeloco.app.gait_csv import read_gait_csv
+from snakeloco.app.server import DesignerServer, tune_process
+from snakeloco.app.tab import DesignerClient
+from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
 BROWSER_NICE = 10
 CATCH_UP_S = 120.0
@@ -51,145 +60,12 @@ class MissingBrowserError(RuntimeError):
     """``bench load`` needs Playwright and Debian chromium; one of them is missing."""
 
 
-def split_cpus() -> tuple[list[int], list[int]] | None:
-    """(server CPUs, browser CPUs): the first and second half of this process's CPUs, or None
-    where there are fewer than two or affinity cannot be set (then everything shares them)."""
-    if not hasattr(os, "sched_getaffinity") or not Path("/proc/self/task").is_dir():
-        return None
-    cpus = sorted(os.sched_getaffinity(0))
-    if len(cpus) < 2:
-        return None
-    half = len(cpus) // 2
-    return cpus[:half], cpus[half:]
-
-
-def _pin_process(cpus) -> None:
-    """Pin every thread of this process to ``cpus`` (threads started later inherit their creator's)."""
-    for tid in os.listdir("/proc/self/task"):
-        try:
-            os.sched_setaffinity(int(tid), cpus)
-        except OSError:  # the thread ended meanwhile
-            pass
-
-
-def rss_mb() -> float:
-    """Resident set size of this process (MB), from /proc (Linux) or the peak from getrusage."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def _descendants(root: int) -> list[int]:
-    """Process ids of every process descended from ``root`` (Linux /proc)."""
-    parent = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-            parent[int(stat.parent.name)] = int(fields[1])
-        except (OSError, ValueError, IndexError):
-            continue
-    found, frontier = set(), {root}
-    while frontier:
-        frontier = {pid for pid, pp in parent.items() if pp in frontier} - found
-        found |= frontier
-    return sorted(found)
-
-
-def _autogroup(pid: int | str) -> tuple[str, int] | None:
-    """(name, nice) of a process's scheduler autogroup, or None where the kernel has none."""
-    try:
-        name, nice = Path(f"/proc/{pid}/autogroup").read_text().split()[:3:2]
-        return name, int(nice)
-    except (OSError, ValueError):
-        return None
-
-
-class _BrowserNice:
-    """Keeps every thread of the browsers this process started at nice >= ``nice``.
-
-    Chromium sets its renderers' priority itself (as root, to nice -8 for visible pages), which
-    would put the load generators above the server they are measuring. And Playwright starts each
-    browser in a session of its own: where the kernel groups sessions for scheduling
-    (``sched_autogroup_enabled``, the default on desktop kernels), a thread's nice only counts
-    inside its group and the groups share the CPUs equally, so 4 browsers held the server to a
-    fifth of the machine whatever their threads' nice. Each browser's group gets the nice too.
-    """
-
-    def __init__(self, nice: int, period: float = 0.5) -> None:
-        self._nice, self._period = nice, period
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="browser-nice", daemon=True)
-        if hasattr(os, "setpriority") and Path("/proc/self/task").is_dir():
-            self._thread.start()
-
-    def _run(self) -> None:
-        me = os.getpid()
-        mine = _autogroup("self")
-        while not self._stop.wait(self._period):
-            for pid in _descendants(me):
-                group = _autogroup(pid)
-                if group is not None and group[0] != (mine and mine[0]) and group[1] < self._nice:
-                    try:
-                        Path(f"/proc/{pid}/autogroup").write_text(str(self._nice))
-                    except OSError:
-                        pass
-                try:
-                    tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-                except OSError:
-                    continue
-                for tid in tids:
-                    try:
-                        if os.getpriority(os.PRIO_PROCESS, tid) < self._nice:
-                            os.setpriority(os.PRIO_PROCESS, tid, self._nice)
-                    except OSError:
-                        continue
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=5)
-
-
-class _RssSampler:
-    def __init__(self, period: float = 0.5) -> None:
-        self.samples: list[tuple[float, float]] = []
-        self._stop = threading.Event()
-        self._period = period
-        self._t0 = time.monotonic()
-        self._thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.samples.append((time.monotonic() - self._t0, rss_mb()))
-            self._stop.wait(self._period)
-
-    def window(self, start: float, end: float) -> np.ndarray:
-        a = np.asarray(self.samples)
-        return a[(a[:, 0] >= start - self._t0) & (a[:, 0] <= end - self._t0)]
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
-
-
-def _slope_mb_per_min(samples: np.ndarray) -> float:
-    """Least-squares slope of (seconds, MB) samples, in MB per minute (NaN for fewer than 3)."""
-    return float(np.polyfit(samples[:, 0], samples[:, 1], 1)[0] * 60.0) if len(samples) > 2 else float("nan")
-
-
 def _p(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
 class _Browser:
-    """One user: a Chromium page driven from a process of its own (``app.load_driver``), so that
+    """One user: a Chromium page driven from a process of its own (``load_driver``), so that
     every page drags at its own pace, as users' browsers on their own machines do."""
 
     def __init__(self, url: str, render: bool, cpus: list[int] | None) -> None:
@@ -294,11 +170,11 @@ def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: i
         return problems
     shape, body = d.model.decode(np.asarray(z)[None])
     commands = d.model.commands(shape[0])
-    if not np.allclose(d.plots["forward (m)"].data[1], body[0, :, 1], atol=1e-9):
+    if not np.allclose(d.controls.plots["forward (m)"].data[1], body[0, :, 1], atol=1e-9):
         problems.append("drawn generated path is not the decode of the final sliders")
     if d.simulated is None:
         problems.append("no replay drawn for the final sliders")
-    elif not np.allclose(d.plots["forward (m)"].data[2], d.simulated.body[::4, 1], atol=1e-12):
+    elif not np.allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::4, 1], atol=1e-12):
         problems.append("drawn simulated path is not the final replay")
     path = tmp / f"client{index}.csv"
     if not browser.call("export", 0, str(path), CATCH_UP_S, timeout=CATCH_UP_S + 60):
@@ -402,7 +278,7 @@ def bench_load(
     clients: int = 4,
     seconds: float = 60.0,
     checkpoint=None,
-    ensemble: int = 8,
+    ensemble: int = ENSEMBLE_SIZE,
     seed: int = 0,
     log=print,
     render: bool = False,
@@ -424,10 +300,11 @@ def bench_load(
     split = split_cpus() if pin_cpus else None
     all_cpus = sorted(os.sched_getaffinity(0)) if split else None
     if split:
-        _pin_process(split[0])  # before the server starts: its threads inherit the server half
+        pin_process(split[0])  # before the server starts: its threads inherit the server half
+    tune_process()  # as `snakeloco serve` runs it
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
-    rss = _RssSampler()
-    browser_nice = _BrowserNice(BROWSER_NICE)
+    rss = RssSampler()
+    browser_nice = BrowserNice(BROWSER_NICE)
     rng = np.random.default_rng(seed)
     phases = {}
     try:
@@ -443,11 +320,11 @@ def bench_load(
         browser_nice.stop()
         server.stop()
         if all_cpus:
-            _pin_process(all_cpus)
+            pin_process(all_cpus)
     multi = phases[clients]
     single = phases[1]["clients"][0]
     window = rss.window(multi["t_start"], multi["t_end"])
-    slope = _slope_mb_per_min(window)
+    slope = slope_mb_per_min(window)
     # The first replays of every tab allocate what a tab keeps (its simulator's pool, its gait and
     # replay arrays): a step, then flat. The second half of the phase shows which.
     late = (
@@ -485,10 +362,10 @@ def bench_load(
         "rss_peak_mb": float(all_rss.max()),
         "rss_multi_start_mb": float(window[0, 1]) if len(window) else float("nan"),
         "rss_multi_end_mb": float(window[-1, 1]) if len(window) else float("nan"),
-        "rss_slope_mb_per_min": slope,
+        "rssslope_mb_per_min": slope,
         "rss_idle_before_mb": multi["rss_idle_before_mb"],
         "rss_idle_after_mb": multi["rss_idle_after_mb"],
-        "rss_late_slope_mb_per_min": _slope_mb_per_min(late),
+        "rss_lateslope_mb_per_min": slope_mb_per_min(late),
         "rss_late_start_mb": float(late[0, 1]) if len(late) else float("nan"),
         "rss_late_end_mb": float(late[-1, 1]) if len(late) else float("nan"),
         "rss_series_mb": [[round(float(t), 1), round(float(mb), 1)] for t, mb in rss.samples[::10]],

@@ -1,0 +1,144 @@
+"""What ``bench load`` does to processes and threads on Linux: CPU halves for server and browsers,
+priorities of the browsers it starts, and the server's resident memory over time."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def split_cpus() -> tuple[list[int], list[int]] | None:
+    """(server CPUs, browser CPUs): the first and second half of this process's CPUs, or None
+    where there are fewer than two or affinity cannot be set (then everything shares them)."""
+    if not hasattr(os, "sched_getaffinity") or not Path("/proc/self/task").is_dir():
+        return None
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        return None
+    half = len(cpus) // 2
+    return cpus[:half], cpus[half:]
+
+
+def pin_process(cpus) -> None:
+    """Pin every thread of this process to ``cpus`` (threads started later inherit their creator's)."""
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(tid), cpus)
+        except OSError:  # the thread ended meanwhile
+            pass
+
+
+def rss_mb() -> float:
+    """Resident set size of this process (MB), from /proc (Linux) or the peak from getrusage."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def descendants(root: int) -> list[int]:
+    """Process ids of every process descended from ``root`` (Linux /proc)."""
+    parent = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            parent[int(stat.parent.name)] = int(fields[1])
+        except (OSError, ValueError, IndexError):
+            continue
+    found, frontier = set(), {root}
+    while frontier:
+        frontier = {pid for pid, pp in parent.items() if pp in frontier} - found
+        found |= frontier
+    return sorted(found)
+
+
+def autogroup(pid: int | str) -> tuple[str, int] | None:
+    """(name, nice) of a process's scheduler autogroup, or None where the kernel has none."""
+    try:
+        name, nice = Path(f"/proc/{pid}/autogroup").read_text().split()[:3:2]
+        return name, int(nice)
+    except (OSError, ValueError):
+        return None
+
+
+class BrowserNice:
+    """Keeps every thread of the browsers this process started at nice >= ``nice``.
+
+    Chromium sets its renderers' priority itself (as root, to nice -8 for visible pages), which
+    would put the load generators above the server they are measuring. And Playwright starts each
+    browser in a session of its own: where the kernel groups sessions for scheduling
+    (``schedautogroup_enabled``, the default on desktop kernels), a thread's nice only counts
+    inside its group and the groups share the CPUs equally, so 4 browsers held the server to a
+    fifth of the machine whatever their threads' nice. Each browser's group gets the nice too.
+    """
+
+    def __init__(self, nice: int, period: float = 0.5) -> None:
+        self._nice, self._period = nice, period
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="browser-nice", daemon=True)
+        if hasattr(os, "setpriority") and Path("/proc/self/task").is_dir():
+            self._thread.start()
+
+    def _run(self) -> None:
+        me = os.getpid()
+        mine = autogroup("self")
+        while not self._stop.wait(self._period):
+            for pid in descendants(me):
+                group = autogroup(pid)
+                if group is not None and group[0] != (mine and mine[0]) and group[1] < self._nice:
+                    try:
+                        Path(f"/proc/{pid}/autogroup").write_text(str(self._nice))
+                    except OSError:
+                        pass
+                try:
+                    tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+                except OSError:
+                    continue
+                for tid in tids:
+                    try:
+                        if os.getpriority(os.PRIO_PROCESS, tid) < self._nice:
+                            os.setpriority(os.PRIO_PROCESS, tid, self._nice)
+                    except OSError:
+                        continue
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5)
+
+
+class RssSampler:
+    def __init__(self, period: float = 0.5) -> None:
+        self.samples: list[tuple[float, float]] = []
+        self._stop = threading.Event()
+        self._period = period
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.samples.append((time.monotonic() - self._t0, rss_mb()))
+            self._stop.wait(self._period)
+
+    def window(self, start: float, end: float) -> np.ndarray:
+        a = np.asarray(self.samples)
+        return a[(a[:, 0] >= start - self._t0) & (a[:, 0] <= end - self._t0)]
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+
+def slope_mb_per_min(samples: np.ndarray) -> float:
+    """Least-squares slope of (seconds, MB) samples, in MB per minute (NaN for fewer than 3)."""
+    return float(np.polyfit(samples[:, 0], samples[:, 1], 1)[0] * 60.0) if len(samples) > 2 else float("nan")

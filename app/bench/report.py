@@ -1,0 +1,96 @@
+"""``snakeloco bench {sim,model,app,load}``: run a benchmark and print its figures for a person.
+
+Each function takes the parsed command (``app/cli.py``) and returns the figures as a dict (the CLI
+prints it as JSON with ``--json``). The benchmarks themselves live beside this file.
+"""
+
+from __future__ import annotations
+
+
+def sim(cmd) -> dict:
+    """The simulator against bare MuJoCo (``bench/sim.py``)."""
+    from snakeloco.app.bench.sim import bench_sim
+
+    r = bench_sim(samples=cmd.samples, workers=cmd.workers, repeats=cmd.repeats)
+    print(
+        f"threads {r['workers']}, {r['samples']} records of {r['steps_per_sample']} steps\n"
+        f"raw mujoco.rollout   {r['raw_steps_per_s']:12.0f} steps/s\n"
+        f"generator end-to-end {r['generator_steps_per_s']:12.0f} steps/s"
+        f"   ratio {r['ratio']:.3f} (generator / raw, goal >= 0.9)\n"
+        f"bare mj_step loop    {r['bare_ms']:9.1f} ms\n"
+        f"sim.replay           {r['replay_ms']:9.1f} ms"
+        f"   replay_ratio {r['replay_ratio']:.3f} (replay time / bare time)"
+    )
+    return r
+
+
+def model(cmd) -> dict:
+    """Decode latency and throughput (``bench/model.py``)."""
+    from snakeloco.app.bench.model import bench_model
+
+    r = bench_model(cmd.checkpoint, n=cmd.calls)
+    print(
+        f"decode one z_B: p50 {r['decode_p50_ms']:.2f} ms, p95 {r['decode_p95_ms']:.2f} ms; "
+        f"batch of {r['batch']}: {r['batch_decodes_per_s']:.0f} decodes/s"
+    )
+    return r
+
+
+def app(cmd) -> dict:
+    """One client's latency through a real designer server (``bench/app.py``)."""
+    from snakeloco.app.bench.app import bench_app
+
+    r = bench_app(cmd.checkpoint, cmd.moves)
+    print(
+        f"{r['moves']} slider moves: decoded view p50 {r['decoded_p50_ms']:.1f} ms, p95 {r['decoded_p95_ms']:.1f} ms; "
+        f"replay ready p50 {r['replay_ready_p50_ms']:.0f} ms, p95 {r['replay_ready_p95_ms']:.0f} ms; "
+        f"replay_ratio {r['replay_ratio']:.3f} (replay / bare mj_step), "
+        f"ensemble_ratio {r['ensemble_ratio']:.3f} (ensemble / bare mujoco.rollout)"
+    )
+    return r
+
+
+def load(cmd) -> dict:
+    """Several browser tabs on one server (``bench/load.py``)."""
+    from snakeloco.app.bench.load import bench_load
+
+    r = bench_load(
+        cmd.clients,
+        cmd.seconds,
+        cmd.checkpoint,
+        cmd.ensemble,
+        cmd.seed,
+        render=cmd.render,
+        pin_cpus=cmd.pin_cpus,
+    )
+    where = (
+        f"server on CPUs {r['server_cpus']}, browsers on CPUs {r['browser_cpus']}"
+        if r["server_cpus"]
+        else "server and browsers share the CPUs"
+    )
+    breakdown = "; ".join(
+        f"{k} {r['single_breakdown_p95_ms'][k]:.1f} -> "
+        + "/".join(f"{v:.1f}" for v in r["multi_breakdown_p95_ms"][k])
+        for k in ("wait", "decode", "draw")
+    )
+    print(
+        f"{where}\n"
+        f"1 client: decoded view p50 {r['single_decoded_p50_ms']:.1f} ms, p95 {r['single_decoded_p95_ms']:.1f} ms\n"
+        f"{r['clients']} clients: decoded view p95 per client "
+        + ", ".join(f"{v:.1f}" for v in r["multi_decoded_p95_ms"])
+        + f" ms; worst / single p95 = {r['p95_ratio']:.2f} (goal <= 2)\n"
+        f"p95 breakdown (ms), 1 client -> each of {r['clients']}: {breakdown}\n"
+        f"updates per client {r['updates']}; server exceptions {r['server_exceptions']}, "
+        f"page errors {r['page_errors']}, stale draws {r['stale_draws']}\n"
+        f"server RSS {r['rss_start_mb']:.0f} MB at start, {r['rss_multi_start_mb']:.0f} -> "
+        f"{r['rss_multi_end_mb']:.0f} MB over the {r['clients']}-client phase "
+        f"(slope {r['rss_slope_mb_per_min']:+.1f} MB/min; second half {r['rss_late_start_mb']:.0f} -> "
+        f"{r['rss_late_end_mb']:.0f} MB, slope {r['rss_late_slope_mb_per_min']:+.1f} MB/min), "
+        f"peak {r['rss_peak_mb']:.0f} MB; tabs idle before / after the drags "
+        f"{r['rss_idle_before_mb']:.0f} / {r['rss_idle_after_mb']:.0f} MB"
+    )
+    for details in r["stale_details"]:
+        print("stale:", "; ".join(details))
+    for message in r["exception_messages"]:
+        print("exception:", message)
+    return r

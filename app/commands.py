@@ -1,0 +1,200 @@
+"""The subcommands' options: pydantic models whose nested configs are the library's own.
+
+``GenerateConfig``, ``TrainConfig``, ``ModelConfig`` and ``CalibrateConfig`` are the flags of their
+commands (``Flat``: without a prefix), so every default and bound lives once, beside the code that
+uses it, and ``snakeloco train`` builds the model ``snakeloco.model.train`` builds from Python.
+Field docstrings are the ``--help`` texts.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+from pydantic import BaseModel, ConfigDict, Field
+
+from snakeloco.model.calibrate import CalibrateConfig
+from snakeloco.model.config import ModelConfig
+from snakeloco.model.train import PRESETS, TrainConfig
+from snakeloco.sim import GenerateConfig
+from snakeloco.sim.consistency import ENSEMBLE_SIZE
+
+Flat = tyro.conf.OmitArgPrefixes
+"""A nested config whose fields are flags of their own (``--epochs``, not ``--train.epochs``)."""
+Workers = Annotated[int | None, Field(ge=1)]
+Seed = Annotated[int, Field(ge=0)]  # numpy's generators take no negative seed
+Ensemble = Annotated[int, Field(ge=2)]  # the replay and at least one perturbed copy: a spread needs two
+Checkpoint = Path | None
+Json = bool
+
+
+# ``--json`` is a field named json, which shadows pydantic's deprecated ``BaseModel.json`` method: fine
+# for these option models, which are never serialised that way.
+warnings.filterwarnings("ignore", message='Field name "json"', category=UserWarning)
+
+
+class Command(BaseModel):
+    """A subcommand's options (frozen, no unknown fields, no NaN)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+class Generate(Command):
+    """Generate a training dataset of multisine rollouts (deterministic in N and seed, written atomically)."""
+
+    out: Path
+    """Destination .npz file."""
+    config: Annotated[GenerateConfig, Flat] = GenerateConfig()
+    workers: Workers = None
+    """Simulation threads (default: all cores). Does not change the result."""
+
+
+class Train(Command):
+    """Train the hierarchical VAE; writes the best-on-validation checkpoint and metrics.jsonl to OUT."""
+
+    data: Path
+    """Dataset .npz from `snakeloco generate`."""
+    out: Path
+    """Checkpoint directory (model.safetensors, config.json, metrics.jsonl)."""
+    preset: Literal[tuple(PRESETS)] | None = None  # type: ignore[valid-type]
+    """Start from a shipped recipe (snakeloco.model.PRESETS; paper: the shipped checkpoint); options given
+    beside it override it."""
+    train: Annotated[TrainConfig, Flat] = TrainConfig()
+    model: Annotated[ModelConfig, Flat] = ModelConfig()
+
+
+class Evaluate(Command):
+    """Evaluate a checkpoint: reconstruction R^2, latent health, and generated-gait consistency vs physics."""
+
+    data: Path
+    """Held-out dataset .npz (generate it with a seed not used for training)."""
+    checkpoint: Checkpoint = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    prior_samples: Annotated[int, Field(ge=0)] = 256
+    """z_B drawn from the prior for the consistency check (0 skips it)."""
+    ensemble: Ensemble = ENSEMBLE_SIZE
+    """Replays per generated gait: the commands plus ensemble-1 copies with 1e-3 relative noise."""
+    seed: Seed = 0
+    """Seed of the prior draws and noise."""
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    json: Json = False
+    """Print the figures as one JSON object on the last line."""
+    report: Path | None = None
+    """Also write the figures, with every generated gait's statistics, to this JSON file."""
+    replays: Path | None = None
+    """Consistency replays (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same draw), else written there after replaying; re-scores a recalibrated checkpoint without simulating."""
+
+
+class Calibrate(Command):
+    """Fine-tune the statistics head and the body decoder on replays of the model's own prior gaits (model/calibrate.py)."""
+
+    data: Path
+    """The dataset .npz the checkpoint was trained on (its training split is mixed in)."""
+    out: Path
+    """Directory for the calibrated checkpoint (may be the input checkpoint's own)."""
+    checkpoint: Checkpoint = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    config: Annotated[CalibrateConfig, Flat] = CalibrateConfig()
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    gaits: Path | None = None
+    """Replayed calibration gaits (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same draw), else written there after replaying."""
+
+
+class Figures(Command):
+    """Write PNG figures like the paper's Figs. 5-8 (fit, prior sweep, z_k samples, joint shapes) and, with --report, fig. 9 (consistency)."""
+
+    data: Path
+    """Dataset .npz for the fit figure."""
+    out: Path
+    """Output directory."""
+    checkpoint: Checkpoint = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    seed: Seed = 0
+    """Seed of the sample choice and latent draws."""
+    report: Path | None = None
+    """A JSON report from `snakeloco evaluate --report` for the consistency figure (fig9)."""
+
+
+class Serve(Command):
+    """Open the browser gait designer (viser) on a checkpoint. The UI has no authentication."""
+
+    host: str = "127.0.0.1"
+    """Interface to bind; the default keeps the designer on this machine. Use 0.0.0.0 only on a trusted network."""
+    port: Annotated[int, Field(ge=0, le=65535)] = 8080
+    """TCP port (0: any free port)."""
+    checkpoint: Checkpoint = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    ensemble: Ensemble = ENSEMBLE_SIZE
+    """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
+
+
+class BenchSim(Command):
+    """Benchmark the simulator: raw mujoco.rollout vs the generator, replay vs a bare mj_step loop."""
+
+    json: Json = False
+    """Print the figures as one JSON object on the last line."""
+    workers: Workers = None
+    """Threads (default: all cores)."""
+    samples: Annotated[int | None, Field(ge=1)] = None
+    """Records per batch (default: 4 per thread)."""
+    repeats: Annotated[int, Field(ge=1)] = 3
+    """Runs of each measurement; the best is kept."""
+
+
+class BenchModel(Command):
+    """Benchmark decoding: latency of one z_B (the slider path) p50/p95 and batch throughput."""
+
+    json: Json = False
+    """Print the figures as one JSON object on the last line."""
+    checkpoint: Checkpoint = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    calls: Annotated[int, Field(ge=1)] = 200
+    """Timed single decodes."""
+
+
+class BenchApp(Command):
+    """Benchmark the designer through a real server: slider -> decoded view / replay ready, vs bare MuJoCo."""
+
+    json: Json = False
+    """Print the figures as one JSON object on the last line."""
+    checkpoint: Checkpoint = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    moves: Annotated[int, Field(ge=1)] = 20
+    """Slider moves to time."""
+
+
+class BenchLoad(Command):
+    """Several headless Chromium tabs drag sliders on one server: latency, exceptions, stale draws, RSS."""
+
+    clients: Annotated[int, Field(ge=1)] = 4
+    """Browser tabs in the multi-client phase (a single-client phase runs first, side by side)."""
+    seconds: Annotated[float, Field(gt=0)] = 60.0
+    """Length of each phase."""
+    json: Json = False
+    """Print the figures as one JSON object on the last line."""
+    checkpoint: Checkpoint = None
+    """Checkpoint directory (default: the shipped pretrained model)."""
+    ensemble: Ensemble = ENSEMBLE_SIZE
+    """Replays per gait (as in `snakeloco serve`)."""
+    seed: Seed = 0
+    """Seed of the drag targets."""
+    render: bool = False
+    """Let the pages draw the 3D view and animate the snake (software WebGL: far fewer slider updates)."""
+    pin_cpus: bool = False
+    """Pin the server to the first half of the CPUs and the browsers to the second half."""
+
+
+COMMANDS: dict[str, type[Command]] = {
+    "generate": Generate,
+    "train": Train,
+    "evaluate": Evaluate,
+    "calibrate": Calibrate,
+    "figures": Figures,
+    "serve": Serve,
+}
+BENCHES: dict[str, type[Command]] = {"sim": BenchSim, "model": BenchModel, "app": BenchApp, "load": BenchLoad}
+BENCH_HELP = "Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load} --help`."

@@ -1,0 +1,140 @@
+"""One tab's GUI controls (viser), built in the order they are shown; ``tab.py`` wires them up."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import viser
+import viser.uplot as uplot
+
+from snakeloco.app.scene import JOINT_COLORS, LAYERS
+from snakeloco.sim import BODY_TIMES, N_JOINTS, RECORD
+
+HELP_PATH = Path(__file__).resolve().parent / "help.md"
+"""The Help panel's text; package data, so a non-editable install shows it too."""
+SLIDER_RANGE = 3.0
+"""Sliders span +/- 3 prior standard deviations of z_B ~ N(0, I)."""
+PATH_PLOTS = {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}
+"""Generated-vs-simulated plots: title -> body channel (``sim.BODY_CHANNELS``)."""
+
+
+def help_text() -> str:
+    return HELP_PATH.read_text(encoding="utf-8")
+
+
+@dataclass
+class Controls:
+    """The handles of one tab's GUI."""
+
+    sliders: list[viser.GuiSliderHandle]
+    reset_button: viser.GuiButtonHandle
+    random_button: viser.GuiButtonHandle
+    zk_mode: viser.GuiDropdownHandle
+    zk_seed: viser.GuiNumberHandle
+    zk_temperature: viser.GuiSliderHandle
+    resample_button: viser.GuiButtonHandle
+    play_button: viser.GuiButtonHandle
+    speed: viser.GuiSliderHandle
+    scrubber: viser.GuiSliderHandle
+    layers: dict[str, viser.GuiCheckboxHandle]
+    export_button: viser.GuiButtonHandle
+    import_button: viser.GuiUploadButtonHandle
+    panel: viser.GuiMarkdownHandle
+    plots: dict[str, viser.GuiUplotHandle]
+
+    def show_paths(self, generated: np.ndarray | None, simulated: np.ndarray | None) -> None:
+        """Generated vs simulated body series (500, 6) in the plots; a missing one is drawn as NaN."""
+        missing = np.full(len(BODY_TIMES), np.nan)
+        for name, ch in PATH_PLOTS.items():
+            gen = generated[:, ch] if generated is not None else missing
+            sim = simulated[:, ch] if simulated is not None else missing
+            self.plots[name].data = (BODY_TIMES, gen, sim)
+
+    def show_commands(self, commands: np.ndarray) -> None:
+        """Joint commands (2000, 8) rad in the commands plot."""
+        self.plots["commands"].data = (RECORD.times, *commands.T)
+
+
+def build_controls(gui: viser.GuiApi, z_b_dim: int) -> Controls:
+    """Add every folder and control of a tab to ``gui``."""
+    with gui.add_folder("Body latent z_B"):
+        sliders = [
+            gui.add_slider(
+                f"z_B {i + 1}", -SLIDER_RANGE, SLIDER_RANGE, 0.01, 0.0, hint=f"Body latent dimension {i + 1}"
+            )
+            for i in range(z_b_dim)
+        ]
+        reset_button = gui.add_button("Reset z_B", hint="All z_B to 0 (the prior mean)")
+        random_button = gui.add_button("Random z_B", hint="Draw z_B from its N(0, I) prior")
+    with gui.add_folder("Joint latents z_k"):
+        zk_mode = gui.add_dropdown("z_k mode", ("zero", "sampled"), initial_value="zero")
+        zk_seed = gui.add_number("z_k seed", 0, min=0, step=1)
+        zk_temperature = gui.add_slider("Temperature", 0.0, 2.0, 0.05, 1.0)
+        resample_button = gui.add_button("Resample z_k", hint="New seed for the sampled joint latents")
+    with gui.add_folder("Playback"):
+        play_button = gui.add_button("Pause")
+        speed = gui.add_slider("Speed", 0.25, 8.0, 0.25, 1.0, hint="Playback speed (x real time)")
+        last = float(RECORD.times[-1])
+        scrubber = gui.add_slider("Time (s)", 0.0, last, 1.0 / RECORD.sample_rate, 0.0)
+    with gui.add_folder("Layers"):
+        layers = {name: gui.add_checkbox(name, True) for name in LAYERS}
+    with gui.add_folder("Gait file"):
+        export_button = gui.add_button(
+            "Export CSV",
+            hint=f"Download the current gait ({RECORD.n_samples} rows, {RECORD.sample_rate:g} Hz, rad)",
+        )
+        import_button = gui.add_upload_button("Import CSV", mime_type=".csv,text/csv,text/plain")
+    with gui.add_folder("Consistency"):
+        panel = gui.add_markdown("Decoding...")
+    with gui.add_folder("Plots", expand_by_default=False):
+        no_time = {"x": {"time": False}}  # uPlot would read x as dates
+        nan = np.full(len(BODY_TIMES), np.nan)
+        plots = {}
+        for name in PATH_PLOTS:
+            plots[name] = gui.add_uplot(
+                data=(BODY_TIMES, nan, nan),
+                series=(
+                    uplot.Series(label="t (s)"),
+                    uplot.Series(label="generated", stroke="darkorange", width=2),
+                    uplot.Series(label="simulated", stroke="royalblue", width=2),
+                ),
+                scales=no_time,
+                title=name,
+                aspect=2.0,
+            )
+        plots["commands"] = gui.add_uplot(
+            data=(RECORD.times, *[np.zeros(RECORD.n_samples)] * N_JOINTS),
+            series=(
+                uplot.Series(label="t (s)"),
+                *[
+                    uplot.Series(
+                        label=f"joint {k + 1}", stroke="#{:02x}{:02x}{:02x}".format(*JOINT_COLORS[k]), width=1
+                    )
+                    for k in range(N_JOINTS)
+                ],
+            ),
+            scales=no_time,
+            title="joint commands (rad)",
+            aspect=1.5,
+        )
+    with gui.add_folder("Help", expand_by_default=False):
+        gui.add_markdown(help_text())
+    return Controls(
+        sliders=sliders,
+        reset_button=reset_button,
+        random_button=random_button,
+        zk_mode=zk_mode,
+        zk_seed=zk_seed,
+        zk_temperature=zk_temperature,
+        resample_button=resample_button,
+        play_button=play_button,
+        speed=speed,
+        scrubber=scrubber,
+        layers=layers,
+        export_button=export_button,
+        import_button=import_button,
+        panel=panel,
+        plots=plots,
+    )

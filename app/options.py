@@ -1,0 +1,121 @@
+"""Pydantic configs as the command line: tyro builds the flags from the models, pydantic checks them.
+
+Every default and every bound lives once, in the config model that uses it (``Field(ge=...)``). The
+CLI adds two things through a tyro constructor rule for pydantic models:
+
+- a model's validation error surfaces as ``OptionError`` (not a ValueError, which tyro would print
+  as its own boxed message), so ``snakeloco`` ends with one line naming the flag and its range:
+  ``snakeloco: error: --ensemble must be at least 2, got 1``;
+- fields whose metadata says ``{"cli": False}`` (set by the data or fixed by the product, e.g. the
+  model's number of joints) are not offered as flags and keep their defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+
+import annotated_types
+import tyro
+from pydantic import BaseModel, ValidationError
+from tyro.constructors import ConstructorRegistry, StructConstructorSpec, StructTypeInfo
+
+
+class OptionError(Exception):
+    """A command-line value the command cannot take, in one line naming the flag. Deliberately not a
+    ValueError: tyro catches those while building a command and prints them in its own format."""
+
+    @classmethod
+    def from_validation(cls, model: type[BaseModel], error: ValidationError) -> OptionError:
+        """The first bad field of a model's validation error, as its flag with its bounds and value."""
+        first = error.errors()[0]
+        name = str(first["loc"][0]) if first["loc"] else ""
+        return cls(describe(model, name, first))
+
+
+def flag(name: str) -> str:
+    """The command-line flag of a config field."""
+    return "--" + name.replace("_", "-")
+
+
+def _bounds(model: type[BaseModel], name: str) -> tuple[float | None, float | None, bool]:
+    """(lower, upper, lower is strict) bounds of a field from its ``Field(ge=..., gt=..., le=...)``."""
+    lo = hi = None
+    strict = False
+    field = model.model_fields.get(name)
+    for m in field.metadata if field is not None else ():
+        if isinstance(m, annotated_types.Ge):
+            lo = m.ge
+        elif isinstance(m, annotated_types.Gt):
+            lo, strict = m.gt, True
+        elif isinstance(m, annotated_types.Le | annotated_types.Lt):
+            hi = getattr(m, "le", None) if isinstance(m, annotated_types.Le) else m.lt
+    return lo, hi, strict
+
+
+def describe(model: type[BaseModel], name: str, error: dict) -> str:
+    """A pydantic error of field ``name`` of ``model`` as one line naming the flag and its range."""
+    value = error.get("input")
+    what = flag(name)
+    if isinstance(value, float) and not math.isfinite(value):
+        return f"{what} must be a finite number, got {value}"
+    lo, hi, strict = _bounds(model, name)
+    if strict and isinstance(value, int) and isinstance(lo, int):
+        lo, strict = lo + 1, False  # a whole number above 0 is one of at least 1
+    if isinstance(value, int | float) and (lo is not None or hi is not None):
+        if strict and lo == 0 and hi is None:
+            return f"{what} must be positive, got {value:g}"
+        if hi is None:
+            return f"{what} must be {'greater than' if strict else 'at least'} {lo:g}, got {value:g}"
+        if lo is None:
+            return f"{what} must be at most {hi:g}, got {value:g}"
+        return f"{what} must be between {lo:g} and {hi:g}, got {value:g}"
+    return f"{what}: {error.get('msg', 'invalid value')}"
+
+
+def _offered(model: type[BaseModel], name: str) -> bool:
+    extra = model.model_fields[name].json_schema_extra
+    return not (isinstance(extra, dict) and extra.get("cli") is False)
+
+
+REGISTRY = ConstructorRegistry()
+_inside = threading.local()
+
+
+@REGISTRY.struct_rule
+def _pydantic_on_the_command_line(info: StructTypeInfo) -> StructConstructorSpec | None:
+    """tyro's own rule for a pydantic model, with the hidden fields left out and validation errors
+    raised as ``OptionError``."""
+    model = info.type
+    if getattr(_inside, "active", False) or not (isinstance(model, type) and issubclass(model, BaseModel)):
+        return None
+    _inside.active = True  # ask tyro's default rules for the spec, without coming back here
+    try:
+        spec = ConstructorRegistry.get_struct_spec(info)
+    finally:
+        _inside.active = False
+    if not isinstance(spec, StructConstructorSpec):
+        return spec
+
+    def instantiate(**kwargs):
+        try:
+            return spec.instantiate(**kwargs)
+        except ValidationError as exc:
+            raise OptionError.from_validation(model, exc) from None
+
+    fields = tuple(f for f in spec.fields if _offered(model, f.name))
+    return dataclasses.replace(spec, instantiate=instantiate, fields=fields)
+
+
+def parse(commands: dict[str, type], args: list[str], prog: str, description: str | None = None):
+    """The chosen command's model, parsed from ``args`` (``OptionError`` for a value out of bounds)."""
+    return tyro.extras.subcommand_cli_from_dict(
+        commands, args=args, prog=prog, description=description, registry=REGISTRY
+    )
+
+
+def parse_one(command: type, args: list[str], prog: str, default: BaseModel):
+    """One command's model from ``args``, starting from the field values of ``default`` (built with
+    ``model_construct``; ``tyro.MISSING`` marks a field still required)."""
+    return tyro.cli(command, args=args, prog=prog, default=default, registry=REGISTRY)

@@ -1,0 +1,157 @@
+"""One tab's 3D scene: the snake, the decoded and simulated paths, the ensemble fan, the joint shapes.
+
+Frame: the snake's initial heading frame (x forward, y left, z up; metres), the frame the body
+channels are expressed in (``sim.body``), so decoded and simulated paths start at the origin heading
++x. Link poses come from the simulator's kinematics (``sim.LinkPoses``); no robot geometry lives here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+import viser
+
+from snakeloco.app.session import DecodedGait, SimulatedGait
+from snakeloco.sim import BODY_DOWNSAMPLE, LINK_LENGTH, LINK_RADIUS, N_LINKS, LinkPoses
+
+JOINT_COLORS = np.array(
+    [
+        [228, 26, 28],
+        [55, 126, 184],
+        [77, 175, 74],
+        [152, 78, 163],
+        [255, 127, 0],
+        [166, 86, 40],
+        [247, 129, 191],
+        [90, 90, 90],
+    ],
+    dtype=np.uint8,
+)
+"""One colour per joint (point clouds, command plot)."""
+GEN_COLOR = (255, 140, 0)
+SIM_COLOR = (30, 100, 220)
+FAN_COLOR = (150, 150, 150)
+SNAKE_COLOR = (217, 140, 51, 255)
+SHAPE_SCALE = 1.5
+"""Point-cloud metres per radian of FFT coefficient."""
+JOINT_SPACING = 0.12
+"""Point-cloud height step between joints (m)."""
+LAYERS = ("Snake", "Generated path", "Simulated path", "Ensemble fan", "Joint shapes", "Grid")
+"""The Layers checkboxes, in the order they are shown."""
+
+
+def polyline(points: np.ndarray) -> np.ndarray:
+    """(N, 3) points -> (N-1, 2, 3) segments for add_line_segments."""
+    return np.stack([points[:-1], points[1:]], axis=1).astype(np.float32)
+
+
+def path_points(body: np.ndarray, z0: float) -> np.ndarray:
+    """Body channels (T, 6) -> (T, 3) scene points (forward, sideways, height above z0's floor)."""
+    return np.stack([body[:, 1], body[:, 2], body[:, 0] + z0], axis=-1)
+
+
+def shape_points(shape: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Joint shape (8, L, 2) -> points (8 L, 3) = (real, imag, joint height) and per-joint colours."""
+    k = np.repeat(np.arange(shape.shape[0]), shape.shape[1])
+    pts = np.stack(
+        [SHAPE_SCALE * shape[..., 0].ravel(), SHAPE_SCALE * shape[..., 1].ravel(), JOINT_SPACING * (k + 1)],
+        -1,
+    )
+    return pts.astype(np.float32), JOINT_COLORS[k]
+
+
+class TabScene:
+    """The scene nodes of one browser tab and how each is drawn. Callers serialise the calls."""
+
+    def __init__(self, client: viser.ClientHandle, layers: dict[str, viser.GuiCheckboxHandle]) -> None:
+        self.client = client
+        self.layers = layers
+        self.kinematics = LinkPoses()
+        self.start = (np.zeros(3), 0.0)  # the replay's initial body position (m) and heading (rad), world
+        scene = client.scene
+        self.grid = scene.add_grid("/grid", 20.0, 20.0, cell_size=0.1, section_size=1.0)
+        capsule = trimesh.creation.capsule(height=LINK_LENGTH, radius=LINK_RADIUS, count=[12, 12])
+        capsule.visual.vertex_colors = np.array(SNAKE_COLOR, dtype=np.uint8)
+        self.snake = scene.add_batched_meshes_trimesh(
+            "/snake",
+            capsule,
+            batched_wxyzs=np.tile([1.0, 0, 0, 0], (N_LINKS, 1)),
+            batched_positions=np.zeros((N_LINKS, 3)),
+        )
+        self.gen_path = self.sim_path = self.fan = None
+        scene.add_label("/shapes/decoded/label", "decoded joint shape", position=(0, 0, 1.15))
+        scene.add_label("/shapes/measured/label", "re-measured joint shape", position=(0, 0, 1.15))
+        self.shape_frames = {
+            name: scene.add_frame(f"/shapes/{name}", position=position, show_axes=True, axes_length=0.3)
+            for name, position in (("decoded", (-1.5, 1.0, 0.0)), ("measured", (-1.5, -1.0, 0.0)))
+        }
+        self.clouds: dict[str, viser.PointCloudHandle] = {}
+        client.camera.position = (-2.5, -3.5, 2.5)
+        client.camera.look_at = (0.5, 0.0, 0.0)
+
+    def apply_layers(self, simulated: bool) -> None:
+        """Show each node as its Layers checkbox says (simulated nodes only once there is a replay)."""
+        on = {name: box.value for name, box in self.layers.items()}
+        self.snake.visible = on["Snake"]
+        self.grid.visible = on["Grid"]
+        if self.gen_path is not None:
+            self.gen_path.visible = on["Generated path"]
+        if self.sim_path is not None:
+            self.sim_path.visible = on["Simulated path"] and simulated
+        if self.fan is not None:
+            self.fan.visible = on["Ensemble fan"] and simulated
+        for frame in self.shape_frames.values():
+            frame.visible = on["Joint shapes"]
+
+    def _line(self, which: str, segments: np.ndarray, color, thickness: float, layer: str):
+        return self.client.scene.add_line_segments(
+            f"/paths/{which}",
+            segments,
+            color,
+            thickness=thickness,
+            thickness_units="screen",
+            visible=self.layers[layer].value,
+        )
+
+    def _cloud(self, which: str, shape: np.ndarray) -> None:
+        pts, colors = shape_points(shape)
+        self.clouds[which] = self.client.scene.add_point_cloud(
+            f"/shapes/{which}/points", pts, colors, point_size=0.03, point_shape="circle", precision="float32"
+        )
+
+    def draw_decoded(self, gait: DecodedGait) -> None:
+        """The decoded path and joint shape; the previous replay's nodes are hidden."""
+        if gait.body_ds is not None:
+            points = path_points(gait.body_ds, LINK_RADIUS)
+            self.gen_path = self._line("generated", polyline(points), GEN_COLOR, 4.0, "Generated path")
+        elif self.gen_path is not None:
+            self.gen_path.visible = False
+        for node in (self.sim_path, self.fan):
+            if node is not None:
+                node.visible = False
+        self._cloud("decoded", gait.shape)
+
+    def draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
+        """The simulated path (and the ensemble fan once it ran), the re-measured joint shape, and the
+        decoded path again at the replay's starting height."""
+        self.start = self.kinematics.start_frame(sim.qpos[0])
+        z0 = float(self.start[0][2])
+        self.sim_path = self._line(
+            "simulated", polyline(path_points(sim.body, z0)), SIM_COLOR, 4.0, "Simulated path"
+        )
+        if ensemble and len(sim.ensemble_body) > 1:
+            members = sim.ensemble_body[1:, ::BODY_DOWNSAMPLE]
+            segments = np.concatenate([polyline(path_points(b, z0)) for b in members])
+            self.fan = self._line("ensemble", segments, FAN_COLOR, 1.0, "Ensemble fan")
+        elif self.fan is not None:
+            self.fan.visible = False
+        if self.gen_path is not None and gait.body_ds is not None:
+            points = path_points(gait.body_ds, z0)
+            self.gen_path = self._line("generated", polyline(points), GEN_COLOR, 4.0, "Generated path")
+        self._cloud("measured", sim.shape)
+
+    def draw_snake(self, qpos: np.ndarray) -> None:
+        """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame."""
+        positions, wxyzs = self.kinematics.poses(qpos, self.start)
+        self.snake.batched_positions = positions
+        self.snake.batched_wxyzs = wxyzs

@@ -1,0 +1,402 @@
+"""One browser tab of the designer: its state, its jobs (decode, replay, ensemble) and its callbacks.
+
+Each tab gets a ``DesignerClient``: its own GUI (``gui``), scene (``scene``), ``GaitSession`` and two
+``LatestWorker`` threads, one that decodes and one that runs physics. Slider events only *read* the
+current slider values and submit them, so viser's thread pool may run callbacks in any order: the
+newest submit always carries the newest values. Every request gets a version from one per-tab
+counter; each worker runs only the newest request it holds, and nothing is drawn unless its version
+is still the newest (a stale result is never drawn over a newer one). Decoding never waits for
+physics: while a replay runs, new slider values are decoded and drawn at once, and the physics
+worker moves on to the newest gait when its current run ends.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable
+
+import numpy as np
+import viser
+
+from snakeloco.app import panel
+from snakeloco.app.gait_csv import GaitCSVError, gait_comments, read_gait_csv, write_gait_csv
+from snakeloco.app.gui import SLIDER_RANGE, build_controls
+from snakeloco.app.scene import TabScene
+from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
+from snakeloco.model.api import GaitModel
+from snakeloco.sim import BODY_DOWNSAMPLE, RECORD, SimulationError, Simulator, joint_shape
+from snakeloco.sim.consistency import ENSEMBLE_SIZE
+
+PHYSICS_NICE = 15
+"""Nice increment of the native threads that run a tab's rollouts when the tab owns its simulators
+(a server shares one pool at this priority). Its Python threads stay at the server's priority, so a
+niced thread never holds the GIL that slider decoding waits for."""
+SCRUBBER_PERIOD_S = 0.5
+"""How often the playing animation moves the time scrubber (the snake itself moves every frame)."""
+
+
+class DesignerClient:
+    """One browser tab: GUI, scene, session, a decode worker and a physics worker."""
+
+    def __init__(
+        self,
+        client: viser.ClientHandle,
+        model: GaitModel,
+        ensemble: int = ENSEMBLE_SIZE,
+        workers: int | None = None,
+        on_error: Callable[[str], None] | None = None,
+        simulator: Simulator | None = None,
+    ):
+        self.client = client
+        self._on_error = on_error
+        self.model = model
+        self.session = GaitSession(
+            model, ensemble=ensemble, workers=workers, physics_nice=PHYSICS_NICE, simulator=simulator
+        )
+        self.decoded: DecodedGait | None = None
+        self.simulated: SimulatedGait | None = None
+        self.timings: deque[Timing] = deque(maxlen=2000)
+        self._timing_by_version: dict[int, Timing] = {}
+        self._draw_lock = threading.RLock()
+        self._programmatic_z: tuple[float, ...] | None = None
+        self._z_lock = threading.RLock()
+        self._setting_z = False
+        self._frame = 0
+        self._position = 0.0
+        self._playing = True
+        self._closed = threading.Event()
+        self._version = 0
+        self._version_lock = threading.Lock()
+        self.controls = build_controls(client.gui, model.z_b_dim)
+        self.scene = TabScene(client, self.controls.layers)
+        self._wire()
+        report = lambda exc: self._report(f"{type(exc).__name__}: {exc}")  # noqa: E731
+        self.decoder = LatestWorker(self._decode_job, name=f"decode-{client.client_id}", on_error=report)
+        self.physics = LatestWorker(self._physics_job, name=f"physics-{client.client_id}", on_error=report)
+        self._animator = threading.Thread(
+            target=self._animate, name=f"animate-{client.client_id}", daemon=True
+        )
+        self._animator.start()
+        self.request_decode()
+
+    @property
+    def sliders(self) -> list[viser.GuiSliderHandle]:
+        """The z_B sliders, one per latent dimension."""
+        return self.controls.sliders
+
+    def _wire(self) -> None:
+        c, g = self.controls, self._guarded
+        for s in c.sliders:
+            s.on_update(g(lambda _e: self._on_latents_changed()))
+        c.zk_mode.on_update(g(lambda _e: self.request_decode()))
+        c.zk_seed.on_update(g(lambda _e: self.request_decode()))
+        c.zk_temperature.on_update(
+            g(lambda _e: self.request_decode() if c.zk_mode.value == "sampled" else None)
+        )
+        c.resample_button.on_click(g(lambda _e: self._resample()))
+        c.reset_button.on_click(g(lambda _e: self._set_z(np.zeros(self.model.z_b_dim))))
+        c.random_button.on_click(
+            g(lambda _e: self._set_z(np.random.default_rng().standard_normal(self.model.z_b_dim)))
+        )
+        c.play_button.on_click(g(lambda _e: self._toggle_play()))
+        c.scrubber.on_update(g(self._on_scrub))
+        for layer in c.layers.values():
+            layer.on_update(g(lambda _e: self._apply_layers()))
+        c.export_button.on_click(g(lambda _e: self.export()))
+        c.import_button.on_upload(g(lambda _e: self._on_upload()))
+
+    def _report(self, message: str) -> None:
+        if self._on_error is not None:
+            self._on_error(f"client {self.client.client_id}: {message}")
+
+    def _guarded(self, fn: Callable) -> Callable:
+        """A GUI callback that reports instead of raising: one tab's error never reaches viser."""
+
+        def run(event) -> None:
+            try:
+                fn(event)
+            except Exception as exc:
+                if self._closed.is_set():
+                    return  # the tab went away mid-callback
+                traceback.print_exc()
+                self._report(f"{type(exc).__name__}: {exc}")
+
+        return run
+
+    # --- requests --------------------------------------------------------------------------------
+
+    def current_latents(self) -> Latents:
+        """Latents as the GUI shows them now."""
+        c = self.controls
+        return Latents(
+            z_b=tuple(float(s.value) for s in c.sliders),
+            zk_mode=c.zk_mode.value,
+            seed=int(c.zk_seed.value),
+            temperature=float(c.zk_temperature.value),
+        )
+
+    def request_decode(self) -> int:
+        """Submit the GUI's current latents (latest wins); returns the request version."""
+        return self._submit(self.decoder, self.current_latents())
+
+    def _submit(self, worker: LatestWorker, request: object) -> int:
+        # Versions are taken and submitted under one lock, so workers always hold the newest request.
+        with self._version_lock:
+            self._version += 1
+            self._record(self._version)
+            worker.submit((self._version, request))
+            return self._version
+
+    def is_current(self, version: int) -> bool:
+        """Whether ``version`` is still this tab's newest request (only then may it be drawn)."""
+        return version == self._version and not self._closed.is_set()
+
+    def idle(self) -> bool:
+        return self.decoder.idle() and self.physics.idle()
+
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Block until neither worker has work (for tests and benchmarks)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            for w in (self.decoder, self.physics):
+                if not w.wait_idle(max(deadline - time.monotonic(), 0.0)):
+                    return False
+            if self.idle():
+                return True
+
+    def _record(self, version: int) -> None:
+        timing = Timing(version=version, submitted=time.perf_counter())
+        self._timing_by_version[version] = timing
+        self.timings.append(timing)
+        if len(self._timing_by_version) > 4000:
+            for v in sorted(self._timing_by_version)[:2000]:
+                del self._timing_by_version[v]
+
+    def _on_latents_changed(self) -> None:
+        # Reading under the lock that _write_sliders holds: a callback never sees half-set sliders.
+        with self._z_lock:
+            if self._setting_z:
+                return
+            z = tuple(float(s.value) for s in self.sliders)
+            if self._programmatic_z is not None and np.allclose(z, self._programmatic_z, atol=1e-9):
+                return  # the sliders show an imported gait's encoding: keep that gait
+            self._programmatic_z = None
+        self.request_decode()
+
+    def _write_sliders(self, z: np.ndarray) -> tuple[float, ...]:
+        values = tuple(float(v) for v in np.clip(np.round(z, 2), -SLIDER_RANGE, SLIDER_RANGE))
+        with self._z_lock:
+            self._setting_z = True
+            try:
+                with self.client.atomic():
+                    for s, v in zip(self.sliders, values, strict=True):
+                        s.value = v
+            finally:
+                self._setting_z = False
+        return values
+
+    def _set_z(self, z: np.ndarray) -> None:
+        """Move all sliders at once (Reset, Random) and decode once."""
+        with self._z_lock:
+            self._programmatic_z = None
+            self._write_sliders(z)
+        self.request_decode()
+
+    def _resample(self) -> None:
+        self.controls.zk_mode.value = "sampled"
+        self.controls.zk_seed.value = int(self.controls.zk_seed.value) + 1
+
+    def _toggle_play(self) -> None:
+        self._playing = not self._playing
+        self.controls.play_button.label = "Pause" if self._playing else "Play"
+
+    def _on_scrub(self, event) -> None:
+        if event.client is None:
+            return  # our own playback position updates
+        self._frame = round(self.controls.scrubber.value * RECORD.sample_rate) % RECORD.n_samples
+        self._position = float(self._frame)
+        self._draw_snake()
+
+    def _apply_layers(self) -> None:
+        with self._draw_lock, self.client.atomic():
+            self.scene.apply_layers(simulated=self.simulated is not None)
+
+    # --- the jobs: decode -> draw | replay -> draw -> ensemble -> draw ----------------------------
+
+    def _timing(self, version: int) -> Timing:
+        return self._timing_by_version.get(version) or Timing(version, time.perf_counter())
+
+    def _decode_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, latents = item
+        if not self.is_current(version):
+            return
+        timing = self._timing(version)
+        timing.started = time.perf_counter()
+        decoded = self.session.decode(latents)
+        timing.decode_ms = decoded.decode_ms
+        with self._draw_lock:
+            if not self.is_current(version):
+                return
+            self.decoded, self.simulated = decoded, None
+            self._draw_decoded(decoded)
+            timing.decoded = time.perf_counter()
+            self.physics.submit((version, ("gait", decoded)))
+
+    def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, (kind, *payload) = item
+        if not self.is_current(version):
+            return
+        timing = self._timing(version)
+        is_current = lambda: self.is_current(version)  # noqa: E731
+        if kind == "import":
+            self._import_job(*payload, timing, is_current)
+        else:
+            self._simulate(payload[0], timing, is_current)
+
+    def _simulate(self, decoded: DecodedGait, timing: Timing, is_current) -> SimulatedGait | None:
+        try:
+            sim = self.session.replay(decoded)
+        except SimulationError as exc:
+            timing.failed = str(exc)
+            with self._draw_lock:
+                if is_current():
+                    self.controls.panel.content = panel.failed_text(decoded, str(exc))
+                    self.client.add_notification(
+                        "Replay failed", str(exc), color="red", auto_close_seconds=8.0
+                    )
+            return None
+        timing.replay_ms = sim.replay_ms
+        with self._draw_lock:
+            if not is_current():
+                return None
+            self.simulated = sim
+            self._draw_simulated(decoded, sim, ensemble=False)
+            timing.replayed = time.perf_counter()
+        sim = self.session.run_ensemble(decoded, sim, seed=timing.version)
+        timing.ensemble_ms = sim.ensemble_ms
+        with self._draw_lock:
+            if not is_current():
+                return None
+            self._draw_simulated(decoded, sim, ensemble=True)
+            timing.ensembled = time.perf_counter()
+        return sim
+
+    def _import_job(self, name: str, commands: np.ndarray, timing: Timing, is_current) -> None:
+        shape = joint_shape(commands)
+        gait = DecodedGait(None, shape, None, commands, 0.0, source=f"import: {name}")
+        try:
+            sim = self.session.replay(gait)
+        except SimulationError as exc:
+            timing.failed = str(exc)
+            self.client.add_notification(
+                f"Import CSV: {name} not loaded",
+                f"Its replay broke: {exc}. The current gait stays.",
+                color="red",
+            )
+            return
+        z_b = self.session.encode_replay(sim)
+        with self._draw_lock:
+            if not is_current():
+                return
+            self.decoded, self.simulated = gait, sim
+            self._draw_decoded(gait)
+            self._draw_simulated(gait, sim, ensemble=False)
+            with self._z_lock:
+                self._programmatic_z = self._write_sliders(z_b)
+            timing.replayed = time.perf_counter()
+        sim = self.session.run_ensemble(gait, sim, seed=timing.version)
+        with self._draw_lock:
+            if is_current():
+                self._draw_simulated(gait, sim, ensemble=True)
+                timing.ensembled = time.perf_counter()
+                self.client.add_notification(
+                    "Import CSV",
+                    f"Replaying {name}; the sliders show where it sits in z_B.",
+                    auto_close_seconds=5.0,
+                )
+
+    # --- drawing ---------------------------------------------------------------------------------
+
+    def _draw_decoded(self, gait: DecodedGait) -> None:
+        with self.client.atomic():
+            self.scene.draw_decoded(gait)
+            self.controls.show_paths(gait.body_ds, None)
+            self.controls.show_commands(gait.commands)
+            self.controls.panel.content = panel.decoded_text(gait)
+
+    def _draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
+        with self.client.atomic():
+            self.scene.draw_simulated(gait, sim, ensemble)
+            self.controls.show_paths(gait.body_ds, sim.body[::BODY_DOWNSAMPLE])
+            self.controls.panel.content = panel.simulated_text(gait, sim, ensemble)
+        self._draw_snake()
+
+    def _draw_snake(self) -> None:
+        sim = self.simulated
+        if sim is None:
+            return
+        with self._draw_lock:
+            self.scene.draw_snake(sim.qpos[self._frame % len(sim.qpos)])
+
+    def _animate(self) -> None:
+        last_scrub = 0.0
+        while not self._closed.wait(1.0 / RECORD.sample_rate):
+            if not self._playing or self.simulated is None:
+                continue
+            try:
+                # One record sample per frame at speed 1 (the animation runs at the record's rate).
+                self._position = (self._position + float(self.controls.speed.value)) % RECORD.n_samples
+                self._frame = int(self._position)
+                self._draw_snake()
+                now = time.monotonic()
+                if now - last_scrub > SCRUBBER_PERIOD_S:
+                    self.controls.scrubber.value = round(self._frame / RECORD.sample_rate, 2)
+                    last_scrub = now
+            except Exception:  # the tab went away mid-update; the disconnect handler cleans up
+                if self._closed.is_set():
+                    return
+
+    # --- files -----------------------------------------------------------------------------------
+
+    def export_text(self) -> str:
+        """The current gait as CSV text (what "Export CSV" downloads)."""
+        if self.decoded is None:
+            raise RuntimeError("no gait yet")
+        comments = gait_comments(self.decoded, self.simulated, self.model.hash, self._programmatic_z)
+        return write_gait_csv(self.decoded.commands, comments)
+
+    def export(self) -> None:
+        try:
+            text = self.export_text()
+        except RuntimeError as exc:
+            self.client.add_notification("Export CSV", str(exc), color="yellow", auto_close_seconds=5.0)
+            return
+        self.client.send_file_download("snakeloco_gait.csv", text.encode(), save_immediately=True)
+
+    def import_bytes(self, name: str, data: bytes) -> int | None:
+        """Validate an uploaded gait and submit it for replay; returns the request version or None."""
+        try:
+            table = read_gait_csv(data)
+        except GaitCSVError as exc:
+            self.client.add_notification(
+                f"Import CSV: {name} rejected",
+                f"{exc}. The current gait stays.",
+                color="red",
+                auto_close_seconds=15.0,
+            )
+            return None
+        return self._submit(self.physics, ("import", name, table.commands))
+
+    def _on_upload(self) -> None:
+        f = self.controls.import_button.value
+        self.import_bytes(f.name, f.content)  # read_gait_csv refuses more than MAX_BYTES
+
+    def close(self) -> None:
+        self._closed.set()
+        self.decoder.close()
+        self.physics.close()
+        self.session.close()
+        self._animator.join(timeout=5)

@@ -1,0 +1,71 @@
+"""``ModelConfig``: every dimension and loss weight of the hierarchical VAE (``network.py``), with the
+reason for each number that is not obvious."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+_FROM_DATA = {"cli": False}
+"""Field metadata: set by the training data (or fixed by the product), so not a command-line option."""
+
+
+class ModelConfig(BaseModel):
+    """Every dimension and loss weight of the network."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    n_joints: int = Field(8, description="Joints K (the robot's).", json_schema_extra=_FROM_DATA)
+    n_components: int = Field(8, description="Excited bins L (the dataset's).", json_schema_extra=_FROM_DATA)
+    body_channels: int = Field(6, description="Body channels C.", json_schema_extra=_FROM_DATA)
+    body_steps: int = Field(500, description="Body steps T (5 Hz over 100 s).", json_schema_extra=_FROM_DATA)
+    z_b_dim: int = Field(
+        6, ge=1, le=8, description="Body latent dimensions: one designer slider each (shipped: 6)."
+    )
+    z_j_dim: int = Field(
+        16,
+        ge=1,
+        description="Per-joint latent. A joint's shape is L = 8 random-phase complex coefficients, so "
+        "16 numbers are needed to carry it without loss.",
+    )
+    cnn_channels: tuple[int, int, int] = Field(
+        (24, 48, 96),
+        description="Body CNN widths. 32-64-128 spent ~75% of an epoch in the CNN on a prototype; "
+        "this is ~0.56x the multiply-adds.",
+    )
+    kernel: int = Field(5, ge=3, description="Temporal kernel of the body convolutions (odd).")
+    positional_channels: int = Field(4, ge=0, description="cos(pi m t / T_rec), m = 1..P, appended to x_B.")
+    root_hidden: int = Field(128, ge=1, description="Root GRU width H.")
+    child_hidden: int = Field(64, ge=1, description="Child GRU width.")
+    joint_embed: int = Field(64, ge=1, description="Width of a joint's shape embedding e(X_k).")
+    body_sees_joint_latents: bool = Field(
+        False,
+        description="Feed z_1..8 to the body decoder as well as z_B. Off by default: with it on, the "
+        "decoder memorised training bodies through the 128 joint-latent numbers (epoch 21 of the full "
+        "run: train body loss 0.75, held-out body R^2 0.04) instead of putting the path into z_B.",
+    )
+    body_sees_stats: bool = Field(
+        True,
+        description="Modulate the body decoder by the gait's predicted body statistics (model "
+        "docstring). Checkpoints of schema 2 predate it and load with it off.",
+    )
+    signal_channels: int = Field(32, ge=1, description="Width of the statistics head's signal CNN.")
+    signal_dilations: tuple[int, ...] = Field(
+        (1, 2, 4, 8), description="Dilations of the signal CNN (receptive field 61 steps, 12 s)."
+    )
+    stats_hidden: int = Field(128, ge=1, description="Hidden width of the statistics MLP.")
+    n_stats: int = Field(
+        4,
+        description="log path length, log median speed, log vertical std, net roll.",
+        json_schema_extra=_FROM_DATA,
+    )
+    alpha: float = Field(
+        4.0,
+        ge=0,
+        description="Weight of the body-path reconstruction (eq. 15's alpha). The paper's 1 left half "
+        "of z_B unused (3 of 6 units); 4 (shipped) uses 5 (docs/model.md).",
+    )
+    alpha_stats: float = Field(
+        1.0, ge=0.0, description="Weight of the body-statistics term (normalised MSE)."
+    )
+    beta: float = Field(10.0, ge=0, description="Weight of MMD(q(z_k) || p(z_k)).")
+    gamma: float = Field(10.0, ge=0, description="Weight of MMD(q(z_B) || N(0, I)).")

@@ -1,0 +1,117 @@
+"""Replaying decoded gaits in MuJoCo, and keeping the replays in a checked side file.
+
+Evaluation (the consistency check), calibration (the model's own prior gaits) and design
+verification all do the same thing: decode latents to joint shapes, resynthesise commands as the
+designer does (``GaitModel.commands``: servo-compensated inverse FFT), replay each gait once or as
+an ensemble (the commands plus K - 1 copies with ``ENSEMBLE_NOISE`` relative noise), and keep the
+body series at the model's rate. Replays cost minutes to an hour, so they can be written to an .npz
+side file and read back instead of replaying; a side file is accepted only for the same draw
+(``drawn``: counts, seeds, temperatures), the same noise, the same robot (MJCF hash) and the same
+decoded gaits (a checkpoint whose decodes differ needs its own replays).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from snakeloco.model.api import GaitModel
+from snakeloco.sim import BODY_DOWNSAMPLE, DatasetError, mjcf_sha256, read_npz, write_npz
+from snakeloco.sim.consistency import ENSEMBLE_NOISE, perturbed_commands
+
+DECODE_TOLERANCE = 1e-4
+"""Largest difference (rad) between stored and fresh decodes of the same latents that still counts
+as the same gait: one z_B and a batch of them decode 3.6e-7 rad apart on one CPU."""
+
+
+def replay_shapes(
+    model: GaitModel,
+    shapes: np.ndarray,
+    simulator,
+    ensemble: int = 1,
+    seed: int = 0,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Replay decoded joint shapes (n, 8, L, 2) rad, each as an ensemble of ``ensemble`` replays.
+
+    Gait i's perturbed members use noise seeded with ``seed + i``; member 0 is the unperturbed
+    replay. ``simulator`` is a ``sim.Simulator`` (the caller owns its threads). ``progress`` is
+    called with the number of gaits finished after each batch.
+
+    Returns:
+        bodies (n, ensemble, 500, 6) float32, the body series at the model's 5 Hz (zeros where a
+        replay broke), and ok (n, ensemble) bool, which replays ran cleanly.
+    """
+    n, cfg = len(shapes), model.config.model
+    bodies = np.zeros((n, ensemble, cfg.body_steps, cfg.body_channels), np.float32)
+    ok = np.zeros((n, ensemble), bool)
+    # Enough gaits per call to keep every thread busy; records are independent, so the batching
+    # changes nothing in the results.
+    per_batch = max(1, (4 * simulator.workers) // ensemble)
+    for start in range(0, n, per_batch):
+        idx = np.arange(start, min(n, start + per_batch))
+        commands = model.commands(shapes[idx])  # (b, T, 8)
+        if ensemble > 1:
+            commands = np.concatenate(
+                [
+                    perturbed_commands(c, ensemble, seed=seed + int(i))
+                    for c, i in zip(commands, idx, strict=True)
+                ]
+            )  # (b K, T, 8)
+        result = simulator.simulate(commands)
+        ran = np.array([f is None for f in result.failures]).reshape(len(idx), ensemble)
+        body = result.body[:, ::BODY_DOWNSAMPLE].reshape(len(idx), ensemble, *bodies.shape[2:])
+        ok[idx] = ran
+        bodies[idx] = np.where(ran[..., None, None], body, 0.0)
+        if progress is not None:
+            progress(len(idx))
+    return bodies, ok
+
+
+def save_side_file(path: str | Path, drawn: dict, **arrays: np.ndarray) -> None:
+    """Write replays (``arrays``) with what they were drawn from (``drawn``: scalars), the ensemble
+    noise and the robot's MJCF hash, atomically (``sim.write_npz``: no pickle)."""
+    write_npz(
+        path,
+        noise=np.float64(ENSEMBLE_NOISE),
+        mjcf_sha256=np.array(mjcf_sha256()),
+        **{k: np.asarray(v) for k, v in drawn.items()},
+        **arrays,
+    )
+
+
+def load_side_file(path: str | Path, what: str, drawn: dict, need: list[str]) -> dict[str, np.ndarray]:
+    """Read a side file written by ``save_side_file`` for the same draw on the same robot.
+
+    ``what`` names the kind of file in messages. Raises ``DatasetError`` naming the difference: a
+    file that is not such a file, another draw (``drawn``), another noise level, or another robot.
+    """
+    path = Path(path)
+    stored = read_npz(path, what, ["noise", "mjcf_sha256", *drawn, *need])
+    asked = {"noise": ENSEMBLE_NOISE, **drawn}
+    held = {k: _scalar(stored[k]) for k in asked}
+    if held != {k: _scalar(np.asarray(v)) for k, v in asked.items()}:
+        raise DatasetError(f"{path}: {what} of {held}; this run asks for {asked}")
+    if str(stored["mjcf_sha256"]) != mjcf_sha256():
+        raise DatasetError(
+            f"{path}: replayed on another robot model (sim/snake.xml changed since); replay again"
+        )
+    return stored
+
+
+def check_same_gaits(path: str | Path, stored: np.ndarray, fresh: np.ndarray, label: str = "") -> None:
+    """A ``DatasetError`` unless the stored decoded shapes are this checkpoint's (``fresh``)."""
+    gap = float(np.abs(stored - fresh).max()) if stored.shape == fresh.shape else float("inf")
+    if gap > DECODE_TOLERANCE:
+        where = f" ({label})" if label else ""
+        raise DatasetError(
+            f"{path}: these replays are of gaits decoded by another checkpoint{where}: decoding their "
+            f"latents again differs by up to {gap:.3g} rad; replay them for this checkpoint"
+        )
+
+
+def _scalar(a: np.ndarray):
+    """A stored 0-d array as a Python value (lists for arrays), for comparing draws."""
+    return a.item() if a.ndim == 0 else a.tolist()

@@ -1,0 +1,73 @@
+"""The command rule: how 20 Hz joint commands become servo targets, and when a rollout is broken.
+
+Used identically by data generation, ``replay`` and CSV import (numpy only; ``sim.physics`` runs it):
+
+1. Commands are 20 Hz samples u[n], n = 0..T-1, treated as one period of a periodic gait.
+2. Lead-in: before the record the snake, lying straight and at rest, runs the last ``lead_in``
+   samples of the gait (its periodic continuation), faded in by a raised-cosine ramp over the first
+   ``ramp`` of them; this lets the servos and the body settle before t = 0. Nothing of the lead-in is
+   measured.
+3. Between samples the servo target is linearly interpolated from u[n] to u[n+1] (u[T] = u[0]),
+   updated every physics step (2.5 ms, 20 steps per sample).
+4. Measurements at record sample n are taken at t_n = n / 20 s, at the start of the interval whose
+   target starts at u[n].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from snakeloco.sim.robot import N_JOINTS
+
+
+class SimConfig(BaseModel):
+    """How commands are applied and when a simulation counts as broken."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    lead_in: int = Field(60, ge=0, description="Lead-in samples before the record (3 s at 20 Hz).")
+    ramp: int = Field(40, ge=1, description="Raised-cosine fade-in over this many lead-in samples.")
+    max_com_height: float = Field(
+        1.0,
+        gt=0,
+        description="Centre-of-mass height (m) above which the snake counts as thrown. A 0.9 m snake "
+        "standing on its end has it at 0.48 m; healthy 100 s runs peaked at 0.58 m (128 samples).",
+    )
+    max_com_speed: float = Field(
+        10.0,
+        gt=0,
+        description="Centre-of-mass speed (m/s) above which the run counts as diverged; healthy runs "
+        "peaked at 3.0 m/s (128 samples).",
+    )
+
+
+class SimulationError(RuntimeError):
+    """A simulation diverged or threw the snake; the message says how and when."""
+
+
+def lead_in_window(cfg: SimConfig) -> np.ndarray:
+    """Fade-in weights of the lead-in samples, shape (lead_in,), from 0 up to 1."""
+    j = np.arange(cfg.lead_in)
+    return np.where(j < cfg.ramp, 0.5 - 0.5 * np.cos(np.pi * j / cfg.ramp), 1.0)
+
+
+def expand_commands(commands: np.ndarray, substeps: int, cfg: SimConfig) -> np.ndarray:
+    """Per-physics-step servo targets for a batch of records (the command rule above).
+
+    Args:
+        commands: (B, T, 8) rad.
+        substeps: physics steps per command sample.
+        cfg: lead-in settings.
+
+    Returns:
+        (B, (lead_in + T) * substeps, 8) float64 servo targets (rad).
+    """
+    if cfg.lead_in > commands.shape[1]:
+        raise ValueError(f"lead-in of {cfg.lead_in} samples exceeds the record ({commands.shape[1]})")
+    pre = commands[:, commands.shape[1] - cfg.lead_in :] * lead_in_window(cfg)[None, :, None]
+    held = np.concatenate([pre, commands], axis=1)  # (B, lead+T, 8)
+    nxt = np.concatenate([held[:, 1:], commands[:, :1]], axis=1)  # u[n+1], periodic at the end
+    frac = (np.arange(substeps) / substeps)[None, None, :, None]  # (1, 1, S, 1)
+    ctrl = held[:, :, None] + (nxt - held)[:, :, None] * frac  # (B, lead+T, S, 8)
+    return ctrl.reshape(commands.shape[0], -1, N_JOINTS)

@@ -1,0 +1,46 @@
+"""Link poses for drawing the robot: from a MuJoCo ``qpos`` to each capsule's pose in the start frame.
+
+The start frame is the one the body channels are expressed in (``sim.body``): the middle link's
+position and heading at t = 0, x forward, y left, z up (metres), with the height kept (so the snake
+lies on the drawn floor). Each link is a capsule of length ``LINK_LENGTH`` between its joints and
+radius ``LINK_RADIUS``, its axis along the geom frame's z axis, centred on the geom's position.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from snakeloco.sim.robot import BODY_SITE, LINK_GEOMS, load_model
+
+
+class LinkPoses:
+    """Forward kinematics of the snake on a private MjModel/MjData (one per caller: not thread-safe)."""
+
+    def __init__(self) -> None:
+        self.model = load_model()
+        self.data = mujoco.MjData(self.model)
+        self._geoms = np.array([self.model.geom(name).id for name in LINK_GEOMS])
+        self._site = self.model.site(BODY_SITE).id
+
+    def start_frame(self, qpos0: np.ndarray) -> tuple[np.ndarray, float]:
+        """World position (3,) m and heading (rad) of the body frame for the record's first ``qpos``."""
+        self.data.qpos[:] = qpos0
+        mujoco.mj_kinematics(self.model, self.data)
+        xmat = self.data.site_xmat[self._site].reshape(3, 3)
+        return self.data.site_xpos[self._site].copy(), float(np.arctan2(xmat[1, 0], xmat[0, 0]))
+
+    def poses(self, qpos: np.ndarray, start: tuple[np.ndarray, float]) -> tuple[np.ndarray, np.ndarray]:
+        """Capsule centres (9, 3) m and orientations (9, 4) wxyz in the start frame ``start``
+        (``start_frame``'s output), both float32, head first."""
+        self.data.qpos[:] = qpos
+        mujoco.mj_kinematics(self.model, self.data)
+        p0, yaw0 = start
+        c, s = np.cos(-yaw0), np.sin(-yaw0)
+        undo = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # R_z(-yaw0)
+        pos = (self.data.geom_xpos[self._geoms] - [p0[0], p0[1], 0.0]) @ undo.T  # (9, 3)
+        mats = undo @ self.data.geom_xmat[self._geoms].reshape(-1, 3, 3)  # (9, 3, 3)
+        quats = np.empty((len(self._geoms), 4))
+        for i, mat in enumerate(mats):
+            mujoco.mju_mat2Quat(quats[i], mat.ravel())
+        return pos.astype(np.float32), quats.astype(np.float32)

@@ -1,0 +1,42 @@
+"""Small things several test files share (``tests/`` is on the test path: pyproject's pythonpath)."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+from pathlib import Path
+
+import pytest
+
+from snakeloco.app.bench.load_driver import CHROMIUM
+from snakeloco.model import ModelConfig
+
+SMALL = ModelConfig(
+    z_b_dim=3,
+    z_j_dim=4,
+    cnn_channels=(4, 8, 8),
+    root_hidden=16,
+    child_hidden=8,
+    joint_embed=8,
+    positional_channels=2,
+)
+"""A network small enough to train in seconds on the 4-record test dataset."""
+
+
+def free_port() -> int:
+    """A TCP port nothing listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+BROWSER = [
+    pytest.mark.browser,
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        not Path(CHROMIUM).exists() and not shutil.which("chromium"),
+        reason="Debian chromium not installed (CI installs it: apt-get install chromium)",
+    ),
+]
+"""Marks of a test that drives real Chromium pages: slow, and skipped with the reason where Debian's
+chromium is missing."""

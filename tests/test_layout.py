@@ -1,0 +1,94 @@
+"""The house rules that keep the package usable: one import name, no MuJoCo in the model package,
+the files a non-editable install needs."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import zipfile
+
+import pytest
+
+from snakeloco.app.gui import help_text
+
+
+def test_model_package_and_training_never_import_mujoco(tiny_dataset_path, tmp_path):
+    """In a fresh interpreter: import the model package and its inference API, train one epoch and
+    decode; MuJoCo must never have been loaded (only evaluation and calibration replay gaits)."""
+    code = textwrap.dedent(
+        f"""
+        import sys
+        import numpy as np
+        import snakeloco.model
+        from snakeloco.model import TrainConfig, load_pretrained, train
+        from snakeloco.model.config import ModelConfig
+        assert "mujoco" not in sys.modules, "import snakeloco.model loaded mujoco"
+        small = ModelConfig(z_b_dim=2, z_j_dim=2, cnn_channels=(4, 4, 4), root_hidden=8, child_hidden=4,
+                            joint_embed=4, positional_channels=1)
+        train({str(tiny_dataset_path)!r}, {str(tmp_path / "ckpt")!r}, TrainConfig(epochs=1, batch_size=2),
+              small, log=None, progress=False)
+        model = load_pretrained({str(tmp_path / "ckpt")!r})
+        shape, body = model.decode(np.zeros((1, 2)))
+        commands = model.commands(shape[0])
+        loaded = sorted(m for m in sys.modules if m == "mujoco" or m.startswith("mujoco."))
+        print("MUJOCO", loaded)
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "MUJOCO []" in out.stdout
+
+
+def test_simulator_names_load_mujoco_only_when_asked_for():
+    code = (
+        "import sys; import snakeloco.sim as s; assert 'mujoco' not in sys.modules; "
+        "s.Simulator; assert 'mujoco' in sys.modules; print('ok')"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+@pytest.mark.slow
+def test_wheel_installs_under_one_name_with_its_data(tmp_path):
+    """``pip install .`` puts everything under snakeloco/: no top-level sim, model or app package
+    (they would collide with other projects and a user's own model.py), and the package data a
+    non-editable install needs (MJCF, pretrained checkpoint, help text) is inside."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    build = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "-w",
+            str(tmp_path),
+            str(root),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert build.returncode == 0, build.stderr
+    (wheel,) = tmp_path.glob("snakeloco-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    top = {n.split("/")[0] for n in names}
+    assert {t for t in top if not t.endswith(".dist-info")} == {"snakeloco"}, top
+    for needed in (
+        "snakeloco/sim/snake.xml",
+        "snakeloco/model/pretrained/model.safetensors",
+        "snakeloco/model/pretrained/config.json",
+        "snakeloco/app/help.md",
+        "snakeloco/app/bench/load_driver.py",
+    ):
+        assert needed in names, needed
+    assert not any(n.startswith("snakeloco/tests/") for n in names)
+
+
+def test_help_text_names_the_controls():
+    text = help_text()
+    assert "Export CSV" in text and "Import CSV" in text and "z_k mode" in text
