@@ -215,19 +215,29 @@ RUNNERS = {
 }
 
 
+def _preset(args: list[str]) -> str | None:
+    """The name after ``--preset`` (or in ``--preset=NAME``), if the arguments give one."""
+    for i, arg in enumerate(args):
+        if arg == "--preset" and i + 1 < len(args):
+            return args[i + 1]
+        if arg.startswith("--preset="):
+            return arg.split("=", 1)[1]
+    return None
+
+
 def parse_args(args: list[str]) -> Command:
     """The command ``args`` ask for (``OptionError`` when a value is out of its bounds)."""
     if args[:1] == ["bench"]:
         return parse(BENCHES, args[1:], "snakeloco bench", BENCH_HELP)
-    if args[:1] == ["train"] and "--preset" in args:
-        # A preset supplies the defaults; the flags given beside it still override them.
-        name = args[args.index("--preset") + 1] if args.index("--preset") + 1 < len(args) else ""
-        if name in PRESETS:
-            preset = PRESETS[name]
-            start = Train.model_construct(
-                data=tyro.MISSING, out=tyro.MISSING, preset=name, train=preset.train, model=preset.model
-            )
-            return parse_one(Train, args[1:], "snakeloco train", start)
+    name = _preset(args) if args[:1] == ["train"] else None
+    if name in PRESETS:
+        # The preset supplies the defaults; the flags given beside it still override them. (An unknown
+        # name is left to the parser below, which lists the choices.)
+        preset = PRESETS[name]
+        start = Train.model_construct(
+            data=tyro.MISSING, out=tyro.MISSING, preset=name, train=preset.train, model=preset.model
+        )
+        return parse_one(Train, args[1:], "snakeloco train", start)
     return parse(COMMANDS, args, "snakeloco")
 
 

@@ -26,8 +26,6 @@ Flat = tyro.conf.OmitArgPrefixes
 Workers = Annotated[int | None, Field(ge=1)]
 Seed = Annotated[int, Field(ge=0)]  # numpy's generators take no negative seed
 Ensemble = Annotated[int, Field(ge=2)]  # the replay and at least one perturbed copy: a spread needs two
-Checkpoint = Path | None
-Json = bool
 
 
 # ``--json`` is a field named json, which shadows pydantic's deprecated ``BaseModel.json`` method: fine
@@ -70,7 +68,7 @@ class Evaluate(Command):
 
     data: Path
     """Held-out dataset .npz (generate it with a seed not used for training)."""
-    checkpoint: Checkpoint = None
+    checkpoint: Path | None = None
     """Checkpoint directory (default: the shipped pretrained model)."""
     prior_samples: Annotated[int, Field(ge=0)] = 256
     """z_B drawn from the prior for the consistency check (0 skips it)."""
@@ -80,7 +78,7 @@ class Evaluate(Command):
     """Seed of the prior draws and noise."""
     workers: Workers = None
     """Simulation threads (default: all cores)."""
-    json: Json = False
+    json: bool = False
     """Print the figures as one JSON object on the last line."""
     report: Path | None = None
     """Also write the figures, with every generated gait's statistics, to this JSON file."""
@@ -95,7 +93,7 @@ class Calibrate(Command):
     """The dataset .npz the checkpoint was trained on (its training split is mixed in)."""
     out: Path
     """Directory for the calibrated checkpoint (may be the input checkpoint's own)."""
-    checkpoint: Checkpoint = None
+    checkpoint: Path | None = None
     """Checkpoint directory (default: the shipped pretrained model)."""
     config: Annotated[CalibrateConfig, Flat] = CalibrateConfig()
     workers: Workers = None
@@ -111,7 +109,7 @@ class Figures(Command):
     """Dataset .npz for the fit figure."""
     out: Path
     """Output directory."""
-    checkpoint: Checkpoint = None
+    checkpoint: Path | None = None
     """Checkpoint directory (default: the shipped pretrained model)."""
     seed: Seed = 0
     """Seed of the sample choice and latent draws."""
@@ -126,7 +124,7 @@ class Serve(Command):
     """Interface to bind; the default keeps the designer on this machine. Use 0.0.0.0 only on a trusted network."""
     port: Annotated[int, Field(ge=0, le=65535)] = 8080
     """TCP port (0: any free port)."""
-    checkpoint: Checkpoint = None
+    checkpoint: Path | None = None
     """Checkpoint directory (default: the shipped pretrained model)."""
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
@@ -135,7 +133,7 @@ class Serve(Command):
 class BenchSim(Command):
     """Benchmark the simulator: raw mujoco.rollout vs the generator, replay vs a bare mj_step loop."""
 
-    json: Json = False
+    json: bool = False
     """Print the figures as one JSON object on the last line."""
     workers: Workers = None
     """Threads (default: all cores)."""
@@ -148,9 +146,9 @@ class BenchSim(Command):
 class BenchModel(Command):
     """Benchmark decoding: latency of one z_B (the slider path) p50/p95 and batch throughput."""
 
-    json: Json = False
+    json: bool = False
     """Print the figures as one JSON object on the last line."""
-    checkpoint: Checkpoint = None
+    checkpoint: Path | None = None
     """Checkpoint directory (default: the shipped pretrained model)."""
     calls: Annotated[int, Field(ge=1)] = 200
     """Timed single decodes."""
@@ -159,9 +157,9 @@ class BenchModel(Command):
 class BenchApp(Command):
     """Benchmark the designer through a real server: slider -> decoded view / replay ready, vs bare MuJoCo."""
 
-    json: Json = False
+    json: bool = False
     """Print the figures as one JSON object on the last line."""
-    checkpoint: Checkpoint = None
+    checkpoint: Path | None = None
     """Checkpoint directory (default: the shipped pretrained model)."""
     moves: Annotated[int, Field(ge=1)] = 20
     """Slider moves to time."""
@@ -174,9 +172,9 @@ class BenchLoad(Command):
     """Browser tabs in the multi-client phase (a single-client phase runs first, side by side)."""
     seconds: Annotated[float, Field(gt=0)] = 60.0
     """Length of each phase."""
-    json: Json = False
+    json: bool = False
     """Print the figures as one JSON object on the last line."""
-    checkpoint: Checkpoint = None
+    checkpoint: Path | None = None
     """Checkpoint directory (default: the shipped pretrained model)."""
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait (as in `snakeloco serve`)."""
@@ -188,6 +186,10 @@ class BenchLoad(Command):
     """Pin the server to the first half of the CPUs and the browsers to the second half."""
 
 
+class Bench(Command):
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load} --help`."""
+
+
 COMMANDS: dict[str, type[Command]] = {
     "generate": Generate,
     "train": Train,
@@ -195,6 +197,7 @@ COMMANDS: dict[str, type[Command]] = {
     "calibrate": Calibrate,
     "figures": Figures,
     "serve": Serve,
+    "bench": Bench,  # listed here for `snakeloco --help`; `snakeloco bench ...` parses BENCHES
 }
 BENCHES: dict[str, type[Command]] = {"sim": BenchSim, "model": BenchModel, "app": BenchApp, "load": BenchLoad}
-BENCH_HELP = "Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load} --help`."
+BENCH_HELP = Bench.__doc__

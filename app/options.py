@@ -49,8 +49,10 @@ def _bounds(model: type[BaseModel], name: str) -> tuple[float | None, float | No
             lo = m.ge
         elif isinstance(m, annotated_types.Gt):
             lo, strict = m.gt, True
-        elif isinstance(m, annotated_types.Le | annotated_types.Lt):
-            hi = getattr(m, "le", None) if isinstance(m, annotated_types.Le) else m.lt
+        elif isinstance(m, annotated_types.Le):
+            hi = m.le
+        elif isinstance(m, annotated_types.Lt):
+            hi = m.lt
     return lo, hi, strict
 
 

@@ -25,6 +25,7 @@ def test_calibration_counts_are_checked_in_the_config():
             CalibrateConfig(**bad)
 
 
+@pytest.mark.slow
 def test_calibration_tunes_only_the_head_and_body_decoder(checkpoint, tiny_dataset_path, tmp_path):
     from snakeloco.model.calibrate import MODES, CalibrateConfig, calibrate
     from snakeloco.model.checkpoint import load_checkpoint
@@ -67,6 +68,7 @@ def test_calibration_tunes_only_the_head_and_body_decoder(checkpoint, tiny_datas
         calibrate(checkpoint, other, tmp_path / "x", CalibrateConfig(prior_samples=2, epochs=1), log=None)
 
 
+@pytest.mark.slow
 def test_calibration_gaits_file_is_reused_and_checked(checkpoint, tiny_dataset_path, tmp_path, monkeypatch):
     import snakeloco.model.calibrate as cal
     from snakeloco.model.checkpoint import load_checkpoint
@@ -124,37 +126,39 @@ def test_calibration_gaits_file_is_reused_and_checked(checkpoint, tiny_dataset_p
         cal.load_gaits(tmp_path / "garbled.npz", model, small)
 
 
-def test_extra_zero_draws_leave_the_shared_draws_alone(checkpoint):
+def _with_extra_draws(checkpoint, base, first_extra: int, **extra_counts):
+    """Calibration gaits replayed for ``base`` and again with more extra draws: both runs, and a mask
+    of the second's extra gaits. The gaits before them must be those of the first run, exactly."""
     import snakeloco.model.calibrate as cal
 
     model = load_pretrained(checkpoint)
-    base = cal.CalibrateConfig(prior_samples=2, seed=7, zero_samples=0, sampled_samples=0)
-    plain = cal.replay_prior_gaits(model, base, workers=1)
-    more = cal.replay_prior_gaits(model, base.model_copy(update={"zero_samples": 3}), workers=1)
-    assert more["broken"].sum() == plain["broken"].sum() == 0  # so every draw below is compared
-    shared = more["z_index"] < 2
+    before = cal.replay_prior_gaits(model, base, workers=1)
+    more = cal.replay_prior_gaits(model, base.model_copy(update=extra_counts), workers=1)
+    assert more["broken"].sum() == before["broken"].sum() == 0  # so every draw below is compared
+    head = more["z_index"] < first_extra
     for k in ("shape", "stats", "z_b", "z_j", "z_index", "mode"):
-        np.testing.assert_array_equal(more[k][shared], plain[k], err_msg=k)
-    extra = ~shared
+        np.testing.assert_array_equal(more[k][head], before[k], err_msg=k)
+    return before, more, ~head
+
+
+@pytest.mark.slow
+def test_extra_zero_draws_leave_the_shared_draws_alone(checkpoint):
+    import snakeloco.model.calibrate as cal
+
+    base = cal.CalibrateConfig(prior_samples=2, seed=7, zero_samples=0, sampled_samples=0)
+    plain, more, extra = _with_extra_draws(checkpoint, base, 2, zero_samples=3)
     assert extra.sum() == 3 and (more["mode"][extra] == cal.ZERO_MODE).all()
     assert (more["z_j"][extra] == 0).all() and set(more["z_index"][extra]) == {2, 3, 4}
     # Their own seed: not the first draws again.
     assert not np.allclose(more["z_b"][extra][:1], plain["z_b"][:1])
 
 
+@pytest.mark.slow
 def test_extra_sampled_draws_come_last_in_every_sampled_mode(checkpoint):
     import snakeloco.model.calibrate as cal
 
-    model = load_pretrained(checkpoint)
     base = cal.CalibrateConfig(prior_samples=2, seed=7, zero_samples=1, sampled_samples=0)
-    before = cal.replay_prior_gaits(model, base, workers=1)
-    more = cal.replay_prior_gaits(model, base.model_copy(update={"sampled_samples": 2}), workers=1)
-    assert more["broken"].sum() == before["broken"].sum() == 0  # so every draw below is compared
-    # The gaits before the extra sampled ones are those of a run without them.
-    head = more["z_index"] < 3
-    for k in ("shape", "stats", "z_b", "z_j", "z_index", "mode"):
-        np.testing.assert_array_equal(more[k][head], before[k], err_msg=k)
-    extra = ~head
+    before, more, extra = _with_extra_draws(checkpoint, base, 3, sampled_samples=2)
     assert extra.sum() == 2 * len(cal.SAMPLED_MODES)
     assert set(more["mode"][extra]) == set(cal.SAMPLED_MODES) and cal.ZERO_MODE not in cal.SAMPLED_MODES
     assert set(more["z_index"][extra]) == {3, 4}

@@ -137,6 +137,7 @@ def test_train_presets_are_python_objects_that_options_override(tmp_path):
     paper = parse_args([*base, "--preset", "paper"])
     assert paper.train == PRESETS["paper"].train and paper.model == PRESETS["paper"].model
     assert paper.train.epochs == 140
+    assert parse_args([*base, "--preset=paper"]).train.epochs == 140
     tuned = parse_args([*base, "--preset", "paper", "--epochs", "3", "--alpha", "2"])
     assert tuned.train.epochs == 3 and tuned.model.alpha == 2.0 and tuned.train.cycle_epochs == 50.0
     assert parse_args(base).train.epochs == 300  # no preset: the configs' own defaults

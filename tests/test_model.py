@@ -317,10 +317,6 @@ def test_training_on_cuda_without_cuda_is_refused(tiny_dataset_path, tmp_path):
         )
 
 
-@pytest.mark.slow
-@pytest.mark.slow
-@pytest.mark.slow
-@pytest.mark.slow
 def test_single_z_decode_runs_traced_and_matches_eager_exactly(checkpoint):
     m = load_pretrained(checkpoint)
     rng = np.random.default_rng(3)

@@ -76,7 +76,7 @@ class BrowserNice:
     Chromium sets its renderers' priority itself (as root, to nice -8 for visible pages), which
     would put the load generators above the server they are measuring. And Playwright starts each
     browser in a session of its own: where the kernel groups sessions for scheduling
-    (``schedautogroup_enabled``, the default on desktop kernels), a thread's nice only counts
+    (``sched_autogroup_enabled``, the default on desktop kernels), a thread's nice only counts
     inside its group and the groups share the CPUs equally, so 4 browsers held the server to a
     fifth of the machine whatever their threads' nice. Each browser's group gets the nice too.
     """
