@@ -28,6 +28,7 @@ from snakeloco.app.commands import (
     Command,
     Evaluate,
     Figures,
+    Gait,
     Generate,
     Serve,
     Train,
@@ -39,6 +40,7 @@ from snakeloco.model.train import PRESETS
 # where the option is also an input (--replays, --gaits: reused when present) is not written.
 OUTPUTS: dict[type, dict[str, str]] = {
     Generate: {"out": "file"},
+    Gait: {"out": "file"},
     Train: {"out": "dir"},
     Evaluate: {"report": "file", "replays": "file"},
     Calibrate: {"out": "dir", "gaits": "file"},
@@ -115,6 +117,24 @@ def run_generate(cmd: Generate) -> Path:
     size = path.stat().st_size / 2**20
     print(f"wrote {path} ({cfg.num_samples} samples, {size:.1f} MiB) in {time.perf_counter() - t0:.1f} s")
     return path
+
+
+def run_gait(cmd: Gait) -> str:
+    """Print the library (--list) and/or write one library gait as a gait CSV; returns what it printed."""
+    from snakeloco.app.gait_csv import library_gait_csv
+    from snakeloco.sim.gaits import library_table
+
+    if not cmd.list and cmd.name is None:
+        raise OptionError("name a library gait to write (NAME --out FILE.csv), or pass --list")
+    if cmd.name is not None and cmd.out is None:
+        raise OptionError(f"--out FILE.csv is needed to write the {cmd.name} gait")
+    text = library_table() if cmd.list else ""
+    if cmd.name is not None:
+        cmd.out.parent.mkdir(parents=True, exist_ok=True)
+        cmd.out.write_text(library_gait_csv(cmd.name))
+        text += f"wrote {cmd.out} (library gait {cmd.name}: 2000 rows at 20 Hz, rad)"
+    print(text.rstrip())
+    return text
 
 
 def run_train(cmd: Train):
@@ -206,6 +226,7 @@ def run_bench(cmd: Command) -> dict:
 
 RUNNERS = {
     Generate: run_generate,
+    Gait: run_gait,
     Train: run_train,
     Evaluate: run_evaluate,
     Calibrate: run_calibrate,

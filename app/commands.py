@@ -20,6 +20,7 @@ from snakeloco.model.config import ModelConfig
 from snakeloco.model.train import PRESETS, TrainConfig
 from snakeloco.sim import GenerateConfig
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
 Flat = tyro.conf.OmitArgPrefixes
 """A nested config whose fields are flags of their own (``--epochs``, not ``--train.epochs``)."""
@@ -100,6 +101,17 @@ class Calibrate(Command):
     """Simulation threads (default: all cores)."""
     gaits: Path | None = None
     """Replayed calibration gaits (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same draw), else written there after replaying."""
+
+
+class Gait(Command):
+    """Write a gait of the library tuned on this robot as a gait CSV (`snakeloco gait NAME --out FILE.csv`), or list the library with its measured figures (`snakeloco gait --list`)."""
+
+    name: Annotated[Literal[tuple(GAIT_PRESETS)] | None, tyro.conf.Positional] = None  # type: ignore[valid-type]
+    """The library gait to write (docs/gaits.md)."""
+    out: Path | None = None
+    """Destination gait CSV (the format Export CSV writes; Import CSV and snakeloco.sim.replay take it)."""
+    list: bool = False
+    """Print the library: each gait's parameters and what it was measured to do on this robot."""
 
 
 class Figures(Command):
@@ -192,6 +204,7 @@ class Bench(Command):
 
 COMMANDS: dict[str, type[Command]] = {
     "generate": Generate,
+    "gait": Gait,
     "train": Train,
     "evaluate": Evaluate,
     "calibrate": Calibrate,

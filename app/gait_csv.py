@@ -180,3 +180,20 @@ def gait_comments(
         f = sim.figures
         comments["consistency"] = ", ".join(f"{k} {f[k]:.4g}" for k in EXPORT_FIGURES if k in f)
     return comments
+
+
+def library_gait_csv(name: str) -> str:
+    """The library gait ``name`` (``sim.gaits.PRESETS``) as gait CSV text, its equation and measured
+    figures in the comments."""
+    from snakeloco.sim.gaits import PRESETS
+
+    preset = PRESETS[name]
+    m = preset.measured
+    comments = {
+        "snakeloco gait": f"library gait {name}: {preset.about}",
+        "gait equation": ", ".join(f"{k} {v:g}" for k, v in preset.gait.model_dump().items()),
+        "measured": f"{m.displacement:.2f} m in 100 s ({m.body_lengths_per_s:.3f} body lengths/s), "
+        f"straightness {m.straightness:.2f}, heading {m.heading_deg:.0f} deg, net roll {m.net_roll:.2f} rad, "
+        f"net yaw {m.net_yaw:.2f} rad, ensemble spread {m.spread:.3f}",
+    }
+    return write_gait_csv(preset.gait.commands(), comments)

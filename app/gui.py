@@ -11,11 +11,14 @@ import viser.uplot as uplot
 
 from snakeloco.app.scene import JOINT_COLORS, LAYERS
 from snakeloco.sim import BODY_TIMES, N_JOINTS, RECORD
+from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
 HELP_PATH = Path(__file__).resolve().parent / "help.md"
 """The Help panel's text; package data, so a non-editable install shows it too."""
 SLIDER_RANGE = 3.0
 """Sliders span +/- 3 prior standard deviations of z_B ~ N(0, I)."""
+NO_BASELINE = "none"
+"""The Baseline dropdown's entry for "no library gait"."""
 PATH_PLOTS = {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}
 """Generated-vs-simulated plots: title -> body channel (``sim.BODY_CHANNELS``)."""
 
@@ -39,6 +42,7 @@ class Controls:
     speed: viser.GuiSliderHandle
     scrubber: viser.GuiSliderHandle
     layers: dict[str, viser.GuiCheckboxHandle]
+    baseline: viser.GuiDropdownHandle
     export_button: viser.GuiButtonHandle
     import_button: viser.GuiUploadButtonHandle
     panel: viser.GuiMarkdownHandle
@@ -80,6 +84,13 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int) -> Controls:
         scrubber = gui.add_slider("Time (s)", 0.0, last, 1.0 / RECORD.sample_rate, 0.0)
     with gui.add_folder("Layers"):
         layers = {name: gui.add_checkbox(name, True) for name in LAYERS}
+    with gui.add_folder("Baseline"):
+        baseline = gui.add_dropdown(
+            "Baseline",
+            (NO_BASELINE, *GAIT_PRESETS),
+            initial_value=NO_BASELINE,
+            hint="Load a gait of the library tuned on this robot as the current gait (docs/gaits.md)",
+        )
     with gui.add_folder("Gait file"):
         export_button = gui.add_button(
             "Export CSV",
@@ -133,6 +144,7 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int) -> Controls:
         speed=speed,
         scrubber=scrubber,
         layers=layers,
+        baseline=baseline,
         export_button=export_button,
         import_button=import_button,
         panel=panel,

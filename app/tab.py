@@ -29,6 +29,7 @@ from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorke
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, RECORD, SimulationError, Simulator, joint_shape
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
 PHYSICS_NICE = 15
 """Nice increment of the native threads that run a tab's rollouts when the tab owns its simulators
@@ -106,6 +107,7 @@ class DesignerClient:
         for layer in c.layers.values():
             layer.on_update(g(lambda _e: self._apply_layers()))
         c.export_button.on_click(g(lambda _e: self.export()))
+        c.baseline.on_update(g(lambda _e: self.load_baseline(c.baseline.value)))
         c.import_button.on_upload(g(lambda _e: self._on_upload()))
 
     def _report(self, message: str) -> None:
@@ -251,8 +253,8 @@ class DesignerClient:
             return
         timing = self._timing(version)
         is_current = lambda: self.is_current(version)  # noqa: E731
-        if kind == "import":
-            self._import_job(*payload, timing, is_current)
+        if kind == "load":
+            self._load_job(*payload, timing, is_current)
         else:
             self._simulate(payload[0], timing, is_current)
 
@@ -284,17 +286,17 @@ class DesignerClient:
             timing.ensembled = time.perf_counter()
         return sim
 
-    def _import_job(self, name: str, commands: np.ndarray, timing: Timing, is_current) -> None:
+    def _load_job(self, source: str, title: str, commands: np.ndarray, timing: Timing, is_current) -> None:
+        """Replay given commands (an imported CSV, a library gait) as the current gait, with the
+        sliders moved to where it encodes; ``title`` heads its notifications."""
         shape = joint_shape(commands)
-        gait = DecodedGait(None, shape, None, commands, 0.0, source=f"import: {name}")
+        gait = DecodedGait(None, shape, None, commands, 0.0, source=source)
         try:
             sim = self.session.replay(gait)
         except SimulationError as exc:
             timing.failed = str(exc)
             self.client.add_notification(
-                f"Import CSV: {name} not loaded",
-                f"Its replay broke: {exc}. The current gait stays.",
-                color="red",
+                f"{title} not loaded", f"Its replay broke: {exc}. The current gait stays.", color="red"
             )
             return
         z_b = self.session.encode_replay(sim)
@@ -313,9 +315,7 @@ class DesignerClient:
                 self._draw_simulated(gait, sim, ensemble=True)
                 timing.ensembled = time.perf_counter()
                 self.client.add_notification(
-                    "Import CSV",
-                    f"Replaying {name}; the sliders show where it sits in z_B.",
-                    auto_close_seconds=5.0,
+                    title, "Replayed; the sliders show where it sits in z_B.", auto_close_seconds=5.0
                 )
 
     # --- drawing ---------------------------------------------------------------------------------
@@ -388,7 +388,15 @@ class DesignerClient:
                 auto_close_seconds=15.0,
             )
             return None
-        return self._submit(self.physics, ("import", name, table.commands))
+        return self._submit(self.physics, ("load", f"import: {name}", f"Import CSV: {name}", table.commands))
+
+    def load_baseline(self, name: str) -> int | None:
+        """Make the library gait ``name`` (``sim.gaits.PRESETS``) the current gait: replayed, drawn,
+        exportable, the sliders where it encodes. Returns the request version (None for "none")."""
+        if name not in GAIT_PRESETS:
+            return None
+        commands = GAIT_PRESETS[name].gait.commands()
+        return self._submit(self.physics, ("load", f"library: {name}", f"Baseline: {name}", commands))
 
     def _on_upload(self) -> None:
         f = self.controls.import_button.value

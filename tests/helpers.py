@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import shutil
 import socket
+import time
 from pathlib import Path
 
 import pytest
 
+from snakeloco.app.bench.headless import HeadlessClient
 from snakeloco.app.bench.load_driver import CHROMIUM
 from snakeloco.model import ModelConfig
 
@@ -40,3 +42,18 @@ BROWSER = [
 ]
 """Marks of a test that drives real Chromium pages: slow, and skipped with the reason where Debian's
 chromium is missing."""
+
+
+def connect_headless(srv):
+    """Open a headless viser client on a ``DesignerServer`` and wait for its tab to settle; returns the
+    client (close it) and the tab's ``DesignerClient``."""
+    before = set(srv.clients)
+    client = HeadlessClient(srv.port)
+    for _ in range(200):
+        new = set(srv.clients) - before
+        if new:
+            designer = srv.clients[new.pop()]
+            assert designer.wait_idle(60)
+            return client, designer
+        time.sleep(0.05)
+    raise AssertionError("the server never registered the client")

@@ -10,12 +10,13 @@ import time
 import numpy as np
 import pytest
 
-from snakeloco.app.bench.headless import HeadlessClient
 from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
 from snakeloco.app.panel import spread_text
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.session import LatestWorker
 from snakeloco.sim import replay
+
+from helpers import connect_headless
 
 
 @pytest.fixture
@@ -23,19 +24,6 @@ def server(checkpoint):
     srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False)
     yield srv
     srv.stop()
-
-
-def _connect(srv: DesignerServer):
-    before = set(srv.clients)
-    client = HeadlessClient(srv.port)
-    for _ in range(200):
-        new = set(srv.clients) - before
-        if new:
-            designer = srv.clients[new.pop()]
-            assert designer.wait_idle(60)
-            return client, designer
-        time.sleep(0.05)
-    raise AssertionError("the server never registered the client")
 
 
 def _record_notifications(d) -> list[tuple[str, str]]:
@@ -56,7 +44,7 @@ def _data_rows(text: str) -> list[str]:
 
 
 def test_slider_change_decodes_replays_and_draws(server):
-    client, d = _connect(server)
+    client, d = connect_headless(server)
     try:
         first = d.timings[-1]
         assert np.isfinite([first.decoded, first.replayed, first.ensembled]).all()
@@ -85,7 +73,7 @@ def test_slider_change_decodes_replays_and_draws(server):
 
 @pytest.mark.slow
 def test_export_import_export_round_trips_exactly(server):
-    client, d = _connect(server)
+    client, d = connect_headless(server)
     try:
         d.sliders[1].value = -0.8
         time.sleep(0.2)
@@ -154,7 +142,7 @@ def test_gait_csv_refuses_every_bad_file_of_the_catalogue():
 
 
 def test_bad_import_keeps_the_current_gait(server):
-    client, d = _connect(server)
+    client, d = connect_headless(server)
     try:
         before = d.decoded.commands.copy()
         notes = _record_notifications(d)
@@ -174,8 +162,8 @@ def test_bad_import_keeps_the_current_gait(server):
 
 @pytest.mark.slow
 def test_two_clients_are_independent(server):
-    c1, d1 = _connect(server)
-    c2, d2 = _connect(server)
+    c1, d1 = connect_headless(server)
+    c2, d2 = connect_headless(server)
     try:
         assert d1 is not d2
         d1.sliders[0].value = 2.0
@@ -197,7 +185,7 @@ def test_two_clients_are_independent(server):
     assert not server.clients  # disconnects clean up their designers
     # ... which outlives them: a tab that leaves does not stop the others' physics.
     assert not server.simulator._closed
-    c3, d3 = _connect(server)
+    c3, d3 = connect_headless(server)
     try:
         assert d3.wait_idle(60) and d3.simulated is not None
     finally:
@@ -251,7 +239,7 @@ def _square_wave_csv() -> bytes:
 
 
 def test_diverging_import_is_reported_and_the_server_keeps_serving(server):
-    client, d = _connect(server)
+    client, d = connect_headless(server)
     try:
         before = d.decoded.commands.copy()
         notes = _record_notifications(d)
@@ -270,7 +258,7 @@ def test_diverging_import_is_reported_and_the_server_keeps_serving(server):
 
 
 def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
-    client, d = _connect(server)
+    client, d = connect_headless(server)
     try:
         wild = read_gait_csv(_square_wave_csv()).commands
         decode = d.session.decode
@@ -299,7 +287,7 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
 
 
 def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server):
-    client, d = _connect(server)
+    client, d = connect_headless(server)
     try:
         gate = threading.Event()
         replay = d.session.replay
@@ -340,7 +328,7 @@ def test_server_stop_leaves_no_threads(checkpoint):
         ]
 
     srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=1, verbose=False)
-    client, _designer = _connect(srv)
+    client, _designer = connect_headless(srv)
     assert ours()
     srv.stop()
     client.close()

@@ -1,0 +1,222 @@
+"""The gait equation (Tesch et al. 2009) on this 8-joint snake, and the library of gaits tuned on it.
+
+Joint k = 1..8 sits at module k; odd joints pitch, even joints yaw. Each is an offset-free sinusoid
+of one temporal frequency f, with an amplitude and a spatial frequency (rad per module) per group
+and a phase offset delta of the yaw wave against the pitch wave:
+
+    pitch (odd k):  u_k(t) = A_pitch sin(nu_pitch k + 2 pi f t)
+    yaw (even k):   u_k(t) = A_yaw   sin(nu_yaw k + 2 pi f t + delta)
+
+f is one of the record's excited frequencies (``RECORD.freqs``), so a gait is exactly periodic
+over the 100 s record and its joint shape (``sim.spectra``) is one non-zero bin: a library gait is
+a joint shape like any other, and ``shape_to_commands`` of that shape gives back its commands.
+Units: rad, rad per module, Hz.
+
+Published parameters for 16-module robots do not transfer to this 8-joint snake (CMU sidewinding,
+A 0.6 rad, 0.7 rad per module, 0.5 Hz, delta pi/4, rolls it in a circle): ``PRESETS`` were tuned on
+this robot (docs/gaits.md says how, with the figures each preset reproduces).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from snakeloco.sim.excitation import RECORD
+from snakeloco.sim.robot import COMMAND_LIMIT, N_JOINTS
+from snakeloco.sim.spectra import shape_to_commands
+
+MODULES = np.arange(1, N_JOINTS + 1)
+"""Module index k of each joint (1-based, as the MJCF names them)."""
+PITCH = MODULES % 2 == 1
+"""Which joints pitch (odd k); the others yaw."""
+
+
+class GaitEquation(BaseModel):
+    """One gait of the gait equation (module docstring), all angles in rad."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    a_pitch: float = Field(0.0, ge=0, le=COMMAND_LIMIT, description="Amplitude of the pitch joints (rad).")
+    a_yaw: float = Field(0.0, ge=0, le=COMMAND_LIMIT, description="Amplitude of the yaw joints (rad).")
+    nu_pitch: float = Field(0.0, description="Spatial frequency of the pitch wave (rad per module).")
+    nu_yaw: float = Field(0.0, description="Spatial frequency of the yaw wave (rad per module).")
+    delta: float = Field(0.0, description="Phase of the yaw wave against the pitch wave (rad).")
+    frequency: float = Field(0.93, gt=0, description="Temporal frequency (Hz): one of RECORD.freqs.")
+
+    @model_validator(mode="after")
+    def _on_an_excited_bin(self) -> GaitEquation:
+        if np.abs(RECORD.freqs - self.frequency).min() > 0.006:
+            raise ValueError(
+                f"frequency {self.frequency} Hz is not one of the record's excited frequencies "
+                f"{[round(f, 2) for f in RECORD.freqs.tolist()]} (Hz)"
+            )
+        return self
+
+    @property
+    def bin_index(self) -> int:
+        """Index l of the excited frequency the gait runs at."""
+        return int(np.argmin(np.abs(RECORD.freqs - self.frequency)))
+
+    def shape(self) -> np.ndarray:
+        """The gait's joint shape (8, L, 2): c_kl = A_k e^{i(phi_k - pi/2)} at its bin, zero elsewhere.
+
+        A sin(x) = Re(A e^{i(x - pi/2)}), so with x = phi_k + 2 pi f t the coefficient is
+        A e^{i(phi_k - pi/2)}, in ``sim.spectra``'s convention u(t) = Re(c e^{i 2 pi f t}).
+        """
+        amplitude = np.where(PITCH, self.a_pitch, self.a_yaw)  # (8,)
+        phase = np.where(PITCH, self.nu_pitch * MODULES, self.nu_yaw * MODULES + self.delta) - np.pi / 2
+        shape = np.zeros((N_JOINTS, RECORD.n_components, 2))
+        shape[:, self.bin_index, 0] = amplitude * np.cos(phase)
+        shape[:, self.bin_index, 1] = amplitude * np.sin(phase)
+        return shape
+
+    def commands(self) -> np.ndarray:
+        """Joint commands (2000, 8) rad at 20 Hz over the record."""
+        return shape_to_commands(self.shape())
+
+
+class GaitFigures(BaseModel):
+    """What physics did with a gait over the 100 s record (the unperturbed replay; spread from its
+    ensemble). Positions in the start frame (``sim.body``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    speed: float = Field(description="Displacement / record length (m/s).")
+    body_lengths_per_s: float = Field(description="Speed in body lengths (0.95 m) per second.")
+    displacement: float = Field(description="Distance from start to end (m).")
+    straightness: float = Field(description="Displacement / path length (1: a straight line).")
+    heading_deg: float = Field(
+        description="Direction of the displacement from the initial heading (deg, left +)."
+    )
+    net_roll: float = Field(description="Roll change over the record (rad).")
+    net_yaw: float = Field(description="Heading change over the record (rad, left +).")
+    spread: float = Field(description="Ensemble final-position spread / displacement (``sim.consistency``).")
+
+
+def gait_figures(ensemble_body: np.ndarray) -> GaitFigures:
+    """Figures of a gait from its ensemble's body series (K, T, 6) at 20 Hz, member 0 unperturbed."""
+    from snakeloco.sim.consistency import ensemble_spread, path_stats
+    from snakeloco.sim.robot import BODY_LENGTH
+
+    body = np.asarray(ensemble_body, np.float64)
+    s = path_stats(body[0], RECORD.sample_rate)
+    displacement = float(s["displacement"])
+    speed = displacement / RECORD.duration
+    fx, fy = (float(v) for v in s["final_xy"])
+    # The middle link swings with the gait, so its mean yaw, not its yaw at t = 0, is the body's heading.
+    travel = np.arctan2(fy, fx) - body[0, :, 5].mean()
+    return GaitFigures(
+        speed=speed,
+        body_lengths_per_s=speed / BODY_LENGTH,
+        displacement=displacement,
+        straightness=displacement / max(float(s["path_length"]), 1e-9),
+        heading_deg=float(np.degrees(np.angle(np.exp(1j * travel)))),
+        net_roll=float(s["net_roll"]),
+        net_yaw=float(body[0, -1, 5] - body[0, 0, 5]),
+        spread=ensemble_spread(body, RECORD.sample_rate)["final_spread"],
+    )
+
+
+class GaitPreset(BaseModel):
+    """A named gait of the library, with what it is for and the figures it was measured to give."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    gait: GaitEquation
+    about: str
+    measured: GaitFigures
+
+
+def measure_gait(gait: GaitEquation, simulator, ensemble: int = 4, seed: int = 0) -> GaitFigures:
+    """Replay a gait with ``ensemble`` - 1 perturbed copies (``sim.consistency``) on ``simulator`` (a
+    ``sim.Simulator``) and measure it. Raises SimulationError if the unperturbed replay breaks;
+    perturbed members that break leave the ensemble."""
+    from snakeloco.sim.command_rule import SimulationError
+    from snakeloco.sim.consistency import perturbed_commands
+
+    result = simulator.simulate(perturbed_commands(gait.commands(), ensemble, seed=seed))
+    if result.failures[0] is not None:
+        raise SimulationError(result.failures[0])
+    ok = [i for i, f in enumerate(result.failures) if f is None]
+    return gait_figures(result.body[ok])
+
+
+PRESETS: dict[str, GaitPreset] = {
+    "sidewind": GaitPreset(
+        gait=GaitEquation(a_pitch=0.4, a_yaw=0.7, nu_pitch=0.8, nu_yaw=0.8, delta=0.7854, frequency=0.93),
+        about="sidewinding: the fastest straight non-rolling gait of the search that physics predicts to 5%; travels sideways",
+        measured=GaitFigures(
+            speed=0.2396,
+            body_lengths_per_s=0.2522,
+            displacement=23.96,
+            straightness=0.8557,
+            heading_deg=93.38,
+            net_roll=-0.1552,
+            net_yaw=1.349,
+            spread=0.016,
+        ),
+    ),
+    "undulate": GaitPreset(
+        gait=GaitEquation(a_yaw=0.7, nu_yaw=0.7, frequency=0.93),
+        about="lateral undulation (yaw wave only): the fastest forward gait found",
+        measured=GaitFigures(
+            speed=0.3263,
+            body_lengths_per_s=0.3435,
+            displacement=32.63,
+            straightness=0.8098,
+            heading_deg=0.02802,
+            net_roll=0.00253,
+            net_yaw=0.2155,
+            spread=0.06386,
+        ),
+    ),
+    "roll": GaitPreset(
+        gait=GaitEquation(a_pitch=0.35, a_yaw=0.35, nu_pitch=0.71, nu_yaw=0.71, delta=1.5708, frequency=0.52),
+        about="lateral rolling: rolls over and over and moves sideways, the straightest gait found",
+        measured=GaitFigures(
+            speed=0.08444,
+            body_lengths_per_s=0.08888,
+            displacement=8.444,
+            straightness=0.9718,
+            heading_deg=-95.12,
+            net_roll=326.6,
+            net_yaw=-0.6007,
+            spread=0.01082,
+        ),
+    ),
+    "turn": GaitPreset(
+        gait=GaitEquation(a_pitch=0.12, a_yaw=0.95, nu_pitch=1.95, nu_yaw=-0.66, delta=-1.9, frequency=0.52),
+        about="turning in place (clockwise): the largest heading change found without rolling",
+        measured=GaitFigures(
+            speed=0.006414,
+            body_lengths_per_s=0.006751,
+            displacement=0.6414,
+            straightness=0.02623,
+            heading_deg=-157.3,
+            net_roll=-0.01751,
+            net_yaw=-40.12,
+            spread=0.03566,
+        ),
+    ),
+}
+"""The library: gait-equation gaits tuned on this robot, each with the figures it was measured to
+give (``measure_gait``: a 4-member ensemble, seed 0, MuJoCo 4.0.0). docs/gaits.md has the search that
+found them and how each was chosen."""
+
+
+def library_table() -> str:
+    """The library as a text table: parameters and measured figures of each preset."""
+    head = (
+        f"{'gait':<10} {'A_p':>5} {'A_y':>5} {'nu_p':>6} {'nu_y':>6} {'delta':>6} {'f Hz':>5} | "
+        f"{'m/s':>6} {'BL/s':>6} {'disp m':>7} {'straight':>8} {'head deg':>8} {'roll':>7} {'yaw':>7} {'spread':>6}"
+    )
+    rows = [head, "-" * len(head)]
+    for name, p in PRESETS.items():
+        g, m = p.gait, p.measured
+        rows.append(
+            f"{name:<10} {g.a_pitch:5.2f} {g.a_yaw:5.2f} {g.nu_pitch:6.2f} {g.nu_yaw:6.2f} {g.delta:6.2f} "
+            f"{g.frequency:5.2f} | {m.speed:6.3f} {m.body_lengths_per_s:6.3f} {m.displacement:7.2f} "
+            f"{m.straightness:8.2f} {m.heading_deg:8.0f} {m.net_roll:7.2f} {m.net_yaw:7.2f} {m.spread:6.3f}"
+        )
+    return "\n".join(rows) + "\n"

@@ -1,0 +1,107 @@
+"""The gait library: the gait equation as a joint shape, presets that reproduce their figures, the
+`snakeloco gait` command and the designer's Baseline dropdown."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from snakeloco.app.cli import main
+from snakeloco.app.gait_csv import read_gait_csv
+from snakeloco.sim import RECORD, Simulator, joint_shape, replay
+from snakeloco.sim.gaits import PRESETS, GaitEquation, measure_gait
+
+from helpers import connect_headless
+
+
+def test_gait_equation_is_a_joint_shape_on_one_excited_bin():
+    g = GaitEquation(a_pitch=0.3, a_yaw=0.8, nu_pitch=0.8, nu_yaw=-0.5, delta=np.pi / 4, frequency=0.93)
+    u = g.commands()  # (2000, 8)
+    t, k = RECORD.times[:, None], np.arange(1, 9)[None, :]
+    wave = 2 * np.pi * 0.93 * t
+    expected = np.where(k % 2 == 1, 0.3 * np.sin(0.8 * k + wave), 0.8 * np.sin(-0.5 * k + wave + np.pi / 4))
+    np.testing.assert_allclose(u, expected, atol=1e-12)
+    np.testing.assert_allclose(joint_shape(u), g.shape(), atol=1e-12)  # its shape is the FFT of its commands
+    energy = (g.shape() ** 2).sum(axis=(0, 2))  # (L,)
+    assert np.count_nonzero(energy) == 1 and RECORD.freqs[np.argmax(energy)] == pytest.approx(0.93)
+    with pytest.raises(ValidationError, match="not one of the record's excited frequencies"):
+        GaitEquation(frequency=0.5)
+    with pytest.raises(ValidationError):
+        GaitEquation(a_yaw=2.5)  # beyond the 2.2 rad command limit
+
+
+def test_library_has_the_gaits_the_designer_offers():
+    assert {"sidewind", "roll", "undulate", "turn"} <= set(PRESETS)
+    for name, p in PRESETS.items():
+        assert p.measured.spread <= 0.1, name  # every library gait is one physics can predict
+    assert abs(PRESETS["roll"].measured.net_roll) > 2 * np.pi  # it rolls over
+    for name in ("sidewind", "undulate", "turn"):
+        assert abs(PRESETS[name].measured.net_roll) < np.pi, name  # these do not
+    assert abs(PRESETS["sidewind"].measured.heading_deg) > 45  # sideways
+    assert abs(PRESETS["undulate"].measured.heading_deg) < 45  # forward
+    assert abs(PRESETS["turn"].measured.net_yaw) > np.pi  # turns more than half a circle
+
+
+@pytest.mark.slow
+def test_presets_reproduce_their_documented_figures():
+    """Replayed as the library was measured (4-member ensemble, seed 0): displacement within 5% or
+    5 cm, heading within 10 deg, net roll and yaw within 5% or 0.3 rad, spread within 0.05."""
+    simulator = Simulator(None)
+    try:
+        for name, p in PRESETS.items():
+            got, want = measure_gait(p.gait, simulator), p.measured
+            assert got.displacement == pytest.approx(want.displacement, rel=0.05, abs=0.05), name
+            assert abs(got.heading_deg - want.heading_deg) < 10, name
+            assert got.net_roll == pytest.approx(want.net_roll, rel=0.05, abs=0.3), name
+            assert got.net_yaw == pytest.approx(want.net_yaw, rel=0.05, abs=0.3), name
+            assert abs(got.spread - want.spread) < 0.05, name
+    finally:
+        simulator.close()
+
+
+def test_gait_command_writes_and_lists_the_library(tmp_path, capsys):
+    out = tmp_path / "sidewind.csv"
+    main(["gait", "sidewind", "--out", str(out)])
+    assert f"wrote {out}" in capsys.readouterr().out
+    text = out.read_text()
+    assert "# snakeloco gait: library gait sidewind" in text
+    np.testing.assert_array_equal(read_gait_csv(text).commands, PRESETS["sidewind"].gait.commands())
+    main(["gait", "--list"])
+    listed = capsys.readouterr().out
+    assert all(name in listed for name in PRESETS) and "BL/s" in listed
+    for argv, says in (
+        (["gait"], "name a library gait"),
+        (["gait", "roll"], "--out FILE.csv is needed"),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2 and says in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["gait", "fly", "--out", str(tmp_path / "x.csv")])
+    assert exc.value.code == 2 and not (tmp_path / "x.csv").exists()
+
+
+@pytest.mark.slow
+def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
+    from snakeloco.app.server import DesignerServer
+
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    client, d = connect_headless(srv)
+    try:
+        d.controls.baseline.value = "undulate"
+        time.sleep(0.3)
+        assert d.wait_idle(120)
+        commands = PRESETS["undulate"].gait.commands()
+        assert d.decoded.source == "library: undulate"
+        np.testing.assert_array_equal(d.decoded.commands, commands)
+        np.testing.assert_array_equal(d.simulated.body, replay(commands).body)  # replayed as it is
+        assert d.simulated.figures and len(d.simulated.ensemble_body) == 2
+        exported = read_gait_csv(d.export_text())
+        np.testing.assert_array_equal(exported.commands, commands)  # and exportable
+        assert "# z_B (encoded)" in d.export_text()  # the sliders sit where it encodes
+    finally:
+        client.close()
+        srv.stop()
