@@ -32,11 +32,11 @@ import hashlib
 import json
 import os
 import shutil
-import tempfile
 import zipfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -45,6 +45,7 @@ from snakeloco.sim.body import BODY_CHANNELS
 from snakeloco.sim.command_rule import SimConfig
 from snakeloco.sim.excitation import RECORD, ExcitationConfig
 from snakeloco.sim.robot import N_JOINTS
+from snakeloco.sim.structured import StructuredConfig
 
 SCHEMA_VERSION = 1
 BODY_DOWNSAMPLE = 4
@@ -77,6 +78,24 @@ class GenerateConfig(BaseModel):
         description="The command rule and break limits (``sim.command_rule``); fixed like the excitation.",
         json_schema_extra={"cli": False},
     )
+    family: Literal["paper", "structured"] = Field(
+        "paper",
+        description="paper: the paper's random-phase multisines (chaotic on this robot); structured: "
+        "randomised travelling-wave gaits that physics can predict (sim/structured.py).",
+    )
+    structured: StructuredConfig = Field(
+        StructuredConfig(),
+        description="How the structured family draws and screens its gaits (its defaults are documented "
+        "in docs/gaits.md).",
+        json_schema_extra={"cli": False},
+    )
+
+    def to_meta(self) -> dict:
+        """The config as a dataset's meta stores it. A paper-family config leaves the family fields
+        out, exactly as datasets written before the structured family hold it, so their meta hash
+        (which a checkpoint records) is unchanged."""
+        paper = self.family == "paper"
+        return self.model_dump(mode="json", exclude={"family", "structured"} if paper else None)
 
 
 class DatasetError(ValueError):
@@ -135,21 +154,39 @@ def dataset_members(cfg: GenerateConfig) -> dict[str, _Member]:
 
 
 class DatasetWriter:
-    """Writes a dataset file atomically, record chunk by record chunk, with bounded memory.
+    """Writes a dataset file atomically, chunk of records by chunk, with bounded memory, resumably.
 
-    Each array is filled in a memory-mapped ``.npy`` in a temporary folder beside ``out``; ``finish``
-    streams them into the zip and renames it to ``out``. Used as a context manager: leaving it
-    without ``finish`` (an error, Ctrl-C) removes the temporary folder and leaves ``out`` as it was.
+    Each array is filled in a memory-mapped ``.npy`` in a work folder beside ``out``
+    (``PATH.partial``); after each chunk, ``done`` records it (with what the chunk logged) in the
+    folder's ``progress.json``. ``finish`` streams the arrays into the zip, renames it to ``out`` and
+    removes the folder. A run that stops (an error, Ctrl-C) leaves ``out`` as it was and keeps the
+    folder where at least one chunk finished: the same config writing to the same ``out`` again
+    resumes from there (``finished``) and gives the same file as an uninterrupted run.
     """
 
-    def __init__(self, cfg: GenerateConfig, out: str | Path) -> None:
+    def __init__(self, cfg: GenerateConfig, out: str | Path, chunk_size: int) -> None:
         self.cfg = cfg
         self.out = Path(out)
         self.out.parent.mkdir(parents=True, exist_ok=True)
+        self.work = self.out.with_name(self.out.name + ".partial")
         self._members = dataset_members(cfg)
-        self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", dir=self.out.parent))
+        self._progress = self.work / "progress.json"
+        self.chunks: dict[int, dict] = {}  # start -> what that chunk logged
+        resuming = self._progress.is_file()
+        if resuming:
+            progress = json.loads(self._progress.read_text())
+            if progress.get("config") != cfg.to_meta():
+                raise DatasetError(
+                    f"{self.work} holds a partial run of another config; delete it to start this one "
+                    f"(its config: {progress.get('config')})"
+                )
+            chunk_size = int(progress["chunk_size"])  # the chunks already written fix the boundaries
+            self.chunks = {int(k): v for k, v in progress["chunks"].items()}
+        self.chunk_size = chunk_size
+        self.work.mkdir(exist_ok=True)
+        mode = "r+" if resuming else "w+"
         self._arrays = {
-            key: np.lib.format.open_memmap(self._tmp / f"{key}.npy", "w+", np.dtype(m.dtype), m.shape)
+            key: np.lib.format.open_memmap(self.work / f"{key}.npy", mode, np.dtype(m.dtype), m.shape)
             for key, m in self._members.items()
             if key != "freqs"
         }
@@ -159,26 +196,46 @@ class DatasetWriter:
 
     def __exit__(self, *exc) -> None:
         self._arrays.clear()
-        shutil.rmtree(self._tmp, ignore_errors=True)
+        if not self.chunks:  # nothing to resume from
+            shutil.rmtree(self.work, ignore_errors=True)
 
-    def write(self, start: int, **arrays: np.ndarray) -> None:
-        """Store records ``start``, ``start + 1``, ... of each named per-record array."""
+    def starts(self) -> list[int]:
+        """First record of every chunk not written yet, in order."""
+        return [s for s in range(0, self.cfg.num_samples, self.chunk_size) if s not in self.chunks]
+
+    def write(self, start: int, log: dict | None = None, **arrays: np.ndarray) -> None:
+        """Store the chunk of records from ``start`` (each named per-record array) and mark it done,
+        with ``log`` (JSON-ready: what ``finish`` gathers into the meta)."""
         for key, value in arrays.items():
             self._arrays[key][start : start + len(value)] = value
+        for arr in self._arrays.values():
+            arr.flush()
+        self.chunks[start] = log or {}
+        progress = {"config": self.cfg.to_meta(), "chunk_size": self.chunk_size, "chunks": self.chunks}
+        tmp = self._progress.with_suffix(".tmp")
+        tmp.write_text(json.dumps(progress))
+        os.replace(tmp, self._progress)
+
+    def logs(self) -> list[dict]:
+        """What every written chunk logged, in record order."""
+        return [self.chunks[s] for s in sorted(self.chunks)]
 
     def finish(self, meta: dict) -> Path:
-        """Write ``freqs`` and ``meta`` (schema version added), zip every member and rename to ``out``."""
+        """Write ``freqs`` and ``meta`` (schema version and config added), zip every member, rename to
+        ``out`` and remove the work folder."""
         for arr in self._arrays.values():
             arr.flush()
         self._arrays.clear()
-        np.save(self._tmp / "freqs.npy", self.cfg.excitation.freqs.astype(np.float64))
-        meta = {"schema_version": SCHEMA_VERSION, "config": self.cfg.model_dump(mode="json"), **meta}
-        np.save(self._tmp / "meta.npy", np.array(json.dumps(meta)))
-        tmp_file = self._tmp / "dataset.npz"
+        np.save(self.work / "freqs.npy", self.cfg.excitation.freqs.astype(np.float64))
+        meta = {"schema_version": SCHEMA_VERSION, "config": self.cfg.to_meta(), **meta}
+        np.save(self.work / "meta.npy", np.array(json.dumps(meta)))
+        tmp_file = self.work / "dataset.npz"
         with zipfile.ZipFile(tmp_file, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
             for key in [*self._members, "meta"]:
-                zf.write(self._tmp / f"{key}.npy", arcname=f"{key}.npy")
+                zf.write(self.work / f"{key}.npy", arcname=f"{key}.npy")
         os.replace(tmp_file, self.out)
+        self.chunks = {}
+        shutil.rmtree(self.work, ignore_errors=True)
         return self.out
 
 

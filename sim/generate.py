@@ -17,11 +17,13 @@ import mujoco
 import numpy as np
 
 from snakeloco.sim.command_rule import SimulationError
+from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
 from snakeloco.sim.dataset import BODY_DOWNSAMPLE, N_BODY, DatasetWriter, GenerateConfig
-from snakeloco.sim.excitation import multisine, random_phases
+from snakeloco.sim.excitation import RECORD, multisine, random_phases
 from snakeloco.sim.physics import Simulator, resolve_workers
 from snakeloco.sim.robot import N_JOINTS, mjcf_sha256
-from snakeloco.sim.spectra import joint_shape
+from snakeloco.sim.spectra import joint_shape, shape_to_commands
+from snakeloco.sim.structured import draw_structured
 
 MEMORY_BUDGET = 512 * 2**20
 """Bytes of rollout buffers per chunk; bounds peak memory whatever the dataset size."""
@@ -44,6 +46,19 @@ class _Chunk:
     amplitude: np.ndarray  # (B,)
     attempts: np.ndarray  # (B,) int32
     failures: list[dict] = field(default_factory=list)
+    log: dict = field(default_factory=dict)  # what a family records beside the failures (JSON-ready)
+
+    @classmethod
+    def empty(cls, cfg: GenerateConfig, b: int) -> _Chunk:
+        t, n_l = cfg.excitation.n_samples, cfg.excitation.n_components
+        return cls(
+            commands=np.empty((b, t, N_JOINTS), np.float32),
+            joint_angles=np.empty((b, t, N_JOINTS), np.float32),
+            body=np.empty((b, t, N_BODY), np.float32),
+            phases=np.empty((b, N_JOINTS, n_l)),
+            amplitude=np.empty(b, np.float32),
+            attempts=np.zeros(b, np.int32),
+        )
 
 
 def draw_sample(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -57,17 +72,8 @@ def draw_sample(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarr
 
 def simulate_samples(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray) -> _Chunk:
     """Draw, simulate and measure samples ``indices`` (regenerating broken ones)."""
-    b = len(indices)
-    t, n_l = cfg.excitation.n_samples, cfg.excitation.n_components
-    chunk = _Chunk(
-        commands=np.empty((b, t, N_JOINTS), np.float32),
-        joint_angles=np.empty((b, t, N_JOINTS), np.float32),
-        body=np.empty((b, t, N_BODY), np.float32),
-        phases=np.empty((b, N_JOINTS, n_l)),
-        amplitude=np.empty(b, np.float32),
-        attempts=np.zeros(b, np.int32),
-    )
-    todo = np.arange(b)
+    chunk = _Chunk.empty(cfg, len(indices))
+    todo = np.arange(len(indices))
     for attempt in range(cfg.max_attempts):
         for j in todo:
             chunk.phases[j], chunk.commands[j], chunk.amplitude[j] = draw_sample(
@@ -91,6 +97,108 @@ def simulate_samples(cfg: GenerateConfig, simulator: Simulator, indices: np.ndar
     )
 
 
+def _noise_seed(seed: int, index: int, attempt: int) -> int:
+    """Seed of the ensemble noise of record ``index``'s draw ``attempt`` (``perturbed_commands``)."""
+    return int(np.random.default_rng([seed, index, attempt, 1]).integers(2**31))
+
+
+def _spread(result, rows: list[int]) -> tuple[float, str | None]:
+    """Final spread of the ensemble in ``rows`` of a batch result, or why it has none (a replay broke)."""
+    broken = [result.failures[r] for r in rows if result.failures[r] is not None]
+    if broken:
+        return float("inf"), broken[0]
+    return ensemble_spread(result.body[rows], RECORD.sample_rate)["final_spread"], None
+
+
+def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray) -> _Chunk:
+    """Draw, screen and measure structured-family records ``indices`` (``sim.structured``).
+
+    Each draw is replayed with ``screen_members`` - 1 noisy copies; one whose final spread exceeds
+    ``max_spread`` (or any of whose replays breaks) is redrawn at once. A draw that passes gets the
+    rest of its ``members`` and is kept only if the whole ensemble's spread is within the bound too.
+    A kept record stores its unperturbed replay. Every rejection is logged as a failure.
+    """
+    sc = cfg.structured
+    chunk = _Chunk.empty(cfg, len(indices))
+    spreads = np.zeros(len(indices))
+    drawn: list[dict] = [{} for _ in indices]
+    todo = list(range(len(indices)))
+    attempt = np.zeros(len(indices), np.int64)
+    draws = 0
+    while todo:
+        commands = {}
+        for j in todo:
+            shape, drawn[j] = draw_structured(sc, cfg.seed, int(indices[j]), int(attempt[j]))
+            # The float32 commands are stored; replay exactly those, so a replay of the file matches.
+            commands[j] = shape_to_commands(shape, cfg.excitation.freqs).astype(np.float32)
+            chunk.phases[j] = np.arctan2(shape[..., 1], shape[..., 0])
+        draws += len(todo)
+        ensembles = {
+            j: perturbed_commands(
+                commands[j].astype(np.float64),
+                sc.members,
+                seed=_noise_seed(cfg.seed, int(indices[j]), int(attempt[j])),
+            )
+            for j in todo
+        }  # (members, T, 8) each; the screen is its first screen_members
+        rejected: dict[int, str] = {}
+        screen = simulator.simulate(np.concatenate([ensembles[j][: sc.screen_members] for j in todo]))
+        passed = []
+        for n, j in enumerate(todo):
+            rows = list(range(n * sc.screen_members, (n + 1) * sc.screen_members))
+            spread, broken = _spread(screen, rows)
+            if broken or spread > sc.max_spread:
+                rejected[j] = broken or f"final spread {spread:.3f} > {sc.max_spread} in the first check"
+            else:
+                passed.append((j, n))
+                chunk.joint_angles[j] = screen.joint_angles[rows[0]]
+                chunk.body[j] = screen.body[rows[0]]
+        extra = sc.members - sc.screen_members
+        if passed and extra > 0:
+            rest = simulator.simulate(np.concatenate([ensembles[j][sc.screen_members :] for j, _ in passed]))
+            for m, (j, n) in enumerate(passed):
+                rows = list(range(n * sc.screen_members, (n + 1) * sc.screen_members))
+                body = np.concatenate([screen.body[rows], rest.body[m * extra : (m + 1) * extra]])
+                failures = [screen.failures[r] for r in rows] + rest.failures[m * extra : (m + 1) * extra]
+                broken = next((f for f in failures if f is not None), None)
+                spread = float("inf") if broken else ensemble_spread(body, RECORD.sample_rate)["final_spread"]
+                if broken or spread > sc.max_spread:
+                    rejected[j] = (
+                        broken or f"final spread {spread:.3f} > {sc.max_spread} over {sc.members} replays"
+                    )
+                else:
+                    spreads[j] = spread
+        elif passed:
+            for j, n in passed:
+                spreads[j] = _spread(screen, list(range(n * sc.screen_members, (n + 1) * sc.screen_members)))[
+                    0
+                ]
+        for j in todo:
+            chunk.attempts[j] = attempt[j] + 1
+            if j in rejected:
+                chunk.failures.append(
+                    {"index": int(indices[j]), "attempt": int(attempt[j]) + 1, "reason": rejected[j]}
+                )
+            else:
+                chunk.commands[j] = commands[j]
+                chunk.amplitude[j] = np.abs(commands[j]).max()
+        attempt[list(rejected)] += 1
+        todo = sorted(rejected)
+        stuck = [j for j in todo if attempt[j] >= sc.max_draws]
+        if stuck:
+            raise SimulationError(
+                f"structured records {indices[stuck].tolist()} found no predictable gait in {sc.max_draws} draws; "
+                f"last reasons: {[rejected[j] for j in stuck]}"
+            )
+    chunk.log = {"spreads": spreads.tolist(), "drawn": drawn, "draws": draws}
+    return chunk
+
+
+STRUCTURED_CHUNK = 16
+"""Records per chunk of the structured family: each costs 2-4 replays per draw and about two draws,
+so a chunk is a few minutes of physics on 2 cores, the most an interrupted run loses."""
+
+
 def generate_dataset(
     cfg: GenerateConfig,
     out: str | Path,
@@ -101,36 +209,62 @@ def generate_dataset(
 ) -> Path:
     """Generate a dataset and write it atomically to ``out`` (a partial run never leaves a file there).
 
+    Resumable: an interrupted run keeps its finished chunks in ``out``'s work folder
+    (``DatasetWriter``), and the same call continues from there to the same file.
+
     Args:
-        cfg: what to generate.
+        cfg: what to generate (its ``family``: the paper's multisines or structured gaits).
         out: destination ``.npz`` path.
         workers: simulation threads (default: all cores).
-        chunk_size: samples per rollout call (default: bounded by a 512 MiB buffer budget).
-        progress: called with the number of samples finished after each chunk.
+        chunk_size: records per chunk (default: the paper family's by a 512 MiB rollout-buffer budget,
+            the structured family's ``STRUCTURED_CHUNK``); a resumed run keeps its first run's.
+        progress: called with the number of records finished: those a resumed run already had, then
+            after each chunk.
 
     Returns:
         The written path.
     """
     simulator = Simulator(resolve_workers(workers), cfg.excitation, cfg.sim)
-    chunk_size = chunk_size or default_chunk_size(simulator)
-    failures: list[dict] = []
-    with DatasetWriter(cfg, out) as writer:
-        for start in range(0, cfg.num_samples, chunk_size):
-            idx = np.arange(start, min(cfg.num_samples, start + chunk_size))
-            chunk = simulate_samples(cfg, simulator, idx)
-            writer.write(
-                start,
-                commands=chunk.commands,
-                joint_angles=chunk.joint_angles,
-                body=chunk.body,
-                body_ds=chunk.body[:, ::BODY_DOWNSAMPLE],
-                phases=chunk.phases,
-                amplitude=chunk.amplitude,
-                attempts=chunk.attempts,
-                shape=joint_shape(chunk.joint_angles, cfg.excitation),
-            )
-            failures.extend(chunk.failures)
-            if progress is not None:
-                progress(len(idx))
-        meta = {"mujoco_version": mujoco.__version__, "mjcf_sha256": mjcf_sha256(), "failures": failures}
-        return writer.finish(meta)
+    structured = cfg.family == "structured"
+    simulate = simulate_structured if structured else simulate_samples
+    chunk_size = chunk_size or (STRUCTURED_CHUNK if structured else default_chunk_size(simulator))
+    try:
+        with DatasetWriter(cfg, out, chunk_size) as writer:
+            done = sum(min(writer.chunk_size, cfg.num_samples - s) for s in writer.chunks)
+            if progress is not None and done:
+                progress(done)
+            for start in writer.starts():
+                idx = np.arange(start, min(cfg.num_samples, start + writer.chunk_size))
+                chunk = simulate(cfg, simulator, idx)
+                writer.write(
+                    start,
+                    log={"failures": chunk.failures, **chunk.log},
+                    commands=chunk.commands,
+                    joint_angles=chunk.joint_angles,
+                    body=chunk.body,
+                    body_ds=chunk.body[:, ::BODY_DOWNSAMPLE],
+                    phases=chunk.phases,
+                    amplitude=chunk.amplitude,
+                    attempts=chunk.attempts,
+                    shape=joint_shape(chunk.joint_angles, cfg.excitation),
+                )
+                if progress is not None:
+                    progress(len(idx))
+            logs = writer.logs()
+            meta = {
+                "mujoco_version": mujoco.__version__,
+                "mjcf_sha256": mjcf_sha256(),
+                "failures": [f for log in logs for f in log["failures"]],
+            }
+            if structured:
+                draws = sum(log["draws"] for log in logs)
+                meta |= {
+                    "family": "structured",
+                    "draws": draws,
+                    "rejection_rate": 1.0 - cfg.num_samples / draws,
+                    "spreads": [s for log in logs for s in log["spreads"]],
+                    "drawn": [d for log in logs for d in log["drawn"]],
+                }
+            return writer.finish(meta)
+    finally:
+        simulator.close()

@@ -81,17 +81,31 @@ def test_unrecoverable_generation_fails_clearly_and_writes_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_interrupted_generation_leaves_no_file_and_keeps_the_old_one(tmp_path):
+def test_interrupted_generation_keeps_the_old_file_and_resumes(tmp_path, tiny_dataset):
     out = tmp_path / "d.npz"
     out.write_bytes(b"previous contents")
+    cfg = GenerateConfig(num_samples=4, seed=11)  # the tiny dataset's
 
     def interrupt(_n: int) -> None:
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        generate_dataset(GenerateConfig(num_samples=2), out, workers=2, chunk_size=1, progress=interrupt)
-    assert out.read_bytes() == b"previous contents"
-    assert [p.name for p in tmp_path.iterdir()] == ["d.npz"]  # no temp files left behind
+        generate_dataset(cfg, out, workers=2, chunk_size=2, progress=interrupt)
+    assert out.read_bytes() == b"previous contents"  # nothing half-written at the destination
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.npz", "d.npz.partial"]  # its first chunk
+    seen = []
+    generate_dataset(cfg, out, workers=2, chunk_size=4, progress=seen.append)  # a resumed run keeps 2
+    assert seen == [2, 2]  # the finished chunk, then the one it still had to simulate
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.npz"]
+    resumed = load_dataset(out)
+    for key in ("commands", "joint_angles", "body", "shape", "attempts"):
+        np.testing.assert_array_equal(getattr(resumed, key), getattr(tiny_dataset, key), err_msg=key)
+    assert resumed.meta == tiny_dataset.meta
+    # A partial run of another config is never mixed in: it is named, and kept.
+    with pytest.raises(KeyboardInterrupt):
+        generate_dataset(cfg, tmp_path / "e.npz", workers=2, chunk_size=2, progress=interrupt)
+    with pytest.raises(DatasetError, match=r"e.npz.partial holds a partial run of another config"):
+        generate_dataset(GenerateConfig(num_samples=4, seed=12), tmp_path / "e.npz", workers=2)
 
 
 # --- loader refusals -------------------------------------------------------------------------------

@@ -1,0 +1,123 @@
+"""The structured gait family: randomised travelling-wave gaits on the excited bins, each kept only if
+physics can predict it.
+
+A record's gait is a gait-equation wave (``sim.gaits``) of one of four kinds, drawn with the ranges
+of ``StructuredConfig`` (the same kinds and ranges as the search that tuned the library,
+docs/gaits.md): lateral undulation (yaw wave only), sidewinding (one spatial frequency, pitch and yaw
+waves out of phase), lateral rolling (equal amplitudes a quarter period apart) and turning (different
+pitch and yaw waves). With probability ``second_wave`` a weaker wave of another kind on another
+excited bin is added, and with probability ``steering`` a slow steering wave on the yaw joints at
+the lowest excited frequency (0.05 Hz: the heading swings left and right over 20 s periods). Joint
+commands are the sum, scaled to the 2.2 rad command limit where they exceed it.
+
+Everything is a joint shape on the record's excited bins (``sim.spectra``), so records share the
+paper family's file schema and joint-shape convention. Draws are deterministic in (seed, record,
+attempt), like the paper family's phases.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from snakeloco.sim.excitation import RECORD
+from snakeloco.sim.gaits import GaitEquation
+from snakeloco.sim.robot import COMMAND_LIMIT, N_JOINTS
+from snakeloco.sim.spectra import shape_to_commands
+
+KINDS = ("undulate", "sidewind", "roll", "turn")
+"""The kinds of travelling wave a record's main wave is drawn from (``draw_wave``)."""
+
+
+class StructuredConfig(BaseModel):
+    """How the structured family draws and screens its gaits."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    kind_weights: tuple[float, float, float, float] = Field(
+        (1.0, 1.0, 1.0, 1.0), description="Relative odds of undulate, sidewind, roll and turn main waves."
+    )
+    frequencies: tuple[float, ...] = Field(
+        (0.29, 0.52, 0.93),
+        description="Excited frequencies (Hz) a main wave runs at; the servos track them to 0.99.",
+    )
+    second_wave: float = Field(
+        0.25, ge=0, le=1, description="Probability of a second, weaker wave on another bin."
+    )
+    second_scale: tuple[float, float] = Field(
+        (0.2, 0.5), description="That wave's amplitude relative to its draw."
+    )
+    steering: float = Field(
+        0.3, ge=0, le=1, description="Probability of a slow steering wave on the yaw joints."
+    )
+    steering_amplitude: tuple[float, float] = Field((0.1, 0.4), description="Its amplitude (rad).")
+    max_spread: float = Field(
+        0.1,
+        gt=0,
+        description="Largest ensemble final spread (RMS distance of perturbed final positions from the "
+        "replay's / distance travelled) of a kept record.",
+    )
+    screen_members: int = Field(
+        2, ge=2, description="Replays in the first, cheap check (the gait and noisy copies)."
+    )
+    members: int = Field(4, ge=2, description="Replays in the full check of a gait that passed the first.")
+    max_draws: int = Field(40, ge=1, description="Gaits drawn per record before giving up.")
+
+
+def draw_wave(kind: str, rng: np.random.Generator, frequencies: tuple[float, ...]) -> GaitEquation:
+    """A random gait-equation wave of ``kind`` (``KINDS``), the ranges of the library's search."""
+    f = float(rng.choice(frequencies))
+    sign = float(rng.choice([-1.0, 1.0]))
+    if kind == "undulate":
+        return GaitEquation(a_yaw=rng.uniform(0.5, 1.3), nu_yaw=sign * rng.uniform(0.4, 1.6), frequency=f)
+    if kind == "sidewind":
+        nu = rng.uniform(0.4, 1.4)
+        return GaitEquation(
+            a_pitch=rng.uniform(0.1, 0.6),
+            a_yaw=rng.uniform(0.5, 1.2),
+            nu_pitch=nu,
+            nu_yaw=nu,
+            delta=sign * rng.uniform(np.pi / 8, np.pi / 2),
+            frequency=f,
+        )
+    if kind == "roll":
+        a, nu = rng.uniform(0.2, 1.0), rng.uniform(0.0, 1.2)
+        delta = sign * np.pi / 2 + rng.uniform(-0.4, 0.4)
+        return GaitEquation(a_pitch=a, a_yaw=a, nu_pitch=nu, nu_yaw=nu, delta=delta, frequency=f)
+    if kind == "turn":
+        return GaitEquation(
+            a_pitch=rng.uniform(0.05, 0.5),
+            a_yaw=rng.uniform(0.4, 1.2),
+            nu_pitch=rng.uniform(-2.0, 2.0),
+            nu_yaw=rng.uniform(-1.6, 1.6),
+            delta=rng.uniform(-np.pi, np.pi),
+            frequency=f,
+        )
+    raise ValueError(f"unknown wave kind {kind!r}; one of {KINDS}")
+
+
+def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) -> tuple[np.ndarray, dict]:
+    """Record ``index``'s gait at ``attempt``: its commanded joint shape (8, L, 2) rad and what was
+    drawn (kinds, waves, steering, scale), JSON-ready."""
+    rng = np.random.default_rng([seed, index, attempt])
+    weights = np.asarray(cfg.kind_weights, np.float64)
+    kind = str(rng.choice(KINDS, p=weights / weights.sum()))
+    main = draw_wave(kind, rng, cfg.frequencies)
+    shape = main.shape()
+    drawn: dict = {"kind": kind, "wave": main.model_dump()}
+    if rng.random() < cfg.second_wave:
+        others = [f for f in cfg.frequencies if abs(f - main.frequency) > 1e-6]
+        second = draw_wave(str(rng.choice(KINDS)), rng, tuple(others))
+        scale = rng.uniform(*cfg.second_scale)
+        shape = shape + scale * second.shape()
+        drawn["second_wave"] = second.model_dump() | {"scale": scale}
+    if rng.random() < cfg.steering:
+        amplitude, phase = rng.uniform(*cfg.steering_amplitude), rng.uniform(-np.pi, np.pi)
+        yaw = np.arange(N_JOINTS) % 2 == 1  # joints 2, 4, 6, 8
+        shape[yaw, 0, 0] += amplitude * np.cos(phase)  # bin 0: the lowest excited frequency
+        shape[yaw, 0, 1] += amplitude * np.sin(phase)
+        drawn["steering"] = {"amplitude": amplitude, "phase": phase, "frequency": float(RECORD.freqs[0])}
+    peak = np.abs(shape_to_commands(shape, limit=np.inf)).max()
+    scale = min(1.0, COMMAND_LIMIT / peak)  # within the command limit without clipping the waves
+    drawn["scale"] = scale
+    return shape * scale, drawn

@@ -1,0 +1,87 @@
+"""The structured family: travelling-wave gaits drawn deterministically, kept only where physics can
+predict them, generated resumably into the paper family's file schema."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from snakeloco.app.cli import main
+from snakeloco.sim import GenerateConfig, SimulationError, generate_dataset, joint_shape, load_dataset
+from snakeloco.sim.structured import KINDS, StructuredConfig, draw_structured
+
+CFG = GenerateConfig(num_samples=3, seed=3, family="structured")
+
+
+def test_draws_are_deterministic_joint_shapes_within_the_command_limit():
+    sc = StructuredConfig()
+    kinds = set()
+    for index in range(24):
+        shape, drawn = draw_structured(sc, 5, index, 0)
+        again, _ = draw_structured(sc, 5, index, 0)
+        np.testing.assert_array_equal(shape, again)
+        assert not np.array_equal(shape, draw_structured(sc, 5, index, 1)[0])  # a redraw is another gait
+        from snakeloco.sim import shape_to_commands
+
+        u = shape_to_commands(shape, limit=np.inf)
+        assert np.abs(u).max() <= 2.2 + 1e-9  # scaled, not clipped: still exactly its joint shape
+        np.testing.assert_allclose(joint_shape(u), shape, atol=1e-12)
+        kinds.add(drawn["kind"])
+    assert kinds == set(KINDS)
+
+
+@pytest.mark.slow
+def test_structured_generation_is_deterministic_resumable_and_keeps_predictable_gaits(tmp_path):
+    whole = load_dataset(generate_dataset(CFG, tmp_path / "a.npz", workers=2, chunk_size=3))
+    meta = whole.meta
+    assert meta["family"] == "structured" and meta["config"]["family"] == "structured"
+    assert len(meta["spreads"]) == 3 and max(meta["spreads"]) <= CFG.structured.max_spread
+    assert meta["draws"] == int(whole.attempts.sum()) == 3 + len(meta["failures"])
+    assert 0.0 <= meta["rejection_rate"] < 1.0 and meta["rejection_rate"] == pytest.approx(
+        1 - 3 / meta["draws"]
+    )
+    np.testing.assert_allclose(joint_shape(whole.joint_angles), whole.shape, atol=1e-6)  # same convention
+
+    def interrupt(_n: int) -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        generate_dataset(CFG, tmp_path / "b.npz", workers=1, chunk_size=1, progress=interrupt)
+    assert (tmp_path / "b.npz.partial").is_dir() and not (tmp_path / "b.npz").exists()
+    main(
+        [
+            "generate",
+            "--family",
+            "structured",
+            "--num-samples",
+            "3",
+            "--seed",
+            "3",
+            "--out",
+            str(tmp_path / "b.npz"),
+        ]
+    )
+    resumed = load_dataset(tmp_path / "b.npz")  # resumed by the command, in other chunks and threads
+    for key in ("commands", "joint_angles", "body", "shape", "phases", "attempts"):
+        np.testing.assert_array_equal(getattr(resumed, key), getattr(whole, key), err_msg=key)
+    assert resumed.meta == meta
+
+
+@pytest.mark.slow
+def test_rejected_records_are_redrawn_and_logged(tmp_path):
+    strict = StructuredConfig(max_spread=0.02, max_draws=40)
+    ds = load_dataset(
+        generate_dataset(CFG.model_copy(update={"structured": strict}), tmp_path / "s.npz", workers=2)
+    )
+    assert (ds.attempts > 1).any()  # at least one record's first gait was not predictable enough
+    failures = ds.meta["failures"]
+    assert len(failures) == int((ds.attempts - 1).sum())
+    assert all(
+        "final spread" in f["reason"] or "thrown" in f["reason"] or "diverged" in f["reason"]
+        for f in failures
+    )
+    assert max(ds.meta["spreads"]) <= 0.02
+    hopeless = StructuredConfig(max_spread=1e-9, max_draws=2)
+    with pytest.raises(SimulationError, match="no predictable gait in 2 draws"):
+        generate_dataset(CFG.model_copy(update={"structured": hopeless}), tmp_path / "never.npz", workers=2)
+    assert not (tmp_path / "never.npz").exists() and not (tmp_path / "never.npz.partial").exists()
