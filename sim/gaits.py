@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from snakeloco.sim.excitation import RECORD
-from snakeloco.sim.robot import COMMAND_LIMIT, N_JOINTS
+from snakeloco.sim.robot import BODY_LENGTH, COMMAND_LIMIT, N_JOINTS
 from snakeloco.sim.spectra import shape_to_commands
 
 MODULES = np.arange(1, N_JOINTS + 1)
@@ -82,8 +82,6 @@ class GaitFigures(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    speed: float = Field(description="Displacement / record length (m/s).")
-    body_lengths_per_s: float = Field(description="Speed in body lengths (0.95 m) per second.")
     displacement: float = Field(description="Distance from start to end (m).")
     straightness: float = Field(description="Displacement / path length (1: a straight line).")
     heading_deg: float = Field(
@@ -93,22 +91,28 @@ class GaitFigures(BaseModel):
     net_yaw: float = Field(description="Heading change over the record (rad, left +).")
     spread: float = Field(description="Ensemble final-position spread / displacement (``sim.consistency``).")
 
+    @property
+    def speed(self) -> float:
+        """Displacement / record length (m/s)."""
+        return self.displacement / RECORD.duration
+
+    @property
+    def body_lengths_per_s(self) -> float:
+        """Speed in body lengths (0.95 m) per second."""
+        return self.speed / BODY_LENGTH
+
 
 def gait_figures(ensemble_body: np.ndarray) -> GaitFigures:
     """Figures of a gait from its ensemble's body series (K, T, 6) at 20 Hz, member 0 unperturbed."""
     from snakeloco.sim.consistency import ensemble_spread, path_stats
-    from snakeloco.sim.robot import BODY_LENGTH
 
     body = np.asarray(ensemble_body, np.float64)
     s = path_stats(body[0], RECORD.sample_rate)
     displacement = float(s["displacement"])
-    speed = displacement / RECORD.duration
     fx, fy = (float(v) for v in s["final_xy"])
     # The middle link swings with the gait, so its mean yaw, not its yaw at t = 0, is the body's heading.
     travel = np.arctan2(fy, fx) - body[0, :, 5].mean()
     return GaitFigures(
-        speed=speed,
-        body_lengths_per_s=speed / BODY_LENGTH,
         displacement=displacement,
         straightness=displacement / max(float(s["path_length"]), 1e-9),
         heading_deg=float(np.degrees(np.angle(np.exp(1j * travel)))),
@@ -147,8 +151,6 @@ PRESETS: dict[str, GaitPreset] = {
         gait=GaitEquation(a_pitch=0.4, a_yaw=0.7, nu_pitch=0.8, nu_yaw=0.8, delta=0.7854, frequency=0.93),
         about="sidewinding: the fastest straight non-rolling gait of the search that physics predicts to 5%; travels sideways",
         measured=GaitFigures(
-            speed=0.2396,
-            body_lengths_per_s=0.2522,
             displacement=23.96,
             straightness=0.8557,
             heading_deg=93.38,
@@ -161,8 +163,6 @@ PRESETS: dict[str, GaitPreset] = {
         gait=GaitEquation(a_yaw=0.7, nu_yaw=0.7, frequency=0.93),
         about="lateral undulation (yaw wave only): the fastest forward gait found",
         measured=GaitFigures(
-            speed=0.3263,
-            body_lengths_per_s=0.3435,
             displacement=32.63,
             straightness=0.8098,
             heading_deg=0.02802,
@@ -175,8 +175,6 @@ PRESETS: dict[str, GaitPreset] = {
         gait=GaitEquation(a_pitch=0.35, a_yaw=0.35, nu_pitch=0.71, nu_yaw=0.71, delta=1.5708, frequency=0.52),
         about="lateral rolling: rolls over and over and moves sideways, the straightest gait found",
         measured=GaitFigures(
-            speed=0.08444,
-            body_lengths_per_s=0.08888,
             displacement=8.444,
             straightness=0.9718,
             heading_deg=-95.12,
@@ -189,8 +187,6 @@ PRESETS: dict[str, GaitPreset] = {
         gait=GaitEquation(a_pitch=0.12, a_yaw=0.95, nu_pitch=1.95, nu_yaw=-0.66, delta=-1.9, frequency=0.52),
         about="turning in place (clockwise): the largest heading change found without rolling",
         measured=GaitFigures(
-            speed=0.006414,
-            body_lengths_per_s=0.006751,
             displacement=0.6414,
             straightness=0.02623,
             heading_deg=-157.3,
