@@ -53,7 +53,8 @@ def failed_text(gait: DecodedGait, reason: str) -> str:
 
 def simulated_text(gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> str:
     """The panel after the replay (``ensemble`` False: its ensemble is still running) or the ensemble."""
-    timing = f"decode {gait.decode_ms:.1f} ms · replay {sim.replay_ms:.0f} ms" + (
+    origin = f"decode {gait.decode_ms:.1f} ms" if gait.source == "model" else gait.source
+    timing = f"{origin} · replay {sim.replay_ms:.0f} ms" + (
         f" · ensemble of {len(sim.ensemble_body)} {sim.ensemble_ms:.0f} ms"
         if ensemble
         else " · ensemble running..."
