@@ -23,7 +23,7 @@ import viser
 
 from snakeloco.app import panel
 from snakeloco.app.gait_csv import GaitCSVError, gait_comments, read_gait_csv, write_gait_csv
-from snakeloco.app.gui import SLIDER_RANGE, build_controls
+from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls
 from snakeloco.app.scene import TabScene
 from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
 from snakeloco.model.api import GaitModel
@@ -142,7 +142,14 @@ class DesignerClient:
 
     def request_decode(self) -> int:
         """Submit the GUI's current latents (latest wins); returns the request version."""
+        self._clear_baseline()
         return self._submit(self.decoder, self.current_latents())
+
+    def _clear_baseline(self) -> None:
+        """The Baseline dropdown back to "none" once another gait replaces a library one, so that
+        picking the library gait again loads it again (a dropdown fires only on a change)."""
+        if self.controls.baseline.value != NO_BASELINE:
+            self.controls.baseline.value = NO_BASELINE
 
     def _submit(self, worker: LatestWorker, request: object) -> int:
         # Versions are taken and submitted under one lock, so workers always hold the newest request.
@@ -388,6 +395,7 @@ class DesignerClient:
                 auto_close_seconds=15.0,
             )
             return None
+        self._clear_baseline()
         return self._submit(self.physics, ("load", f"import: {name}", f"Import CSV: {name}", table.commands))
 
     def load_baseline(self, name: str) -> int | None:

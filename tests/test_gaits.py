@@ -102,6 +102,16 @@ def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
         exported = read_gait_csv(d.export_text())
         np.testing.assert_array_equal(exported.commands, commands)  # and exportable
         assert "# z_B (encoded)" in d.export_text()  # the sliders sit where it encodes
+        # A slider move replaces it with a decoded gait and clears the dropdown, so the library gait
+        # can be picked again.
+        d.sliders[0].value = 0.4
+        time.sleep(0.3)
+        assert d.wait_idle(120)
+        assert d.decoded.source == "model" and d.controls.baseline.value == "none"
+        d.controls.baseline.value = "undulate"
+        time.sleep(0.3)
+        assert d.wait_idle(120)
+        assert d.decoded.source == "library: undulate"
     finally:
         client.close()
         srv.stop()
