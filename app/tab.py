@@ -24,10 +24,11 @@ import viser
 from snakeloco.app import panel
 from snakeloco.app.gait_csv import GaitCSVError, gait_comments, read_gait_csv, write_gait_csv
 from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls
+from snakeloco.app.playback import Playback
 from snakeloco.app.scene import TabScene
 from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
 from snakeloco.model.api import GaitModel
-from snakeloco.sim import BODY_DOWNSAMPLE, RECORD, SimulationError, Simulator, joint_shape
+from snakeloco.sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
@@ -35,8 +36,6 @@ PHYSICS_NICE = 15
 """Nice increment of the native threads that run a tab's rollouts when the tab owns its simulators
 (a server shares one pool at this priority). Its Python threads stay at the server's priority, so a
 niced thread never holds the GIL that slider decoding waits for."""
-SCRUBBER_PERIOD_S = 0.5
-"""How often the playing animation moves the time scrubber (the snake itself moves every frame)."""
 
 
 class DesignerClient:
@@ -65,9 +64,6 @@ class DesignerClient:
         self._programmatic_z: tuple[float, ...] | None = None
         self._z_lock = threading.RLock()
         self._setting_z = False
-        self._frame = 0
-        self._position = 0.0
-        self._playing = True
         self._closed = threading.Event()
         self._version = 0
         self._version_lock = threading.Lock()
@@ -77,10 +73,13 @@ class DesignerClient:
         report = lambda exc: self._report(f"{type(exc).__name__}: {exc}")  # noqa: E731
         self.decoder = LatestWorker(self._decode_job, name=f"decode-{client.client_id}", on_error=report)
         self.physics = LatestWorker(self._physics_job, name=f"physics-{client.client_id}", on_error=report)
-        self._animator = threading.Thread(
-            target=self._animate, name=f"animate-{client.client_id}", daemon=True
+        self.playback = Playback(
+            self.controls,
+            self._draw_snake,
+            lambda: self.simulated is not None,
+            self._closed,
+            name=f"animate-{client.client_id}",
         )
-        self._animator.start()
         self.request_decode()
 
     @property
@@ -102,8 +101,8 @@ class DesignerClient:
         c.random_button.on_click(
             g(lambda _e: self._set_z(np.random.default_rng().standard_normal(self.model.z_b_dim)))
         )
-        c.play_button.on_click(g(lambda _e: self._toggle_play()))
-        c.scrubber.on_update(g(self._on_scrub))
+        c.play_button.on_click(g(lambda _e: self.playback.toggle()))
+        c.scrubber.on_update(g(lambda event: self.playback.on_scrub(event)))
         for layer in c.layers.values():
             layer.on_update(g(lambda _e: self._apply_layers()))
         c.export_button.on_click(g(lambda _e: self.export()))
@@ -218,17 +217,6 @@ class DesignerClient:
         self.controls.zk_mode.value = "sampled"
         self.controls.zk_seed.value = int(self.controls.zk_seed.value) + 1
 
-    def _toggle_play(self) -> None:
-        self._playing = not self._playing
-        self.controls.play_button.label = "Pause" if self._playing else "Play"
-
-    def _on_scrub(self, event) -> None:
-        if event.client is None:
-            return  # our own playback position updates
-        self._frame = round(self.controls.scrubber.value * RECORD.sample_rate) % RECORD.n_samples
-        self._position = float(self._frame)
-        self._draw_snake()
-
     def _apply_layers(self) -> None:
         with self._draw_lock, self.client.atomic():
             self.scene.apply_layers(simulated=self.simulated is not None)
@@ -341,30 +329,14 @@ class DesignerClient:
             self.controls.panel.content = panel.simulated_text(gait, sim, ensemble)
         self._draw_snake()
 
-    def _draw_snake(self) -> None:
+    def _draw_snake(self, frame: int | None = None) -> None:
+        """Pose the snake at record sample ``frame`` (default: the playback's) of the current replay."""
         sim = self.simulated
         if sim is None:
             return
+        frame = self.playback.frame if frame is None else frame
         with self._draw_lock:
-            self.scene.draw_snake(sim.qpos[self._frame % len(sim.qpos)])
-
-    def _animate(self) -> None:
-        last_scrub = 0.0
-        while not self._closed.wait(1.0 / RECORD.sample_rate):
-            if not self._playing or self.simulated is None:
-                continue
-            try:
-                # One record sample per frame at speed 1 (the animation runs at the record's rate).
-                self._position = (self._position + float(self.controls.speed.value)) % RECORD.n_samples
-                self._frame = int(self._position)
-                self._draw_snake()
-                now = time.monotonic()
-                if now - last_scrub > SCRUBBER_PERIOD_S:
-                    self.controls.scrubber.value = round(self._frame / RECORD.sample_rate, 2)
-                    last_scrub = now
-            except Exception:  # the tab went away mid-update; the disconnect handler cleans up
-                if self._closed.is_set():
-                    return
+            self.scene.draw_snake(sim.qpos[frame % len(sim.qpos)])
 
     # --- files -----------------------------------------------------------------------------------
 
@@ -415,4 +387,4 @@ class DesignerClient:
         self.decoder.close()
         self.physics.close()
         self.session.close()
-        self._animator.join(timeout=5)
+        self.playback.join()

@@ -1,0 +1,71 @@
+"""A tab's snake animation: the replay played back at the record's rate on a thread of its own, with
+Play/Pause, a playback speed and a time scrubber."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+from snakeloco.app.gui import Controls
+from snakeloco.sim import RECORD
+
+SCRUBBER_PERIOD_S = 0.5
+"""How often the playing animation moves the time scrubber (the snake itself moves every frame)."""
+
+
+class Playback:
+    """Which record sample the snake shows, advanced one sample per frame at speed 1 (20 Hz).
+
+    ``draw(frame)`` poses the snake at a record sample; ``ready()`` says whether there is a replay to
+    play. The thread stops when ``closed`` is set (``join`` waits for it).
+    """
+
+    def __init__(
+        self,
+        controls: Controls,
+        draw: Callable[[int], None],
+        ready: Callable[[], bool],
+        closed: threading.Event,
+        name: str,
+    ) -> None:
+        self.controls = controls
+        self.frame = 0
+        self.playing = True
+        self._position = 0.0
+        self._draw, self._ready, self._closed = draw, ready, closed
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def toggle(self) -> None:
+        """Play or pause."""
+        self.playing = not self.playing
+        self.controls.play_button.label = "Pause" if self.playing else "Play"
+
+    def on_scrub(self, event) -> None:
+        """Jump to the scrubber's time (a user's move; the animation's own updates are ignored)."""
+        if event.client is None:
+            return  # our own playback position updates
+        self.frame = round(self.controls.scrubber.value * RECORD.sample_rate) % RECORD.n_samples
+        self._position = float(self.frame)
+        self._draw(self.frame)
+
+    def _run(self) -> None:
+        last_scrub = 0.0
+        while not self._closed.wait(1.0 / RECORD.sample_rate):
+            if not self.playing or not self._ready():
+                continue
+            try:
+                self._position = (self._position + float(self.controls.speed.value)) % RECORD.n_samples
+                self.frame = int(self._position)
+                self._draw(self.frame)
+                now = time.monotonic()
+                if now - last_scrub > SCRUBBER_PERIOD_S:
+                    self.controls.scrubber.value = round(self.frame / RECORD.sample_rate, 2)
+                    last_scrub = now
+            except Exception:  # the tab went away mid-update; the disconnect handler cleans up
+                if self._closed.is_set():
+                    return
+
+    def join(self, timeout: float = 5.0) -> None:
+        self._thread.join(timeout=timeout)
