@@ -70,7 +70,7 @@ class Evaluate(Command):
     data: Path
     """Held-out dataset .npz (generate it with a seed not used for training)."""
     checkpoint: Path | None = None
-    """Checkpoint directory (default: the shipped pretrained model)."""
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     prior_samples: Annotated[int, Field(ge=0)] = 256
     """z_B drawn from the prior for the consistency check (0 skips it)."""
     ensemble: Ensemble = ENSEMBLE_SIZE
@@ -95,7 +95,7 @@ class Calibrate(Command):
     out: Path
     """Directory for the calibrated checkpoint (may be the input checkpoint's own)."""
     checkpoint: Path | None = None
-    """Checkpoint directory (default: the shipped pretrained model)."""
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     config: Annotated[CalibrateConfig, Flat] = CalibrateConfig()
     workers: Workers = None
     """Simulation threads (default: all cores)."""
@@ -122,7 +122,7 @@ class Figures(Command):
     out: Path
     """Output directory."""
     checkpoint: Path | None = None
-    """Checkpoint directory (default: the shipped pretrained model)."""
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     seed: Seed = 0
     """Seed of the sample choice and latent draws."""
     report: Path | None = None
@@ -137,7 +137,7 @@ class Serve(Command):
     port: Annotated[int, Field(ge=0, le=65535)] = 8080
     """TCP port (0: any free port)."""
     checkpoint: Path | None = None
-    """Checkpoint directory (default: the shipped pretrained model)."""
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
 
@@ -161,7 +161,7 @@ class BenchModel(Command):
     json: bool = False
     """Print the figures as one JSON object on the last line."""
     checkpoint: Path | None = None
-    """Checkpoint directory (default: the shipped pretrained model)."""
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     calls: Annotated[int, Field(ge=1)] = 200
     """Timed single decodes."""
 
@@ -172,7 +172,7 @@ class BenchApp(Command):
     json: bool = False
     """Print the figures as one JSON object on the last line."""
     checkpoint: Path | None = None
-    """Checkpoint directory (default: the shipped pretrained model)."""
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     moves: Annotated[int, Field(ge=1)] = 20
     """Slider moves to time."""
 
@@ -187,7 +187,7 @@ class BenchLoad(Command):
     json: bool = False
     """Print the figures as one JSON object on the last line."""
     checkpoint: Path | None = None
-    """Checkpoint directory (default: the shipped pretrained model)."""
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait (as in `snakeloco serve`)."""
     seed: Seed = 0

@@ -248,13 +248,14 @@ class GaitModel:
 
 
 def load_pretrained(path: str | Path | None = None) -> GaitModel:
-    """Load a checkpoint directory (None: the shipped pretrained model) as a ``GaitModel``.
+    """Load a checkpoint as a ``GaitModel``: a directory, or a shipped one by gait family
+    (``"paper"``; None: the default family's, ``model.checkpoint.SHIPPED``).
 
     Raises:
         CheckpointError: the checkpoint is missing, corrupt or mismatched (the message says which).
     """
-    from snakeloco.model.checkpoint import PRETRAINED_DIR
+    from snakeloco.model.checkpoint import resolve_checkpoint
 
-    directory = PRETRAINED_DIR if path is None else Path(path)
+    directory = resolve_checkpoint(path)
     net, config = load_checkpoint(directory)
     return GaitModel(net, config, directory)

@@ -28,7 +28,24 @@ its decoder was built."""
 WEIGHTS = "model.safetensors"
 CONFIG = "config.json"
 PRETRAINED_DIR = Path(__file__).with_name("pretrained")
-"""The shipped checkpoint, trained on the full 4096-sample dataset (README: how to reproduce it)."""
+"""The shipped checkpoint of the paper family, trained on its 4096-record dataset (docs/model.md: how
+to reproduce it)."""
+SHIPPED: dict[str, Path] = {"paper": PRETRAINED_DIR}
+"""Shipped checkpoints by gait family: ``--checkpoint NAME`` and ``load_pretrained(NAME)`` take these
+names as well as a directory."""
+DEFAULT_FAMILY = "paper"
+"""The checkpoint a command uses when none is named."""
+
+
+def resolve_checkpoint(directory: str | Path | None) -> Path:
+    """The checkpoint directory meant by ``directory``: None is the default family's, a shipped
+    family's name is its checkpoint (unless a directory of that name exists here), anything else a
+    path."""
+    if directory is None:
+        return SHIPPED[DEFAULT_FAMILY]
+    if str(directory) in SHIPPED and not Path(directory).is_dir():
+        return SHIPPED[str(directory)]
+    return Path(directory)
 
 
 class CheckpointError(ValueError):
@@ -134,17 +151,23 @@ def save_checkpoint(directory: str | Path, net: HierarchicalVAE, config: Checkpo
 
 
 def load_checkpoint(directory: str | Path | None = None) -> tuple[HierarchicalVAE, CheckpointConfig]:
-    """Load and validate a checkpoint directory (None: the shipped pretrained model).
+    """Load and validate a checkpoint directory, or a shipped one by family name (``resolve_checkpoint``;
+    None: the default family's).
 
     Raises:
         CheckpointError: missing files, invalid or mismatched config, wrong schema version, corrupt or
             mismatched weights.
     """
-    directory = PRETRAINED_DIR if directory is None else Path(directory)
+    directory = resolve_checkpoint(directory)
     cfg_path, w_path = directory / CONFIG, directory / WEIGHTS
     for p in (cfg_path, w_path):
         if not p.is_file():
-            raise CheckpointError(f"checkpoint {directory}: missing {p.name}")
+            hint = (
+                ""
+                if directory.is_dir()
+                else f" (no such directory; shipped checkpoints: {', '.join(SHIPPED)})"
+            )
+            raise CheckpointError(f"checkpoint {directory}: missing {p.name}{hint}")
     try:
         raw = json.loads(cfg_path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:

@@ -340,3 +340,23 @@ def test_single_z_decode_runs_traced_and_matches_eager_exactly(checkpoint):
     with torch.inference_mode():
         eager = m.net.sample_joints(torch.as_tensor(z_b[None], dtype=torch.float32), eps[0])
     np.testing.assert_array_equal(sampled[0], eager.numpy().astype(np.float64)[0])
+
+
+def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
+    from snakeloco.app.cli import main
+    from snakeloco.model.checkpoint import PRETRAINED_DIR, SHIPPED
+
+    assert SHIPPED["paper"] == PRETRAINED_DIR
+    by_name, default = load_pretrained("paper"), load_pretrained()
+    assert by_name.path == default.path == PRETRAINED_DIR and by_name.config == default.config
+    main(["bench", "model", "--checkpoint", "paper", "--calls", "3", "--json"])
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["decode_p50_ms"] > 0
+    # A directory of that name here is what the user means; a name that is neither says what is shipped.
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "paper").mkdir()
+    with pytest.raises(CheckpointError, match=r"checkpoint paper: missing config\.json$"):
+        load_pretrained("paper")
+    with pytest.raises(
+        CheckpointError, match=r"missing config.json \(no such directory; shipped checkpoints: paper\)"
+    ):
+        load_pretrained("structured")
