@@ -127,10 +127,12 @@ def consistency(
     else:
         simulator = Simulator(workers)
         stored = {}
-        for name, (shapes, _, _) in decoded.items():
-            bodies, ok = replay_shapes(model, shapes, simulator, ensemble, seed, progress)
-            stored[name] = {"shapes": shapes, "z_j": modes[name], "bodies": bodies, "ok": ok}
-        simulator.close()
+        try:
+            for name, (shapes, _, _) in decoded.items():
+                bodies, ok = replay_shapes(model, shapes, simulator, ensemble, seed, progress)
+                stored[name] = {"shapes": shapes, "z_j": modes[name], "bodies": bodies, "ok": ok}
+        finally:
+            simulator.close()
         if replays is not None:
             arrays = {f"{name}/{k}": v for name, r in stored.items() for k, v in r.items()}
             save_side_file(replays, drawn, **arrays)

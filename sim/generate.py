@@ -102,12 +102,13 @@ def _noise_seed(seed: int, index: int, attempt: int) -> int:
     return int(np.random.default_rng([seed, index, attempt, 1]).integers(2**31))
 
 
-def _spread(result, rows: list[int]) -> tuple[float, str | None]:
-    """Final spread of the ensemble in ``rows`` of a batch result, or why it has none (a replay broke)."""
-    broken = [result.failures[r] for r in rows if result.failures[r] is not None]
-    if broken:
-        return float("inf"), broken[0]
-    return ensemble_spread(result.body[rows], RECORD.sample_rate)["final_spread"], None
+def _spread(body: np.ndarray, failures: list[str | None]) -> tuple[float, str | None]:
+    """Final spread of an ensemble's body series (K, T, 6), member 0 unperturbed, or why it has none
+    (the first of ``failures``, its members' break reasons, that is not None)."""
+    broken = next((f for f in failures if f is not None), None)
+    if broken is not None:
+        return float("inf"), broken
+    return ensemble_spread(body, RECORD.sample_rate)["final_spread"], None
 
 
 def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray) -> _Chunk:
@@ -146,33 +147,32 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
         passed = []
         for n, j in enumerate(todo):
             rows = list(range(n * sc.screen_members, (n + 1) * sc.screen_members))
-            spread, broken = _spread(screen, rows)
+            spread, broken = _spread(screen.body[rows], [screen.failures[r] for r in rows])
             if broken or spread > sc.max_spread:
                 rejected[j] = broken or f"final spread {spread:.3f} > {sc.max_spread} in the first check"
             else:
-                passed.append((j, n))
+                passed.append((j, n, spread))
                 chunk.joint_angles[j] = screen.joint_angles[rows[0]]
                 chunk.body[j] = screen.body[rows[0]]
         extra = sc.members - sc.screen_members
         if passed and extra > 0:
-            rest = simulator.simulate(np.concatenate([ensembles[j][sc.screen_members :] for j, _ in passed]))
-            for m, (j, n) in enumerate(passed):
+            rest = simulator.simulate(
+                np.concatenate([ensembles[j][sc.screen_members :] for j, _, _ in passed])
+            )
+            for m, (j, n, _) in enumerate(passed):
                 rows = list(range(n * sc.screen_members, (n + 1) * sc.screen_members))
                 body = np.concatenate([screen.body[rows], rest.body[m * extra : (m + 1) * extra]])
                 failures = [screen.failures[r] for r in rows] + rest.failures[m * extra : (m + 1) * extra]
-                broken = next((f for f in failures if f is not None), None)
-                spread = float("inf") if broken else ensemble_spread(body, RECORD.sample_rate)["final_spread"]
+                spread, broken = _spread(body, failures)
                 if broken or spread > sc.max_spread:
                     rejected[j] = (
                         broken or f"final spread {spread:.3f} > {sc.max_spread} over {sc.members} replays"
                     )
                 else:
                     spreads[j] = spread
-        elif passed:
-            for j, n in passed:
-                spreads[j] = _spread(screen, list(range(n * sc.screen_members, (n + 1) * sc.screen_members)))[
-                    0
-                ]
+        elif passed:  # no second check: the screen's spread is the record's
+            for j, _, spread in passed:
+                spreads[j] = spread
         for j in todo:
             chunk.attempts[j] = attempt[j] + 1
             if j in rejected:
