@@ -113,7 +113,7 @@ def run_generate(cmd: Generate) -> Path:
     cfg = cmd.config
     t0 = time.perf_counter()
     with tqdm(total=cfg.num_samples, unit="sample", desc="generate") as bar:
-        path = generate_dataset(cfg, cmd.out, workers=cmd.workers, progress=bar.update)
+        path = generate_dataset(cfg, cmd.out, workers=cmd.workers, progress=bar.update, screened=cmd.screened)
     size = path.stat().st_size / 2**20
     print(f"wrote {path} ({cfg.num_samples} samples, {size:.1f} MiB) in {time.perf_counter() - t0:.1f} s")
     return path

@@ -41,13 +41,17 @@ class Command(BaseModel):
 
 
 class Generate(Command):
-    """Generate a training dataset of multisine rollouts (deterministic in N and seed, written atomically)."""
+    """Generate a training dataset: the paper's multisines or structured gaits (deterministic in N, seed and
+    family; written atomically, resumable)."""
 
     out: Path
     """Destination .npz file."""
     config: Annotated[GenerateConfig, Flat] = GenerateConfig()
     workers: Workers = None
     """Simulation threads (default: all cores). Does not change the result."""
+    screened: Path | None = None
+    """progress.json of an earlier run of the same options (or the shipped copy, data/screening/): its
+    records are rebuilt with one replay each instead of being screened again. Does not change the result."""
 
 
 class Train(Command):

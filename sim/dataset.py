@@ -153,6 +153,36 @@ def dataset_members(cfg: GenerateConfig) -> dict[str, _Member]:
     }
 
 
+def read_progress(path: str | Path, cfg: GenerateConfig, physics: dict) -> tuple[int, dict[int, dict]]:
+    """Chunk size and per-chunk logs (first record -> log) of a run's ``progress.json``
+    (``DatasetWriter``) or a copy of it, checked to be a run of ``cfg`` on the same ``physics``
+    (MuJoCo version and model hash, as ``generate`` records them).
+
+    Raises:
+        DatasetError: the file is unreadable, not a progress file, or of another config or physics.
+    """
+    path = Path(path)
+    try:
+        progress = json.loads(path.read_text())
+        chunk_size = int(progress["chunk_size"])
+        chunks = {int(k): dict(v) for k, v in progress["chunks"].items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise DatasetError(f"{path} is not a generation progress file ({type(exc).__name__}: {exc})") from exc
+    if progress.get("config") != cfg.to_meta():
+        raise DatasetError(
+            f"{path} is a run of another config; delete it (or give the same options) to start this one "
+            f"(its config: {progress.get('config')})"
+        )
+    if progress.get("physics", {}) != physics:
+        raise DatasetError(
+            f"{path} was simulated with other physics ({progress.get('physics')}, here {physics}): "
+            "its records would not be those this run makes"
+        )
+    if chunk_size < 1 or any(s % chunk_size or not 0 <= s < cfg.num_samples for s in chunks):
+        raise DatasetError(f"{path}: chunk starts {sorted(chunks)} do not fit chunks of {chunk_size}")
+    return chunk_size, chunks
+
+
 class DatasetWriter:
     """Writes a dataset file atomically, chunk of records by chunk, with bounded memory, resumably.
 
@@ -164,24 +194,20 @@ class DatasetWriter:
     resumes from there (``finished``) and gives the same file as an uninterrupted run.
     """
 
-    def __init__(self, cfg: GenerateConfig, out: str | Path, chunk_size: int) -> None:
+    def __init__(
+        self, cfg: GenerateConfig, out: str | Path, chunk_size: int, physics: dict | None = None
+    ) -> None:
         self.cfg = cfg
         self.out = Path(out)
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self.work = self.out.with_name(self.out.name + ".partial")
         self._members = dataset_members(cfg)
         self._progress = self.work / "progress.json"
+        self.physics = physics or {}
         self.chunks: dict[int, dict] = {}  # start -> what that chunk logged
         resuming = self._progress.is_file()
         if resuming:
-            progress = json.loads(self._progress.read_text())
-            if progress.get("config") != cfg.to_meta():
-                raise DatasetError(
-                    f"{self.work} holds a partial run of another config; delete it to start this one "
-                    f"(its config: {progress.get('config')})"
-                )
-            chunk_size = int(progress["chunk_size"])  # the chunks already written fix the boundaries
-            self.chunks = {int(k): v for k, v in progress["chunks"].items()}
+            chunk_size, self.chunks = read_progress(self._progress, cfg, self.physics)
         self.chunk_size = chunk_size
         self.work.mkdir(exist_ok=True)
         mode = "r+" if resuming else "w+"
@@ -211,7 +237,12 @@ class DatasetWriter:
         for arr in self._arrays.values():
             arr.flush()
         self.chunks[start] = log or {}
-        progress = {"config": self.cfg.to_meta(), "chunk_size": self.chunk_size, "chunks": self.chunks}
+        progress = {
+            "config": self.cfg.to_meta(),
+            "physics": self.physics,
+            "chunk_size": self.chunk_size,
+            "chunks": self.chunks,
+        }
         tmp = self._progress.with_suffix(".tmp")
         tmp.write_text(json.dumps(progress))
         os.replace(tmp, self._progress)

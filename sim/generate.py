@@ -9,6 +9,8 @@ No NaN is ever written. The file format is ``sim.dataset``'s.
 
 from __future__ import annotations
 
+import json
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +20,14 @@ import numpy as np
 
 from snakeloco.sim.command_rule import SimulationError
 from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
-from snakeloco.sim.dataset import BODY_DOWNSAMPLE, N_BODY, DatasetWriter, GenerateConfig
+from snakeloco.sim.dataset import (
+    BODY_DOWNSAMPLE,
+    N_BODY,
+    DatasetError,
+    DatasetWriter,
+    GenerateConfig,
+    read_progress,
+)
 from snakeloco.sim.excitation import RECORD, multisine, random_phases
 from snakeloco.sim.physics import Simulator, resolve_workers
 from snakeloco.sim.robot import N_JOINTS, mjcf_sha256
@@ -68,6 +77,15 @@ def draw_sample(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarr
     commands, amplitude = multisine(phases, cfg.excitation)
     # The float32 commands are stored; simulate exactly those, so a replay of the file matches.
     return phases, commands.astype(np.float32), amplitude
+
+
+def draw_record(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Structured record ``index``'s gait at ``attempt``: float32 commands (T, 8) rad, phases (8, L) of
+    its joint shape and what was drawn (``draw_structured``)."""
+    shape, drawn = draw_structured(cfg.structured, cfg.seed, index, attempt)
+    # The float32 commands are stored; replay exactly those, so a replay of the file matches.
+    commands = shape_to_commands(shape, cfg.excitation.freqs).astype(np.float32)
+    return commands, np.arctan2(shape[..., 1], shape[..., 0]), drawn
 
 
 def simulate_samples(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray) -> _Chunk:
@@ -129,10 +147,7 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
     while todo:
         commands = {}
         for j in todo:
-            shape, drawn[j] = draw_structured(sc, cfg.seed, int(indices[j]), int(attempt[j]))
-            # The float32 commands are stored; replay exactly those, so a replay of the file matches.
-            commands[j] = shape_to_commands(shape, cfg.excitation.freqs).astype(np.float32)
-            chunk.phases[j] = np.arctan2(shape[..., 1], shape[..., 0])
+            commands[j], chunk.phases[j], drawn[j] = draw_record(cfg, int(indices[j]), int(attempt[j]))
         draws += len(todo)
         ensembles = {
             j: perturbed_commands(
@@ -194,6 +209,46 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
     return chunk
 
 
+def rebuild_chunk(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray, log: dict) -> _Chunk:
+    """Records ``indices`` as an earlier run of ``cfg`` kept them, from that chunk's ``log``
+    (``DatasetWriter``): each record's kept draw is the one after its logged rejections, replayed once
+    (physics is deterministic: the arrays are those the run stored). The structured family's ensemble
+    screening is what this skips: one replay per record instead of about eight.
+
+    Raises:
+        DatasetError: the log does not fit (a record's redraw differs from the one logged, or its kept
+            gait breaks): it is not of this config and code.
+    """
+    structured = cfg.family == "structured"
+    chunk = _Chunk.empty(cfg, len(indices))
+    rejected = Counter(int(f["index"]) for f in log["failures"])
+    drawn = []
+    for j, i in enumerate(indices.tolist()):
+        attempt = rejected[i]
+        if structured:
+            chunk.commands[j], chunk.phases[j], d = draw_record(cfg, i, attempt)
+            chunk.amplitude[j] = np.abs(chunk.commands[j]).max()
+            drawn.append(d)
+        else:
+            chunk.phases[j], chunk.commands[j], chunk.amplitude[j] = draw_sample(cfg, i, attempt)
+        chunk.attempts[j] = attempt + 1
+    if structured and json.loads(json.dumps(drawn)) != log["drawn"]:
+        raise DatasetError(
+            f"records {indices[0]}-{indices[-1]}: the gaits drawn here differ from the logged ones "
+            "(another version of the structured family's draw)"
+        )
+    result = simulator.simulate(chunk.commands)
+    broken = [(int(indices[j]), f) for j, f in enumerate(result.failures) if f is not None]
+    if broken:
+        raise DatasetError(
+            f"record {broken[0][0]}'s kept gait breaks on replay ({broken[0][1]}): the log is not of this physics"
+        )
+    chunk.joint_angles[:], chunk.body[:] = result.joint_angles, result.body
+    chunk.failures = list(log["failures"])
+    chunk.log = {k: v for k, v in log.items() if k != "failures"}
+    return chunk
+
+
 STRUCTURED_CHUNK = 16
 """Records per chunk of the structured family: each costs 2-4 replays per draw and about two draws,
 so a chunk is a few minutes of physics on 2 cores, the most an interrupted run loses."""
@@ -206,6 +261,7 @@ def generate_dataset(
     workers: int | None = None,
     chunk_size: int | None = None,
     progress: Callable[[int], None] | None = None,
+    screened: str | Path | None = None,
 ) -> Path:
     """Generate a dataset and write it atomically to ``out`` (a partial run never leaves a file there).
 
@@ -220,6 +276,9 @@ def generate_dataset(
             the structured family's ``STRUCTURED_CHUNK``); a resumed run keeps its first run's.
         progress: called with the number of records finished: those a resumed run already had, then
             after each chunk.
+        screened: the ``progress.json`` of an earlier run of the same config and physics (or a copy,
+            such as the one shipped for the structured dataset): its chunks are rebuilt from their
+            logged decisions with one replay per record (``rebuild_chunk``), the rest simulated.
 
     Returns:
         The written path.
@@ -228,14 +287,25 @@ def generate_dataset(
     structured = cfg.family == "structured"
     simulate = simulate_structured if structured else simulate_samples
     chunk_size = chunk_size or (STRUCTURED_CHUNK if structured else default_chunk_size(simulator))
+    physics = {"mujoco_version": mujoco.__version__, "mjcf_sha256": mjcf_sha256()}
+    known: dict[int, dict] = {}
     try:
-        with DatasetWriter(cfg, out, chunk_size) as writer:
+        if screened is not None:
+            chunk_size, known = read_progress(screened, cfg, physics)
+        with DatasetWriter(cfg, out, chunk_size, physics) as writer:
+            if known and writer.chunk_size != chunk_size:
+                raise DatasetError(
+                    f"{writer.work} holds chunks of {writer.chunk_size} records, {screened} of {chunk_size}"
+                )
             done = sum(min(writer.chunk_size, cfg.num_samples - s) for s in writer.chunks)
             if progress is not None and done:
                 progress(done)
             for start in writer.starts():
                 idx = np.arange(start, min(cfg.num_samples, start + writer.chunk_size))
-                chunk = simulate(cfg, simulator, idx)
+                if start in known:
+                    chunk = rebuild_chunk(cfg, simulator, idx, known[start])
+                else:
+                    chunk = simulate(cfg, simulator, idx)
                 writer.write(
                     start,
                     log={"failures": chunk.failures, **chunk.log},
@@ -252,8 +322,7 @@ def generate_dataset(
                     progress(len(idx))
             logs = writer.logs()
             meta = {
-                "mujoco_version": mujoco.__version__,
-                "mjcf_sha256": mjcf_sha256(),
+                **physics,
                 "failures": [f for log in logs for f in log["failures"]],
             }
             if structured:

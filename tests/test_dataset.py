@@ -104,7 +104,7 @@ def test_interrupted_generation_keeps_the_old_file_and_resumes(tmp_path, tiny_da
     # A partial run of another config is never mixed in: it is named, and kept.
     with pytest.raises(KeyboardInterrupt):
         generate_dataset(cfg, tmp_path / "e.npz", workers=2, chunk_size=2, progress=interrupt)
-    with pytest.raises(DatasetError, match=r"e.npz.partial holds a partial run of another config"):
+    with pytest.raises(DatasetError, match=r"e.npz.partial/progress.json is a run of another config"):
         generate_dataset(GenerateConfig(num_samples=4, seed=12), tmp_path / "e.npz", workers=2)
 
 

@@ -3,11 +3,22 @@ predict them, generated resumably into the paper family's file schema."""
 
 from __future__ import annotations
 
+import json
+import shutil
+
 import numpy as np
 import pytest
 
 from snakeloco.app.cli import main
-from snakeloco.sim import GenerateConfig, SimulationError, generate_dataset, joint_shape, load_dataset
+from snakeloco.sim import (
+    GenerateConfig,
+    SimulationError,
+    Simulator,
+    generate_dataset,
+    joint_shape,
+    load_dataset,
+)
+from snakeloco.sim.dataset import DatasetError
 from snakeloco.sim.structured import KINDS, StructuredConfig, draw_structured
 
 CFG = GenerateConfig(num_samples=3, seed=3, family="structured")
@@ -85,3 +96,53 @@ def test_rejected_records_are_redrawn_and_logged(tmp_path):
     with pytest.raises(SimulationError, match="no predictable gait in 2 draws"):
         generate_dataset(CFG.model_copy(update={"structured": hopeless}), tmp_path / "never.npz", workers=2)
     assert not (tmp_path / "never.npz").exists() and not (tmp_path / "never.npz.partial").exists()
+
+
+@pytest.mark.slow
+def test_a_screening_log_rebuilds_the_same_dataset_with_one_replay_per_record(tmp_path, monkeypatch):
+    def stop_before_finishing(n_done: list[int]):
+        def progress(n: int) -> None:
+            n_done.append(n)
+            if sum(n_done) == CFG.num_samples:
+                raise KeyboardInterrupt  # every chunk written, the file not yet
+
+        return progress
+
+    with pytest.raises(KeyboardInterrupt):
+        generate_dataset(CFG, tmp_path / "a.npz", workers=2, chunk_size=2, progress=stop_before_finishing([]))
+    log = tmp_path / "screening.json"
+    shutil.copy(tmp_path / "a.npz.partial" / "progress.json", log)
+    reference = load_dataset(generate_dataset(CFG, tmp_path / "a.npz", workers=2))  # finishes the run
+
+    rows = []
+    simulate = Simulator.simulate
+    monkeypatch.setattr(Simulator, "simulate", lambda self, c: rows.append(len(c)) or simulate(self, c))
+    main(
+        [
+            *("generate", "--family", "structured", "--num-samples", "3", "--seed", "3"),
+            *("--out", str(tmp_path / "b.npz"), "--screened", str(log)),
+        ]
+    )
+    assert sum(rows) == 3  # one replay per record, no ensemble
+    rebuilt = load_dataset(tmp_path / "b.npz")
+    for key in ("commands", "joint_angles", "body", "body_ds", "shape", "phases", "amplitude", "attempts"):
+        np.testing.assert_array_equal(getattr(rebuilt, key), getattr(reference, key), err_msg=key)
+    assert rebuilt.meta == reference.meta
+
+    # A log that does not fit is refused before anything is simulated, naming what differs.
+    progress = json.loads(log.read_text())
+    other_physics = tmp_path / "other_physics.json"
+    other_physics.write_text(json.dumps(progress | {"physics": {"mujoco_version": "0.0"}}))
+    with pytest.raises(DatasetError, match="simulated with other physics"):
+        generate_dataset(CFG, tmp_path / "c.npz", workers=2, screened=other_physics)
+    with pytest.raises(DatasetError, match="is a run of another config"):
+        generate_dataset(CFG.model_copy(update={"seed": 4}), tmp_path / "c.npz", workers=2, screened=log)
+    progress["chunks"]["0"]["drawn"][0]["wave"]["a_yaw"] += 0.1
+    tampered = tmp_path / "tampered.json"
+    tampered.write_text(json.dumps(progress))
+    with pytest.raises(DatasetError, match="differ from the logged ones"):
+        generate_dataset(CFG, tmp_path / "c.npz", workers=2, screened=tampered)
+    (tmp_path / "junk.json").write_text("[1, 2")
+    with pytest.raises(DatasetError, match="not a generation progress file"):
+        generate_dataset(CFG, tmp_path / "c.npz", workers=2, screened=tmp_path / "junk.json")
+    assert not (tmp_path / "c.npz").exists()
