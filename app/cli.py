@@ -59,7 +59,7 @@ def output_problem(path: Path, kind: str) -> str | None:
     path = Path(path)
     if kind == "dir" and path.exists() and not path.is_dir():
         return f"{path}: exists and is not a directory"
-    if kind == "file" and path.is_dir():
+    if kind == "file" and path.is_dir() and path.suffix != ".zarr":  # a zarr store is a folder
         return f"{path}: is a directory, not a file"
     existing = path if kind == "dir" else path.parent
     while not existing.exists():
@@ -87,7 +87,7 @@ def outputs_problem(cmd: Command) -> str | None:
     return None
 
 
-def _progress_bar(total: int, desc: str):
+def _progress_bar(total: int, desc: str, unit: str = "gait"):
     """A callback that opens a tqdm bar on its first call (after the inputs are checked) and closes
     it when ``total`` is reached, and the bar's holder (``holder[0]``, None before the first call)."""
     from tqdm import tqdm
@@ -96,7 +96,7 @@ def _progress_bar(total: int, desc: str):
 
     def progress(k: int) -> None:
         if holder[0] is None:
-            holder[0] = tqdm(total=total, unit="gait", desc=desc)
+            holder[0] = tqdm(total=total, unit=unit, desc=desc)
         holder[0].update(k)
         if holder[0].n >= holder[0].total:
             holder[0].close()  # before the log lines that follow
@@ -105,18 +105,47 @@ def _progress_bar(total: int, desc: str):
 
 
 def run_generate(cmd: Generate) -> Path:
-    """Generate the dataset with a progress bar; returns the written path."""
-    from tqdm import tqdm
+    """Generate the dataset with a progress bar; returns the written path. Ctrl-C says what was kept."""
 
     from snakeloco.sim import generate_dataset
 
     cfg = cmd.config
     t0 = time.perf_counter()
-    with tqdm(total=cfg.num_samples, unit="sample", desc="generate") as bar:
-        path = generate_dataset(cfg, cmd.out, workers=cmd.workers, progress=bar.update, screened=cmd.screened)
-    size = path.stat().st_size / 2**20
+    progress, bar = _progress_bar(cfg.num_samples, "generate", unit="sample")
+    try:
+        path = generate_dataset(
+            cfg,
+            cmd.out,
+            workers=cmd.workers,
+            progress=progress,
+            screened=cmd.screened,
+            backend=cmd.backend,
+        )
+    except KeyboardInterrupt:
+        partial = cmd.out.with_name(cmd.out.name + ".partial")
+        done = bar[0].n if bar[0] is not None else 0
+        if bar[0] is not None:
+            bar[0].close()
+        kept = f": {done} of {cfg.num_samples} records are kept in {partial}; the same command resumes from there"
+        print(
+            "snakeloco: interrupted"
+            + (f"{kept} (delete it to start over)" if partial.is_dir() else "; nothing was written"),
+            file=sys.stderr,
+        )
+        raise SystemExit(130) from None
+    finally:
+        if bar[0] is not None:
+            bar[0].close()
+    size = _size(path) / 2**20
     print(f"wrote {path} ({cfg.num_samples} samples, {size:.1f} MiB) in {time.perf_counter() - t0:.1f} s")
     return path
+
+
+def _size(path: Path) -> int:
+    """Bytes of a file, or of every file in a folder (a zarr store)."""
+    if path.is_dir():
+        return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    return path.stat().st_size
 
 
 def run_gait(cmd: Gait) -> str:
@@ -159,6 +188,7 @@ def run_evaluate(cmd: Evaluate) -> dict:
             cmd.workers,
             progress,
             cmd.replays,
+            backend=cmd.backend,
         )
     finally:
         if bar[0] is not None:
@@ -189,6 +219,7 @@ def run_calibrate(cmd: Calibrate) -> dict:
             cmd.out,
             cmd.config,
             workers=cmd.workers,
+            backend=cmd.backend,
             progress=progress,
             gaits_path=cmd.gaits,
         )
@@ -275,6 +306,7 @@ def main(args: list[str] | None = None) -> None:
     from snakeloco.model.figures import ReportError
     from snakeloco.model.train import TrainingError
     from snakeloco.sim import DatasetError, SimulationError
+    from snakeloco.sim.backend import BackendError
 
     args = list(sys.argv[1:] if args is None else args)
     try:
@@ -290,6 +322,7 @@ def main(args: list[str] | None = None) -> None:
         ReportError,
         TrainingError,
         SimulationError,
+        BackendError,
         MissingBrowserError,
     ) as exc:
         print(f"snakeloco: error: {exc}", file=sys.stderr)

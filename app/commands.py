@@ -19,6 +19,7 @@ from snakeloco.model.calibrate import CalibrateConfig
 from snakeloco.model.config import ModelConfig
 from snakeloco.model.train import PRESETS, TrainConfig
 from snakeloco.sim import GenerateConfig
+from snakeloco.sim.backend import BackendConfig
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
@@ -45,10 +46,11 @@ class Generate(Command):
     family; written atomically, resumable)."""
 
     out: Path
-    """Destination .npz file."""
+    """Destination: an .npz file, or a zarr store (chunked by record, for sets that outgrow memory) where it ends in .zarr."""
     config: Annotated[GenerateConfig, Flat] = GenerateConfig()
     workers: Workers = None
-    """Simulation threads (default: all cores). Does not change the result."""
+    """Simulation threads (default: all cores; with --backend ray, the CPUs of a Ray started here). Does not change the result."""
+    backend: Annotated[BackendConfig, Flat] = BackendConfig()
     screened: Path | None = None
     """progress.json of an earlier run of the same options (or the shipped copy, data/screening/): its
     records are rebuilt with one replay each instead of being screened again. Does not change the result."""
@@ -83,6 +85,7 @@ class Evaluate(Command):
     """Seed of the prior draws and noise."""
     workers: Workers = None
     """Simulation threads (default: all cores)."""
+    backend: Annotated[BackendConfig, Flat] = BackendConfig()
     json: bool = False
     """Print the figures as one JSON object on the last line."""
     report: Path | None = None
@@ -103,6 +106,7 @@ class Calibrate(Command):
     config: Annotated[CalibrateConfig, Flat] = CalibrateConfig()
     workers: Workers = None
     """Simulation threads (default: all cores)."""
+    backend: Annotated[BackendConfig, Flat] = BackendConfig()
     gaits: Path | None = None
     """Replayed calibration gaits (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same draw), else written there after replaying."""
 

@@ -39,7 +39,8 @@ from snakeloco.model.finetune import fit_head, fit_path_decoder
 from snakeloco.model.replays import check_same_gaits, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.stats import STAT_NAMES, stats_vector
 from snakeloco.model.train import split_records
-from snakeloco.sim import DatasetError, Simulator, load_dataset
+from snakeloco.sim import DatasetError, load_dataset
+from snakeloco.sim.backend import BackendConfig, open_backend
 
 MODES: dict[str, float | None] = {"zk_zero": None, "zk_t0.5": 0.5, "zk_t1": 1.0}
 """z_k modes of the calibration gaits, name -> sampling temperature (None: z_k = 0), as
@@ -106,6 +107,7 @@ def replay_prior_gaits(
     cfg: CalibrateConfig,
     workers: int | None = None,
     progress: Callable[[int], None] | None = None,
+    backend: BackendConfig | None = None,
 ) -> dict[str, np.ndarray]:
     """Decode ``cfg``'s prior z_B in their z_k modes, replay each gait once and measure it.
 
@@ -129,7 +131,7 @@ def replay_prior_gaits(
     first_sampled = n + cfg.zero_count
     draws += [(m, z_sampled, first_sampled, seed + SAMPLED_SEED_OFFSET + 1 + m) for m in SAMPLED_MODES]
     temperatures = list(MODES.values())
-    simulator = Simulator(workers)
+    runner = open_backend(backend, workers)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in GAIT_KEYS if k != "broken"}
     broken = np.zeros(len(MODES), dtype=np.int64)
     try:
@@ -138,7 +140,7 @@ def replay_prior_gaits(
                 continue
             z_j = model.joint_latents(zb, temperatures[m], seed=zk_seed)
             shape, _ = model.decode(zb, z_j)
-            bodies, ok = replay_shapes(model, shape, simulator, progress=progress)
+            bodies, ok = replay_shapes(model, shape, runner, progress=progress)
             ok = ok[:, 0]
             broken[m] += int((~ok).sum())
             body = bodies[ok, 0]  # (b, 500, 6) at the model's rate
@@ -150,7 +152,7 @@ def replay_prior_gaits(
             parts["z_index"].append(first + np.flatnonzero(ok))
             parts["mode"].append(np.full(int(ok.sum()), m))
     finally:
-        simulator.close()
+        runner.close()
     return {**{k: np.concatenate(v) for k, v in parts.items()}, "broken": broken}
 
 
@@ -190,6 +192,7 @@ def calibrate(
     cfg: CalibrateConfig | None = None,
     *,
     workers: int | None = None,
+    backend: BackendConfig | None = None,
     log: Callable[[str], None] | None = print,
     progress: Callable[[int], None] | None = None,
     gaits: dict[str, np.ndarray] | None = None,
@@ -222,7 +225,7 @@ def calibrate(
             log(f"reusing {len(gaits['shape'])} replayed prior gaits from {gaits_path}")
     if gaits is None:
         t0 = time.perf_counter()
-        gaits = replay_prior_gaits(model, cfg, workers, progress=progress)
+        gaits = replay_prior_gaits(model, cfg, workers, progress=progress, backend=backend)
         if log:
             log(
                 f"replayed {len(gaits['shape'])} prior gaits in {time.perf_counter() - t0:.0f} s "

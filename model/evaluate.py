@@ -15,7 +15,8 @@ from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
 from snakeloco.model.replays import check_same_gaits, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.stats import median_relative_errors
-from snakeloco.sim import BODY_CHANNELS, BODY_RATE, Simulator, load_dataset
+from snakeloco.sim import BODY_CHANNELS, BODY_RATE, load_dataset
+from snakeloco.sim.backend import BackendConfig, open_backend
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, PREDICTABLE, compare, path_stats
 
 
@@ -98,6 +99,7 @@ def consistency(
     workers: int | None = None,
     progress=None,
     replays: str | Path | None = None,
+    backend: BackendConfig | None = None,
 ) -> dict:
     """Decode n_prior z_B from the prior (z_k = 0 and z_k sampled), replay each as an ensemble, score.
 
@@ -107,7 +109,8 @@ def consistency(
     the designer does. ``replays``: an .npz of the ensembles' replays, read when it exists (it must
     hold the same draw of this checkpoint's decodes: ``model.replays``), else written after
     replaying. A calibration that leaves the decoded shapes alone (``snakeloco calibrate``) is
-    then re-scored in seconds instead of replaying 2 n_prior ensembles.
+    then re-scored in seconds instead of replaying 2 n_prior ensembles. ``backend``: where the replays
+    run (``sim.backend``; default this machine's ``workers`` threads).
     """
     z_b = np.random.default_rng(seed).standard_normal((n_prior, model.z_b_dim))
     modes = {
@@ -125,14 +128,14 @@ def consistency(
         if progress is not None:
             progress(len(modes) * n_prior)
     else:
-        simulator = Simulator(workers)
+        runner = open_backend(backend, workers)
         stored = {}
         try:
             for name, (shapes, _, _) in decoded.items():
-                bodies, ok = replay_shapes(model, shapes, simulator, ensemble, seed, progress)
+                bodies, ok = replay_shapes(model, shapes, runner, ensemble, seed, progress)
                 stored[name] = {"shapes": shapes, "z_j": modes[name], "bodies": bodies, "ok": ok}
         finally:
-            simulator.close()
+            runner.close()
         if replays is not None:
             arrays = {f"{name}/{k}": v for name, r in stored.items() for k, v in r.items()}
             save_side_file(replays, drawn, **arrays)
@@ -177,8 +180,10 @@ def evaluate(
     workers: int | None = None,
     progress=None,
     replays: str | Path | None = None,
+    backend: BackendConfig | None = None,
 ) -> dict:
-    """All evaluation figures for a checkpoint on a (held-out) dataset (``replays``: ``consistency``)."""
+    """All evaluation figures for a checkpoint on a (held-out) dataset (``replays``, ``backend``:
+    ``consistency``)."""
     model = load_pretrained(checkpoint)
     ds = load_dataset(data)
     shape, body_ds = ds.shape.astype(np.float64), ds.body_ds.astype(np.float64)
@@ -194,7 +199,7 @@ def evaluate(
     out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=seed))
     if n_prior > 0:
         out["consistency"] = consistency(
-            model, n_prior, ensemble, seed, workers, progress=progress, replays=replays
+            model, n_prior, ensemble, seed, workers, progress=progress, replays=replays, backend=backend
         )
     return out
 

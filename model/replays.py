@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from snakeloco.model.api import GaitModel
-from snakeloco.sim import BODY_DOWNSAMPLE, DatasetError, mjcf_sha256, read_npz, write_npz
+from snakeloco.sim import DatasetError, mjcf_sha256, read_npz, write_npz
+from snakeloco.sim.backend import simulate_bodies
 from snakeloco.sim.consistency import ENSEMBLE_NOISE, perturbed_commands
 
 DECODE_TOLERANCE = 1e-4
@@ -29,7 +30,7 @@ as the same gait: one z_B and a batch of them decode 3.6e-7 rad apart on one CPU
 def replay_shapes(
     model: GaitModel,
     shapes: np.ndarray,
-    simulator,
+    backend,
     ensemble: int = 1,
     seed: int = 0,
     progress: Callable[[int], None] | None = None,
@@ -37,8 +38,9 @@ def replay_shapes(
     """Replay decoded joint shapes (n, 8, L, 2) rad, each as an ensemble of ``ensemble`` replays.
 
     Gait i's perturbed members use noise seeded with ``seed + i``; member 0 is the unperturbed
-    replay. ``simulator`` is a ``sim.Simulator`` (the caller owns its threads). ``progress`` is
-    called with the number of gaits finished after each batch.
+    replay. ``backend`` is where they run (``sim.backend.open_backend``: this machine's cores or Ray;
+    the caller closes it); the commands of a few gaits are made at a time, so memory stays bounded.
+    ``progress`` is called with the number of gaits finished after each batch.
 
     Returns:
         bodies (n, ensemble, 500, 6) float32, the body series at the model's 5 Hz (zeros where a
@@ -47,24 +49,28 @@ def replay_shapes(
     n, cfg = len(shapes), model.config.model
     bodies = np.zeros((n, ensemble, cfg.body_steps, cfg.body_channels), np.float32)
     ok = np.zeros((n, ensemble), bool)
-    # Enough gaits per call to keep every thread busy; records are independent, so the batching
-    # changes nothing in the results.
-    per_batch = max(1, (4 * simulator.workers) // ensemble)
-    for start in range(0, n, per_batch):
-        idx = np.arange(start, min(n, start + per_batch))
-        commands = model.commands(shapes[idx])  # (b, T, 8)
-        if ensemble > 1:
-            commands = np.concatenate(
-                [
-                    perturbed_commands(c, ensemble, seed=seed + int(i))
-                    for c, i in zip(commands, idx, strict=True)
-                ]
-            )  # (b K, T, 8)
-        result = simulator.simulate(commands)
-        ran = np.array([f is None for f in result.failures]).reshape(len(idx), ensemble)
-        body = result.body[:, ::BODY_DOWNSAMPLE].reshape(len(idx), ensemble, *bodies.shape[2:])
+    # Enough gaits per job to keep a backend's threads busy (or a Ray task worth its overhead);
+    # records are independent, so the batching changes nothing in the results.
+    per_batch = max(1, backend.replays_per_job // ensemble)
+    batches = [np.arange(start, min(n, start + per_batch)) for start in range(0, n, per_batch)]
+
+    def jobs():
+        for idx in batches:
+            commands = model.commands(shapes[idx])  # (b, T, 8)
+            if ensemble > 1:
+                commands = np.concatenate(
+                    [
+                        perturbed_commands(c, ensemble, seed=seed + int(i))
+                        for c, i in zip(commands, idx, strict=True)
+                    ]
+                )  # (b K, T, 8)
+            yield commands
+
+    for b, (body, failures) in backend.map(simulate_bodies, jobs()):
+        idx = batches[b]
+        ran = np.array([f is None for f in failures]).reshape(len(idx), ensemble)
         ok[idx] = ran
-        bodies[idx] = np.where(ran[..., None, None], body, 0.0)
+        bodies[idx] = np.where(ran[..., None, None], body.reshape(len(idx), ensemble, *bodies.shape[2:]), 0.0)
         if progress is not None:
             progress(len(idx))
     return bodies, ok

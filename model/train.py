@@ -205,7 +205,9 @@ def train(
         normalization=norm,
         freqs=ds.freqs.tolist(),
         dataset_meta_sha256=ds.meta_hash,
-        servo_response=servo_response(ds.commands[train_idx], ds.joint_angles[train_idx]).tolist(),
+        servo_response=servo_response(
+            ds.rows("commands", train_idx), ds.rows("joint_angles", train_idx)
+        ).tolist(),
         mjcf_sha256=mjcf_sha256(),
         train=cfg.model_dump(mode="json")
         | {"data": str(data), "n_train": len(train_idx), "n_val": len(val_idx)},

@@ -1,6 +1,8 @@
-"""Training dataset files: the format, an atomic writer and the validated reader (numpy only).
+"""Training dataset files: the format, its config and the validated reader (numpy only; zarr on demand).
 
-Generation (``sim.generate``) simulates the records and writes them with ``DatasetWriter``.
+Generation (``sim.generate``) simulates the records and writes them with ``sim.writer``; a dataset
+is an ``.npz`` file or, for sets that outgrow memory, a zarr store (``PATH.zarr``, a folder: the same
+arrays chunked by record, ``meta`` as the group attribute).
 
 File format: one ``.npz`` (uncompressed zip of ``.npy`` members), float32 unless noted:
 
@@ -31,7 +33,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 import zipfile
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -98,6 +99,9 @@ class GenerateConfig(BaseModel):
         return self.model_dump(mode="json", exclude={"family", "structured"} if paper else None)
 
 
+ZARR_MISSING = "zarr stores need the scale extra: pip install 'snakeloco[scale]'"
+
+
 class DatasetError(ValueError):
     """A dataset file is missing, truncated, foreign or of another schema; the message says which."""
 
@@ -153,125 +157,9 @@ def dataset_members(cfg: GenerateConfig) -> dict[str, _Member]:
     }
 
 
-def read_progress(path: str | Path, cfg: GenerateConfig, physics: dict) -> tuple[int, dict[int, dict]]:
-    """Chunk size and per-chunk logs (first record -> log) of a run's ``progress.json``
-    (``DatasetWriter``) or a copy of it, checked to be a run of ``cfg`` on the same ``physics``
-    (MuJoCo version and model hash, as ``generate`` records them).
-
-    Raises:
-        DatasetError: the file is unreadable, not a progress file, or of another config or physics.
-    """
-    path = Path(path)
-    try:
-        progress = json.loads(path.read_text())
-        chunk_size = int(progress["chunk_size"])
-        chunks = {int(k): dict(v) for k, v in progress["chunks"].items()}
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise DatasetError(f"{path} is not a generation progress file ({type(exc).__name__}: {exc})") from exc
-    if progress.get("config") != cfg.to_meta():
-        raise DatasetError(
-            f"{path} is a run of another config; delete it (or give the same options) to start this one "
-            f"(its config: {progress.get('config')})"
-        )
-    if progress.get("physics", {}) != physics:
-        raise DatasetError(
-            f"{path} was simulated with other physics ({progress.get('physics')}, here {physics}): "
-            "its records would not be those this run makes"
-        )
-    if chunk_size < 1 or any(s % chunk_size or not 0 <= s < cfg.num_samples for s in chunks):
-        raise DatasetError(f"{path}: chunk starts {sorted(chunks)} do not fit chunks of {chunk_size}")
-    return chunk_size, chunks
-
-
-class DatasetWriter:
-    """Writes a dataset file atomically, chunk of records by chunk, with bounded memory, resumably.
-
-    Each array is filled in a memory-mapped ``.npy`` in a work folder beside ``out``
-    (``PATH.partial``); after each chunk, ``done`` records it (with what the chunk logged) in the
-    folder's ``progress.json``. ``finish`` streams the arrays into the zip, renames it to ``out`` and
-    removes the folder. A run that stops (an error, Ctrl-C) leaves ``out`` as it was and keeps the
-    folder where at least one chunk finished: the same config writing to the same ``out`` again
-    resumes from there (``finished``) and gives the same file as an uninterrupted run.
-    """
-
-    def __init__(
-        self, cfg: GenerateConfig, out: str | Path, chunk_size: int, physics: dict | None = None
-    ) -> None:
-        self.cfg = cfg
-        self.out = Path(out)
-        self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.work = self.out.with_name(self.out.name + ".partial")
-        self._members = dataset_members(cfg)
-        self._progress = self.work / "progress.json"
-        self.physics = physics or {}
-        self.chunks: dict[int, dict] = {}  # start -> what that chunk logged
-        resuming = self._progress.is_file()
-        if resuming:
-            chunk_size, self.chunks = read_progress(self._progress, cfg, self.physics)
-        self.chunk_size = chunk_size
-        self.work.mkdir(exist_ok=True)
-        mode = "r+" if resuming else "w+"
-        self._arrays = {
-            key: np.lib.format.open_memmap(self.work / f"{key}.npy", mode, np.dtype(m.dtype), m.shape)
-            for key, m in self._members.items()
-            if key != "freqs"
-        }
-
-    def __enter__(self) -> DatasetWriter:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._arrays.clear()
-        if not self.chunks:  # nothing to resume from
-            shutil.rmtree(self.work, ignore_errors=True)
-
-    def starts(self) -> list[int]:
-        """First record of every chunk not written yet, in order."""
-        return [s for s in range(0, self.cfg.num_samples, self.chunk_size) if s not in self.chunks]
-
-    def write(self, start: int, log: dict | None = None, **arrays: np.ndarray) -> None:
-        """Store the chunk of records from ``start`` (each named per-record array) and mark it done,
-        with ``log`` (JSON-ready: what ``finish`` gathers into the meta)."""
-        for key, value in arrays.items():
-            self._arrays[key][start : start + len(value)] = value
-        for arr in self._arrays.values():
-            arr.flush()
-        self.chunks[start] = log or {}
-        progress = {
-            "config": self.cfg.to_meta(),
-            "physics": self.physics,
-            "chunk_size": self.chunk_size,
-            "chunks": self.chunks,
-        }
-        tmp = self._progress.with_suffix(".tmp")
-        tmp.write_text(json.dumps(progress))
-        os.replace(tmp, self._progress)
-
-    def logs(self) -> list[dict]:
-        """What every written chunk logged, in record order."""
-        return [self.chunks[s] for s in sorted(self.chunks)]
-
-    def finish(self, meta: dict) -> Path:
-        """Write ``freqs`` and ``meta`` (schema version and config added), zip every member, rename to
-        ``out`` and remove the work folder."""
-        for arr in self._arrays.values():
-            arr.flush()
-        self._arrays.clear()
-        np.save(self.work / "freqs.npy", self.cfg.excitation.freqs.astype(np.float64))
-        meta = {"schema_version": SCHEMA_VERSION, "config": self.cfg.to_meta(), **meta}
-        np.save(self.work / "meta.npy", np.array(json.dumps(meta)))
-        tmp_file = self.work / "dataset.npz"
-        with zipfile.ZipFile(tmp_file, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
-            for key in [*self._members, "meta"]:
-                zf.write(self.work / f"{key}.npy", arcname=f"{key}.npy")
-        os.replace(tmp_file, self.out)
-        self.chunks = {}
-        shutil.rmtree(self.work, ignore_errors=True)
-        return self.out
-
-
 class Dataset:
-    """A validated dataset file; arrays are read from disk on first access and then kept.
+    """A validated dataset (an ``.npz`` file or a zarr store); arrays are read on first access and
+    then kept, or read a few rows at a time with ``rows``.
 
     Attributes mirror the file's keys (``commands``, ``joint_angles``, ``body``, ``body_ds``, ``freqs``,
     ``phases``, ``amplitude``, ``attempts``, ``shape``); ``meta`` is the parsed JSON and ``config``
@@ -291,17 +179,60 @@ class Dataset:
         if key.startswith("_") or key not in dataset_members(self.config):
             raise AttributeError(key)
         if key not in self._cache:
-            try:
-                with np.load(self.path, allow_pickle=False) as npz:
-                    self._cache[key] = npz[key]
-            except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-                raise DatasetError(f"{self.path}: array '{key}' is unreadable ({exc})") from exc
+            self._cache[key] = self._read(key, None)
         return self._cache[key]
+
+    def rows(self, key: str, index: np.ndarray) -> Rows:
+        """Records ``index`` of array ``key``, read a slice at a time when sliced: a zarr store reads
+        only the chunks that hold them, so a pass over a large store stays within memory."""
+        if key not in dataset_members(self.config) or key == "freqs":
+            raise KeyError(f"{key!r} is not a per-record array of a dataset")
+        return Rows(self, key, np.asarray(index, np.int64))
+
+    def _read(self, key: str, index: np.ndarray | None) -> np.ndarray:
+        if index is not None and key in self._cache:
+            return self._cache[key][index]
+        try:
+            if self.path.is_dir():
+                array = import_zarr().open_array(self.path / key, mode="r")
+                return array[...] if index is None else array.oindex[index]
+            with np.load(self.path, allow_pickle=False) as npz:
+                whole = npz[key]
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
+            raise DatasetError(f"{self.path}: array '{key}' is unreadable ({exc})") from exc
+        if index is None:
+            return whole
+        self._cache[key] = whole  # an .npz member cannot be read in part: keep what was read
+        return whole[index]
 
     @property
     def meta_hash(self) -> str:
         """sha256 of the meta JSON: identifies the dataset a checkpoint was trained on."""
         return hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class Rows:
+    """Some records of one dataset array (``Dataset.rows``); ``rows[a:b]`` reads those only."""
+
+    dataset: Dataset
+    key: str
+    index: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, part: slice) -> np.ndarray:
+        return self.dataset._read(self.key, self.index[part])
+
+
+def import_zarr():
+    """The zarr module, or a DatasetError saying what to install."""
+    try:
+        import zarr
+    except ImportError as exc:
+        raise DatasetError(ZARR_MISSING) from exc
+    return zarr
 
 
 def _read_header(zf: zipfile.ZipFile, name: str) -> tuple[tuple[int, ...], np.dtype]:
@@ -314,18 +245,8 @@ def _read_header(zf: zipfile.ZipFile, name: str) -> tuple[tuple[int, ...], np.dt
     return shape, dtype
 
 
-def load_dataset(path: str | Path) -> Dataset:
-    """Open and validate a dataset written by ``snakeloco generate``.
-
-    Checks that the file is a complete npz, has every key with the right shape and dtype, a meta
-    of this schema version, and a config that validates. Arrays are loaded lazily.
-
-    Raises:
-        DatasetError: naming the problem (missing, truncated, foreign, wrong schema, wrong shapes).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: no such dataset file")
+def _read_npz(path: Path) -> tuple[str, dict[str, tuple[tuple[int, ...], np.dtype]]]:
+    """The meta JSON text and every array's (shape, dtype) of an ``.npz`` dataset."""
     try:
         with zipfile.ZipFile(path) as zf:
             names = set(zf.namelist())
@@ -340,8 +261,49 @@ def load_dataset(path: str | Path) -> Dataset:
         raise
     except (OSError, ValueError, EOFError) as exc:
         raise DatasetError(f"{path}: unreadable dataset ({exc})") from exc
+    return str(meta_arr), headers
+
+
+def _read_zarr(path: Path) -> tuple[str, dict[str, tuple[tuple[int, ...], np.dtype]]]:
+    """The meta JSON text and every complete array's (shape, dtype) of a zarr dataset store."""
+    zarr = import_zarr()
     try:
-        meta = json.loads(str(meta_arr))
+        group = zarr.open_group(path, mode="r")
+        meta = group.attrs.get("meta")
+        arrays = dict(group.arrays())
+    except Exception as exc:  # zarr raises several kinds for a folder that is no store
+        raise DatasetError(f"{path}: not a readable zarr store ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(meta, str):
+        raise DatasetError(f"{path}: not a snakeloco dataset (no 'meta' attribute)")
+    for key, array in arrays.items():
+        if array.nchunks_initialized != array.nchunks:
+            raise DatasetError(
+                f"{path}: array '{key}' has {array.nchunks_initialized} of its {array.nchunks} chunks "
+                "(an incomplete or damaged store)"
+            )
+    return meta, {key: (array.shape, array.dtype) for key, array in arrays.items()}
+
+
+def load_dataset(path: str | Path) -> Dataset:
+    """Open and validate a dataset written by ``snakeloco generate``: an ``.npz`` file or a zarr
+    store (a folder, ``PATH.zarr``).
+
+    Checks that the file is complete (every zip member, every zarr chunk), has every key with the
+    right shape and dtype, a meta of this schema version, and a config that validates. Arrays are
+    loaded lazily.
+
+    Raises:
+        DatasetError: naming the problem (missing, truncated, foreign, wrong schema, wrong shapes).
+    """
+    path = Path(path)
+    if path.is_dir():
+        meta_text, headers = _read_zarr(path)
+    elif path.is_file():
+        meta_text, headers = _read_npz(path)
+    else:
+        raise DatasetError(f"{path}: no such dataset file")
+    try:
+        meta = json.loads(meta_text)
     except json.JSONDecodeError as exc:
         raise DatasetError(f"{path}: 'meta' is not valid JSON ({exc})") from exc
     version = meta.get("schema_version") if isinstance(meta, dict) else None
@@ -360,7 +322,7 @@ def load_dataset(path: str | Path) -> Dataset:
         raise DatasetError(f"{path}: missing arrays {missing}")
     for key, member in expected.items():
         shape, dtype = headers[key]
-        if shape != member.shape or dtype != np.dtype(member.dtype):
+        if tuple(shape) != member.shape or dtype != np.dtype(member.dtype):
             raise DatasetError(
                 f"{path}: array '{key}' is {dtype}{list(shape)}, expected {member.dtype}{list(member.shape)}"
             )

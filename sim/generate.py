@@ -18,32 +18,61 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from snakeloco.sim.backend import BackendConfig, open_backend
 from snakeloco.sim.command_rule import SimulationError
 from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
 from snakeloco.sim.dataset import (
     BODY_DOWNSAMPLE,
     N_BODY,
     DatasetError,
-    DatasetWriter,
     GenerateConfig,
-    read_progress,
 )
 from snakeloco.sim.excitation import RECORD, multisine, random_phases
 from snakeloco.sim.physics import Simulator, resolve_workers
-from snakeloco.sim.robot import N_JOINTS, mjcf_sha256
+from snakeloco.sim.robot import N_JOINTS, load_model, mjcf_sha256
 from snakeloco.sim.spectra import joint_shape, shape_to_commands
 from snakeloco.sim.structured import draw_structured
+from snakeloco.sim.writer import open_writer, read_progress, write_rows
 
 MEMORY_BUDGET = 512 * 2**20
 """Bytes of rollout buffers per chunk; bounds peak memory whatever the dataset size."""
 
 
-def default_chunk_size(simulator: Simulator) -> int:
-    """Samples per rollout call: all threads busy, rollout buffers within the memory budget."""
-    m = simulator.model
+def default_chunk_size(workers: int, cfg: GenerateConfig) -> int:
+    """Paper-family records per chunk: all ``workers`` threads busy, the rollout buffers of a chunk
+    within the memory budget (the same on every backend, so the file is too)."""
+    m = load_model()
     per_step = 8 * (mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS) + m.nsensordata + 4 * m.nu)
-    per_sample = per_step * simulator.n_steps
-    return max(simulator.workers, MEMORY_BUDGET // per_sample)
+    rate = cfg.excitation.sample_rate
+    steps = (cfg.sim.lead_in + cfg.excitation.n_samples) * round(1 / (rate * m.opt.timestep))
+    return max(workers, MEMORY_BUDGET // (per_step * steps))
+
+
+def _chunk_job(simulator: Simulator, job: tuple) -> tuple[int, int, dict, dict | None]:
+    """Simulate (or rebuild from its log) one chunk of records: (start, count, log, arrays), arrays
+    None where this process wrote them into the writer's folder itself (``write_rows``)."""
+    cfg, start, stop, known, target = job
+    idx = np.arange(start, stop)
+    if known is not None:
+        chunk = rebuild_chunk(cfg, simulator, idx, known)
+    elif cfg.family == "structured":
+        chunk = simulate_structured(cfg, simulator, idx)
+    else:
+        chunk = simulate_samples(cfg, simulator, idx)
+    log = {"failures": chunk.failures, **chunk.log}
+    arrays = {
+        "commands": chunk.commands,
+        "joint_angles": chunk.joint_angles,
+        "body": chunk.body,
+        "body_ds": chunk.body[:, ::BODY_DOWNSAMPLE],
+        "phases": chunk.phases,
+        "amplitude": chunk.amplitude,
+        "attempts": chunk.attempts,
+        "shape": joint_shape(chunk.joint_angles, cfg.excitation),
+    }
+    if target is not None and write_rows(target, start, arrays):
+        return start, len(idx), log, None
+    return start, len(idx), log, arrays
 
 
 @dataclass
@@ -262,6 +291,7 @@ def generate_dataset(
     chunk_size: int | None = None,
     progress: Callable[[int], None] | None = None,
     screened: str | Path | None = None,
+    backend: BackendConfig | None = None,
 ) -> Path:
     """Generate a dataset and write it atomically to ``out`` (a partial run never leaves a file there).
 
@@ -270,12 +300,13 @@ def generate_dataset(
 
     Args:
         cfg: what to generate (its ``family``: the paper's multisines or structured gaits).
-        out: destination ``.npz`` path.
-        workers: simulation threads (default: all cores).
+        out: destination: an ``.npz`` file, or a zarr store where it ends in ``.zarr``.
+        workers: simulation threads (default: all cores; with a Ray instance started here, its CPUs).
         chunk_size: records per chunk (default: the paper family's by a 512 MiB rollout-buffer budget,
             the structured family's ``STRUCTURED_CHUNK``); a resumed run keeps its first run's.
         progress: called with the number of records finished: those a resumed run already had, then
             after each chunk.
+        backend: where to simulate (``sim.backend``; default: this machine's cores).
         screened: the ``progress.json`` of an earlier run of the same config and physics (or a copy,
             such as the one shipped for the structured dataset): its chunks are rebuilt from their
             logged decisions with one replay per record (``rebuild_chunk``), the rest simulated.
@@ -283,16 +314,17 @@ def generate_dataset(
     Returns:
         The written path.
     """
-    simulator = Simulator(resolve_workers(workers), cfg.excitation, cfg.sim)
     structured = cfg.family == "structured"
-    simulate = simulate_structured if structured else simulate_samples
-    chunk_size = chunk_size or (STRUCTURED_CHUNK if structured else default_chunk_size(simulator))
+    chunk_size = chunk_size or (
+        STRUCTURED_CHUNK if structured else default_chunk_size(resolve_workers(workers), cfg)
+    )
     physics = {"mujoco_version": mujoco.__version__, "mjcf_sha256": mjcf_sha256()}
     known: dict[int, dict] = {}
+    if screened is not None:
+        chunk_size, known = read_progress(screened, cfg, physics)
+    runner = open_backend(backend, workers, cfg.excitation, cfg.sim)
     try:
-        if screened is not None:
-            chunk_size, known = read_progress(screened, cfg, physics)
-        with DatasetWriter(cfg, out, chunk_size, physics) as writer:
+        with open_writer(cfg, out, chunk_size, physics) as writer:
             if known and writer.chunk_size != chunk_size:
                 raise DatasetError(
                     f"{writer.work} holds chunks of {writer.chunk_size} records, {screened} of {chunk_size}"
@@ -300,26 +332,19 @@ def generate_dataset(
             done = sum(min(writer.chunk_size, cfg.num_samples - s) for s in writer.chunks)
             if progress is not None and done:
                 progress(done)
-            for start in writer.starts():
-                idx = np.arange(start, min(cfg.num_samples, start + writer.chunk_size))
-                if start in known:
-                    chunk = rebuild_chunk(cfg, simulator, idx, known[start])
+            # A Ray worker that sees the writer's folder writes its chunk there itself.
+            target = writer.target if runner.name == "ray" else None
+            jobs = (
+                (cfg, s, min(cfg.num_samples, s + writer.chunk_size), known.get(s), target)
+                for s in writer.starts()
+            )
+            for _, (start, n, log, arrays) in runner.map(_chunk_job, jobs):
+                if arrays is None:
+                    writer.done(start, log)
                 else:
-                    chunk = simulate(cfg, simulator, idx)
-                writer.write(
-                    start,
-                    log={"failures": chunk.failures, **chunk.log},
-                    commands=chunk.commands,
-                    joint_angles=chunk.joint_angles,
-                    body=chunk.body,
-                    body_ds=chunk.body[:, ::BODY_DOWNSAMPLE],
-                    phases=chunk.phases,
-                    amplitude=chunk.amplitude,
-                    attempts=chunk.attempts,
-                    shape=joint_shape(chunk.joint_angles, cfg.excitation),
-                )
+                    writer.write(start, log, **arrays)
                 if progress is not None:
-                    progress(len(idx))
+                    progress(n)
             logs = writer.logs()
             meta = {
                 **physics,
@@ -336,4 +361,4 @@ def generate_dataset(
                 }
             return writer.finish(meta)
     finally:
-        simulator.close()
+        runner.close()

@@ -115,7 +115,8 @@ def servo_response(
     """Mean complex gain measured/commanded of each joint at each excited frequency.
 
     Args:
-        commands, joint_angles: (N, T, 8) records (rad).
+        commands, joint_angles: (N, T, 8) records (rad): arrays, or ``Dataset.rows`` read a chunk at a
+            time.
 
     Returns:
         (8, L, 2) real and imaginary parts of mean_n (X_meas / X_cmd): |G| is the amplitude ratio,

@@ -90,8 +90,9 @@ def test_consistency_drops_broken_members_and_leaves_out_broken_gaits(checkpoint
 
     from snakeloco.model import evaluate as ev
     from snakeloco.model.api import load_pretrained
+    from snakeloco.sim.physics import Simulator
 
-    real = ev.Simulator.simulate
+    real = Simulator.simulate
 
     def flaky(self, commands):
         result = real(self, commands)
@@ -100,7 +101,7 @@ def test_consistency_drops_broken_members_and_leaves_out_broken_gaits(checkpoint
         failures[3] = "gait 1's own replay broke"
         return dataclasses.replace(result, failures=failures)
 
-    monkeypatch.setattr(ev.Simulator, "simulate", flaky)
+    monkeypatch.setattr(Simulator, "simulate", flaky)
     report = ev.consistency(load_pretrained(checkpoint), n_prior=2, ensemble=3, workers=2)
     for c in report.values():
         assert (c["n_gaits"], c["n_broken"], c["n_gaits_with_a_broken_member"]) == (1, 1, 2)
@@ -171,7 +172,9 @@ def test_consistency_replays_are_written_reused_and_checked(
     def no_simulation(self, commands):
         raise AssertionError("stored replays must be reused, not simulated again")
 
-    monkeypatch.setattr(ev.Simulator, "simulate", no_simulation)
+    from snakeloco.sim.physics import Simulator
+
+    monkeypatch.setattr(Simulator, "simulate", no_simulation)
     reused = ev.consistency(model, n_prior=2, ensemble=3, workers=2, replays=replays)
     for mode in ev.ZK_MODES:
         assert reused[mode]["gaits"] == fresh[mode]["gaits"]

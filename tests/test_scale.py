@@ -1,0 +1,215 @@
+"""Scale-out: zarr dataset stores (same arrays and validation as .npz, read a chunk at a time) and the
+Ray backend (bit-identical results, retried chunks, clear failures, a clean Ctrl-C)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import TINY
+
+from snakeloco.app.cli import main
+from snakeloco.model import TrainConfig, train
+from snakeloco.sim import GenerateConfig, generate_dataset, load_dataset
+from snakeloco.sim.backend import RAY_MISSING, BackendConfig
+from snakeloco.sim.dataset import DatasetError
+
+from helpers import SMALL
+
+KEYS = ("commands", "joint_angles", "body", "body_ds", "freqs", "phases", "amplitude", "attempts", "shape")
+RAY = BackendConfig(backend="ray")
+needs_ray = pytest.mark.skipif(
+    __import__("importlib").util.find_spec("ray") is None, reason="Ray is not installed (the scale extra)"
+)
+
+
+def assert_same(a, b) -> None:
+    for key in KEYS:
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+    assert a.meta == b.meta
+
+
+def raylets() -> set[int]:
+    """PIDs of running Ray raylet processes."""
+    pids = set()
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and b"raylet" in (entry / "cmdline").read_bytes().split(b"\0")[0]:
+                pids.add(int(entry.name))
+        except OSError:
+            continue
+    return pids
+
+
+def task_processes(name: str = "ray::_run_task") -> list[int]:
+    """PIDs of Ray workers running a snakeloco task (Ray titles a busy worker ray::FUNCTION)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and (entry / "cmdline").read_bytes().startswith(name.encode()):
+                pids.append(int(entry.name))
+        except OSError:
+            continue
+    return pids
+
+
+# --- zarr stores ------------------------------------------------------------------------------------
+
+
+def test_a_zarr_store_holds_the_npz_arrays_and_is_validated_like_it(tmp_path, tiny_dataset):
+    store = load_dataset(generate_dataset(TINY, tmp_path / "d.zarr", workers=2, chunk_size=2))
+    assert store.path.is_dir() and not (tmp_path / "d.zarr.partial").exists()
+    assert_same(store, tiny_dataset)
+    rows = store.rows("joint_angles", np.array([3, 0, 2]))
+    assert len(rows) == 3
+    np.testing.assert_array_equal(rows[1:], tiny_dataset.joint_angles[[0, 2]])  # read in part
+
+    # Damage is named, as for a truncated .npz: a missing chunk, no meta, a folder that is no store.
+    broken = shutil.copytree(store.path, tmp_path / "broken.zarr")
+    shutil.rmtree(broken / "body" / "c" / "1")  # the second chunk of records of 'body'
+    with pytest.raises(DatasetError, match=r"array 'body' has 1 of its 2 chunks"):
+        load_dataset(broken)
+    (tmp_path / "empty.zarr").mkdir()
+    with pytest.raises(DatasetError, match=r"empty\.zarr: not a"):
+        load_dataset(tmp_path / "empty.zarr")
+    # A folder at --out that is not a store is never replaced.
+    (tmp_path / "mine.zarr").mkdir()
+    (tmp_path / "mine.zarr" / "notes.txt").write_text("keep me")
+    with pytest.raises(DatasetError, match="exists and is not a zarr store"):
+        generate_dataset(TINY, tmp_path / "mine.zarr", workers=2)
+    assert (tmp_path / "mine.zarr" / "notes.txt").read_text() == "keep me"
+
+
+def test_training_from_a_zarr_store_equals_training_from_the_npz(tmp_path, tiny_dataset_path):
+    store = generate_dataset(TINY, tmp_path / "d.zarr", workers=2)
+    cfg = TrainConfig(epochs=1, batch_size=2, val_fraction=0.25)
+    losses = []
+    for data, out in ((tiny_dataset_path, tmp_path / "npz"), (store, tmp_path / "zarr")):
+        train(data, out, cfg, SMALL, log=None, progress=False)
+        first = json.loads((out / "metrics.jsonl").read_text().splitlines()[0])
+        losses.append({k: v for k, v in first.items() if "loss" in k})
+    assert losses[0] and losses[0] == losses[1]
+
+
+# --- the Ray backend --------------------------------------------------------------------------------
+
+
+@needs_ray
+@pytest.mark.slow
+def test_ray_generation_is_bit_identical_to_local_for_both_families(tmp_path, tiny_dataset):
+    assert_same(
+        load_dataset(generate_dataset(TINY, tmp_path / "p.zarr", backend=RAY, workers=2)), tiny_dataset
+    )
+    structured = GenerateConfig(num_samples=2, seed=3, family="structured")
+    local = load_dataset(generate_dataset(structured, tmp_path / "s.npz", workers=2))
+    assert_same(
+        load_dataset(generate_dataset(structured, tmp_path / "s.zarr", backend=RAY, workers=2)), local
+    )
+
+
+@needs_ray
+@pytest.mark.slow
+def test_a_killed_ray_worker_has_its_chunk_retried_and_the_dataset_is_identical(tmp_path, tiny_dataset):
+    done: list = []
+    run = threading.Thread(
+        target=lambda: done.append(
+            generate_dataset(TINY, tmp_path / "k.npz", backend=RAY, workers=2, chunk_size=1)
+        )
+    )
+    run.start()
+    deadline, killed = time.monotonic() + 120, None
+    while killed is None and time.monotonic() < deadline and run.is_alive():
+        busy = task_processes()
+        if busy:
+            killed = busy[0]
+            os.kill(killed, signal.SIGKILL)
+        time.sleep(0.05)
+    run.join(timeout=300)
+    assert killed is not None, "no Ray task process was seen running"
+    assert done, "generation did not finish after its worker was killed"
+    assert_same(load_dataset(done[0]), tiny_dataset)
+
+
+@needs_ray
+@pytest.mark.timeout(90)  # Ray alone would retry an unreachable address for minutes
+def test_an_unreachable_ray_address_ends_with_one_clear_line(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(
+            [
+                *("generate", "--num-samples", "2", "--out", str(tmp_path / "u.npz")),
+                *("--backend", "ray", "--ray-address", "127.0.0.1:9"),
+            ]
+        )
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cannot reach a Ray cluster at 127.0.0.1:9" in err
+    assert not list(tmp_path.iterdir())
+
+
+def test_without_ray_the_ray_backend_says_what_to_install(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray now raises ImportError
+    with pytest.raises(SystemExit) as stop:
+        main(["generate", "--num-samples", "2", "--out", str(tmp_path / "n.npz"), "--backend", "ray"])
+    assert stop.value.code == 2
+    assert capsys.readouterr().err.strip() == f"snakeloco: error: {RAY_MISSING}"
+    assert not list(tmp_path.iterdir())
+
+
+@needs_ray
+@pytest.mark.slow
+def test_ctrl_c_stops_the_ray_it_started_and_leaves_only_a_resumable_run(tmp_path, tiny_dataset):
+    out = tmp_path / "c.zarr"
+    before = raylets()
+    cmd = [sys.executable, "-m", "snakeloco.app.cli", "generate", "--num-samples", "4", "--seed", "11"]
+    proc = subprocess.Popen(
+        [*cmd, "--out", str(out), "--backend", "ray", "--workers", "2"],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
+    progress = out.with_name("c.zarr.partial") / "progress.json"
+    deadline = time.monotonic() + 120
+    while not (progress.exists() or raylets() - before) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert raylets() - before, "the command started no Ray"
+    while not task_processes() and time.monotonic() < deadline:
+        time.sleep(0.05)  # mid-run: a task is simulating
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "snakeloco: error" not in err and "Traceback" not in err
+    assert "interrupted" in err.splitlines()[-1]
+    assert not out.exists()  # nothing half-written at the destination
+    deadline = time.monotonic() + 30
+    while raylets() - before and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not raylets() - before, "the Ray instance it started is still running"
+    assert [p.name for p in tmp_path.iterdir() if p.name != "c.zarr.partial"] == []
+    # What it kept (if a chunk had finished) resumes to the same records, here on the local backend.
+    assert_same(load_dataset(generate_dataset(TINY, out, workers=2)), tiny_dataset)
+
+
+@needs_ray
+@pytest.mark.slow
+def test_evaluation_replays_on_ray_equal_the_local_ones(tmp_path, checkpoint, tiny_dataset_path):
+    from snakeloco.model import load_pretrained
+    from snakeloco.model.evaluate import consistency
+
+    model = load_pretrained(checkpoint)
+    files = {}
+    for name, backend in (("local", None), ("ray", RAY)):
+        files[name] = tmp_path / f"{name}.npz"
+        consistency(model, 3, 2, 0, 2, replays=files[name], backend=backend)
+    with np.load(files["local"]) as a, np.load(files["ray"]) as b:
+        assert sorted(a.files) == sorted(b.files)
+        for key in a.files:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
