@@ -23,6 +23,7 @@ from snakeloco.app.commands import (
     BenchApp,
     BenchLoad,
     BenchModel,
+    BenchScale,
     BenchSim,
     Calibrate,
     Command,
@@ -248,7 +249,13 @@ def run_serve(cmd: Serve) -> None:
 def run_bench(cmd: Command) -> dict:
     """Run a benchmark (``app/bench/report.py``), print its summary and, with --json, its figures as
     one JSON object on the last line."""
-    runs = {BenchSim: report.sim, BenchModel: report.model, BenchApp: report.app, BenchLoad: report.load}
+    runs = {
+        BenchSim: report.sim,
+        BenchModel: report.model,
+        BenchApp: report.app,
+        BenchLoad: report.load,
+        BenchScale: report.scale,
+    }
     result = runs[type(cmd)](cmd)
     if cmd.json:
         print(jsonlib.dumps(result))

@@ -206,8 +206,25 @@ class BenchLoad(Command):
     """Pin the server to the first half of the CPUs and the browsers to the second half."""
 
 
+class BenchScale(Command):
+    """Benchmark scale-out: the same records on the local and the Ray backend (throughput ratio, identical arrays, Ray's start-up), and the driver's peak memory writing and training from .npz vs zarr."""
+
+    records: Annotated[int, Field(ge=1)] = 256
+    """Records generated on each backend."""
+    family: Literal["paper", "structured"] = "paper"
+    """Gait family of those records."""
+    seed: Seed = 7
+    """Seed of the records."""
+    workers: Workers = None
+    """Threads here, and CPUs of the Ray instance started (default: all cores)."""
+    memory_records: Annotated[int, Field(ge=0)] = 4096
+    """Records written through each writer for the memory figures (0 skips them)."""
+    json: bool = False
+    """Print the figures as one JSON object on the last line."""
+
+
 class Bench(Command):
-    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,scale} --help`."""
 
 
 COMMANDS: dict[str, type[Command]] = {
@@ -220,5 +237,11 @@ COMMANDS: dict[str, type[Command]] = {
     "serve": Serve,
     "bench": Bench,  # listed here for `snakeloco --help`; `snakeloco bench ...` parses BENCHES
 }
-BENCHES: dict[str, type[Command]] = {"sim": BenchSim, "model": BenchModel, "app": BenchApp, "load": BenchLoad}
+BENCHES: dict[str, type[Command]] = {
+    "sim": BenchSim,
+    "model": BenchModel,
+    "app": BenchApp,
+    "load": BenchLoad,
+    "scale": BenchScale,
+}
 BENCH_HELP = Bench.__doc__

@@ -213,3 +213,14 @@ def test_evaluation_replays_on_ray_equal_the_local_ones(tmp_path, checkpoint, ti
         assert sorted(a.files) == sorted(b.files)
         for key in a.files:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+@needs_ray
+@pytest.mark.slow
+def test_bench_scale_reports_ratios_measured_side_by_side(capsys):
+    main(["bench", "scale", "--records", "4", "--memory-records", "40", "--json"])
+    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert r["identical"] is True and r["same_first_epoch_loss"] is True
+    assert r["ratio"] == pytest.approx(r["local_s"] / r["ray_s"]) and r["ray_startup_s"] > 0
+    for fmt in ("npz", "zarr"):
+        assert r["memory"][fmt]["peak_rss_mib"] >= r["memory"][fmt]["peak_rss_after_write_mib"] > 0

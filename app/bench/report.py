@@ -1,4 +1,4 @@
-"""``snakeloco bench {sim,model,app,load}``: run a benchmark and print its figures for a person.
+"""``snakeloco bench {sim,model,app,load,scale}``: run a benchmark and print its figures for a person.
 
 Each function takes the parsed command (``app/cli.py``) and returns the figures as a dict (the CLI
 prints it as JSON with ``--json``). The benchmarks themselves live beside this file.
@@ -93,4 +93,25 @@ def load(cmd) -> dict:
         print("stale:", "; ".join(details))
     for message in r["exception_messages"]:
         print("exception:", message)
+    return r
+
+
+def scale(cmd) -> dict:
+    """The Ray backend against the local one, zarr against .npz (``bench/scale.py``)."""
+    from snakeloco.app.bench.scale import bench_scale
+
+    r = bench_scale(cmd.records, cmd.family, cmd.seed, cmd.workers, cmd.memory_records)
+    print(
+        f"{r['records']} {r['family']} records, {r['workers']} CPUs: local {r['local_records_per_s']:.2f} records/s, "
+        f"ray {r['ray_records_per_s']:.2f} records/s (start-up included); ratio {r['ratio']:.3f} (ray / local, "
+        f"goal >= 0.85); arrays identical: {r['identical']}; Ray start-up alone {r['ray_startup_s']:.1f} s"
+    )
+    if r["memory"]:
+        m = r["memory"]
+        print(
+            f"{r['memory_records']} records written and trained on: peak RSS npz {m['npz']['peak_rss_mib']:.0f} MiB, "
+            f"zarr {m['zarr']['peak_rss_mib']:.0f} MiB (ratio {r['memory_ratio']:.2f}); after writing "
+            f"{m['npz']['peak_rss_after_write_mib']:.0f} / {m['zarr']['peak_rss_after_write_mib']:.0f} MiB; "
+            f"same first-epoch loss: {r['same_first_epoch_loss']}"
+        )
     return r
