@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import os
 import socket
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, Literal
 
@@ -31,6 +32,8 @@ from snakeloco.sim.excitation import RECORD, ExcitationConfig
 RAY_MISSING = "--backend ray needs Ray: pip install 'snakeloco[scale]' (or pip install 'ray>=2.9')"
 CONNECT_TIMEOUT_S = 10.0
 """How long joining a cluster at HOST:PORT waits for its address to answer before giving up."""
+JOIN_TIMEOUT_S = 30.0
+"""How long joining a cluster (``ray.init``) may take once its address answers."""
 TASK_RETRIES = 3
 """Times Ray reruns a task whose worker process died (an exception raised by the task is not retried:
 simulation is deterministic, it would raise again)."""
@@ -119,6 +122,30 @@ def _check_reachable(address: str) -> None:
         ) from exc
 
 
+def _join(ray, address: str) -> None:
+    """``ray.init(address)``, bounded: Ray retries a port that answers but is no Ray head for minutes."""
+    outcome: list = []
+
+    def connect() -> None:
+        try:
+            ray.init(address=address, log_to_driver=False, configure_logging=False)
+            outcome.append(None)
+        except BaseException as exc:  # handed to the caller
+            outcome.append(exc)
+
+    thread = threading.Thread(target=connect, name="ray-join", daemon=True)
+    thread.start()
+    thread.join(JOIN_TIMEOUT_S)
+    if not outcome:
+        raise BackendError(
+            f"no Ray cluster answered at {address} within {JOIN_TIMEOUT_S:.0f} s (something listens there, "
+            "but not a Ray head node?)"
+        )
+    if outcome[0] is not None:
+        exc = outcome[0]
+        raise BackendError(f"cannot join the Ray cluster at {address}: {exc}".splitlines()[0]) from exc
+
+
 class RayBackend:
     """Jobs as Ray tasks (one CPU each), at most ``2 x`` the cluster's CPUs in flight."""
 
@@ -143,17 +170,13 @@ class RayBackend:
             ray.init(
                 num_cpus=workers or os.cpu_count() or 1,
                 include_dashboard=False,
+                _node_ip_address="127.0.0.1",  # a single-machine instance talks over loopback only
                 log_to_driver=False,
                 configure_logging=False,
             )
             self._started = True
         else:
-            try:
-                ray.init(address=address, log_to_driver=False, configure_logging=False)
-            except (ConnectionError, RuntimeError, TimeoutError) as exc:
-                raise BackendError(
-                    f"cannot join the Ray cluster at {address}: {exc}".splitlines()[0]
-                ) from exc
+            _join(ray, address)
         self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self.max_in_flight = 2 * self.workers
         self._specs = (excitation.model_dump_json(), sim.model_dump_json())

@@ -172,6 +172,7 @@ class ZarrDatasetWriter(DatasetWriter):
     kind = "zarr"
 
     def __init__(self, cfg, out, chunk_size, physics=None) -> None:
+        import_zarr()  # before anything is made on disk
         out = Path(out)
         if out.exists() and not (out / "zarr.json").is_file():
             raise DatasetError(

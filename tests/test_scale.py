@@ -21,7 +21,7 @@ from snakeloco.app.cli import main
 from snakeloco.model import TrainConfig, train
 from snakeloco.sim import GenerateConfig, generate_dataset, load_dataset
 from snakeloco.sim.backend import RAY_MISSING, BackendConfig
-from snakeloco.sim.dataset import DatasetError
+from snakeloco.sim.dataset import ZARR_MISSING, DatasetError
 
 from helpers import SMALL
 
@@ -155,13 +155,21 @@ def test_an_unreachable_ray_address_ends_with_one_clear_line(tmp_path, capsys):
     assert not list(tmp_path.iterdir())
 
 
-def test_without_ray_the_ray_backend_says_what_to_install(tmp_path, capsys, monkeypatch):
-    monkeypatch.setitem(sys.modules, "ray", None)  # import ray now raises ImportError
-    with pytest.raises(SystemExit) as stop:
-        main(["generate", "--num-samples", "2", "--out", str(tmp_path / "n.npz"), "--backend", "ray"])
-    assert stop.value.code == 2
-    assert capsys.readouterr().err.strip() == f"snakeloco: error: {RAY_MISSING}"
-    assert not list(tmp_path.iterdir())
+def test_without_the_scale_extra_the_local_path_works_and_the_rest_says_what_to_install(
+    tmp_path, capsys, monkeypatch, tiny_dataset
+):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray (or zarr) now raises ImportError
+    monkeypatch.setitem(sys.modules, "zarr", None)
+    assert_same(load_dataset(generate_dataset(TINY, tmp_path / "plain.npz", workers=2)), tiny_dataset)
+    for option, missing in (("--backend", RAY_MISSING), ("--out", ZARR_MISSING)):
+        args = ["generate", "--num-samples", "2", "--out", str(tmp_path / "n.npz"), "--backend", "ray"]
+        if option == "--out":
+            args = ["generate", "--num-samples", "2", "--out", str(tmp_path / "n.zarr")]
+        with pytest.raises(SystemExit) as stop:
+            main(args)
+        assert stop.value.code == 2
+        assert capsys.readouterr().err.strip() == f"snakeloco: error: {missing}"
+    assert [p.name for p in tmp_path.iterdir()] == ["plain.npz"]
 
 
 @needs_ray
