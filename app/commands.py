@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.model.calibrate import CalibrateConfig
 from snakeloco.model.config import ModelConfig
+from snakeloco.model.design import DesignConfig, Target
 from snakeloco.model.train import PRESETS, TrainConfig
 from snakeloco.sim import GenerateConfig
 from snakeloco.sim.backend import BackendConfig
@@ -109,6 +110,22 @@ class Calibrate(Command):
     backend: Annotated[BackendConfig, Flat] = BackendConfig()
     gaits: Path | None = None
     """Replayed calibration gaits (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same draw), else written there after replaying."""
+
+
+class Design(Command):
+    """Design gaits for a target final position (and heading) over the 100 s record: the model proposes (CMA-ES over z_B), MuJoCo decides (each candidate replayed as a small ensemble). Writes candidate_1.csv ... (best first) and report.json to OUT."""
+
+    out: Path
+    """Directory for candidate_N.csv (gait CSV) and report.json."""
+    target: Annotated[Target, Flat]
+    checkpoint: Path | None = None
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    config: Annotated[DesignConfig, Flat] = DesignConfig()
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    backend: Annotated[BackendConfig, Flat] = BackendConfig()
+    json: bool = False
+    """Print report.json as one JSON object on the last line."""
 
 
 class Gait(Command):
@@ -229,6 +246,7 @@ class Bench(Command):
 
 COMMANDS: dict[str, type[Command]] = {
     "generate": Generate,
+    "design": Design,
     "gait": Gait,
     "train": Train,
     "evaluate": Evaluate,

@@ -1,0 +1,119 @@
+"""Inverse design: the search reaches what the model can predict, MuJoCo decides what counts as met,
+and the command writes gait CSVs and a report (or refuses a malformed target in one line)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from snakeloco.app.cli import main
+from snakeloco.app.gait_csv import read_gait_csv
+from snakeloco.model import load_pretrained
+from snakeloco.model.design import Candidate, DesignConfig, Target, meets, path_end, search, verify
+from snakeloco.sim import replay
+from snakeloco.sim.backend import open_backend
+from snakeloco.sim.dataset import BODY_DOWNSAMPLE
+from snakeloco.sim.gaits import PRESETS
+
+QUICK = DesignConfig(candidates=2, screen=64, starts=2, generations=15, population=8)
+REPORT_KEYS = {"target", "tolerance_m", "met", "candidates", "seconds"}
+CANDIDATE_KEYS = {"csv", "z_b", "predicted", "simulated", "error_m", "ensemble_spread_m"}
+
+
+def test_the_search_reaches_an_end_the_decoder_can_draw(checkpoint):
+    model = load_pretrained(checkpoint)
+    z = np.random.default_rng(5).standard_normal((1, model.z_b_dim))
+    end = path_end(model.decode(z)[1])[0]  # a place this model's decoded paths do reach
+    target = Target(forward=float(end[0]), sideways=float(end[1]))
+    best = search(model, target, QUICK)[0]
+    assert np.hypot(best.predicted[0] - target.forward, best.predicted[1] - target.sideways) < 0.01
+    np.testing.assert_allclose(path_end(model.decode(best.z_b[None])[1])[0], best.predicted, atol=1e-5)
+    assert search(model, target, QUICK)[0].z_b.tolist() == best.z_b.tolist()  # seeded: reproducible
+
+
+def test_verification_replays_a_known_gait_and_met_means_within_tolerance(checkpoint):
+    model = load_pretrained(checkpoint)
+    shape = PRESETS["undulate"].gait.shape()  # a library gait: 32.6 m forward in 100 s (docs/gaits.md)
+    gait = Candidate(z_b=np.zeros(model.z_b_dim), predicted=np.zeros(4), cost=0.0, shape=shape)
+    runner = open_backend(None, 2)
+    try:
+        (checked,) = verify(model, [gait], Target(forward=30.0, sideways=0.0), QUICK, runner)
+    finally:
+        runner.close()
+    body = replay(model.commands(shape)).body[::BODY_DOWNSAMPLE]
+    np.testing.assert_allclose(checked.simulated, path_end(body.astype(np.float32).astype(np.float64)))
+    assert checked.simulated[0] > 20.0  # it moves forward, as the library says
+    assert np.isfinite(checked.spread_m) and checked.spread_m >= 0  # its noisy copies ran too
+    there = Target(forward=float(checked.simulated[0]) + 0.1, sideways=float(checked.simulated[1]))
+    checked.error_m = 0.1
+    assert meets(checked, there, QUICK)
+    checked.error_m = 70.0
+    assert not meets(checked, Target(forward=100.0, sideways=0.0), QUICK)  # beyond reach: not met
+    turned = Target(forward=there.forward, sideways=there.sideways, heading=float(checked.simulated[2]) + 90)
+    checked.error_m, checked.heading_error = 0.1, 90.0
+    assert not meets(checked, turned, QUICK)  # a heading asked for and missed
+
+
+@pytest.mark.slow
+def test_design_command_writes_replayable_candidates_and_the_report(tmp_path, checkpoint, capsys):
+    out = tmp_path / "design"
+    argv = [
+        "design",
+        "--forward",
+        "0.5",
+        "--sideways",
+        "-0.3",
+        "--heading",
+        "-10",
+        "--checkpoint",
+        str(checkpoint),
+    ]
+    quick = [
+        "--screen",
+        "64",
+        "--starts",
+        "2",
+        "--generations",
+        "10",
+        "--population",
+        "8",
+        "--candidates",
+        "2",
+    ]
+    main([*argv, *quick, "--out", str(out), "--json", "--workers", "2"])
+    printed = capsys.readouterr().out.strip().splitlines()
+    report = json.loads(printed[-1])
+    assert REPORT_KEYS <= set(report) and report == json.loads((out / "report.json").read_text())
+    assert report["target"] == {"forward": 0.5, "sideways": -0.3, "heading": -10.0, "max_roll": None}
+    assert len(report["candidates"]) == 2 and report["tolerance_m"] == 0.25
+    errors = [c["error_m"] for c in report["candidates"]]
+    assert errors == sorted(errors)  # ranked by what physics did
+    for c in report["candidates"]:
+        assert CANDIDATE_KEYS <= set(c) and set(c["simulated"]) == {"forward", "sideways", "heading"}
+        # The CSV is the gait that was verified: its replay ends where the report says.
+        body = replay(read_gait_csv((tmp_path / c["csv"]).read_bytes()).commands).body[::BODY_DOWNSAMPLE]
+        end = path_end(body.astype(np.float32).astype(np.float64))
+        assert end[0] == pytest.approx(c["simulated"]["forward"], abs=1e-4)
+        assert end[1] == pytest.approx(c["simulated"]["sideways"], abs=1e-4)
+    best = report["candidates"][0]
+    assert report["met"] == (best["error_m"] <= 0.25 and abs(best["simulated"]["heading"] + 10) <= 15)
+    assert ("not met: the closest reached" in printed[0]) != report["met"]
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--forward", "nan", "--sideways", "1"], "--forward"),
+        (["--forward", "1", "--sideways", "1", "--candidates", "-2"], "--candidates"),
+        (["--forward", "1", "--sideways", "1", "--max-roll", "0"], "--max-roll"),
+    ],
+)
+def test_malformed_targets_are_refused_in_one_line(argv, says, tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["design", *argv, "--out", str(tmp_path / "d")])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("snakeloco: error: ") and says in err[0]
+    assert not (tmp_path / "d").exists()
