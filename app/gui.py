@@ -27,6 +27,40 @@ def help_text() -> str:
     return HELP_PATH.read_text(encoding="utf-8")
 
 
+NO_CANDIDATE = "none yet"
+"""The Candidate dropdown before a design has verified anything."""
+
+
+@dataclass
+class DesignControls:
+    """The handles of a tab's "Design for target" folder (``design_panel.py`` wires them up)."""
+
+    forward: viser.GuiNumberHandle
+    sideways: viser.GuiNumberHandle
+    use_heading: viser.GuiCheckboxHandle
+    heading: viser.GuiNumberHandle
+    button: viser.GuiButtonHandle
+    status: viser.GuiMarkdownHandle
+    candidate: viser.GuiDropdownHandle
+
+
+def build_design_controls(gui: viser.GuiApi) -> DesignControls:
+    with gui.add_folder("Design for target", expand_by_default=False):
+        forward = gui.add_number("Forward (m)", 5.0, step=0.1, hint="Final forward displacement in 100 s")
+        sideways = gui.add_number("Sideways (m)", 0.0, step=0.1, hint="Final sideways displacement (left +)")
+        use_heading = gui.add_checkbox("Match heading", False, hint="Also ask for a heading change")
+        heading = gui.add_number("Heading (deg)", 0.0, step=5.0, hint="Heading change in 100 s (left +)")
+        button = gui.add_button("Design", hint="Search z_B for gaits that end there, verify each in MuJoCo")
+        status = gui.add_markdown("Set a target (or click the ground), then press **Design**.")
+        candidate = gui.add_dropdown(
+            "Candidate",
+            (NO_CANDIDATE,),
+            initial_value=NO_CANDIDATE,
+            hint="Make a verified candidate the current gait",
+        )
+    return DesignControls(forward, sideways, use_heading, heading, button, status, candidate)
+
+
 @dataclass
 class Controls:
     """The handles of one tab's GUI."""
@@ -43,6 +77,7 @@ class Controls:
     scrubber: viser.GuiSliderHandle
     layers: dict[str, viser.GuiCheckboxHandle]
     baseline: viser.GuiDropdownHandle
+    design: DesignControls
     export_button: viser.GuiButtonHandle
     import_button: viser.GuiUploadButtonHandle
     panel: viser.GuiMarkdownHandle
@@ -91,6 +126,7 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int) -> Controls:
             initial_value=NO_BASELINE,
             hint="Load a gait of the library tuned on this robot as the current gait (docs/gaits.md)",
         )
+    design = build_design_controls(gui)
     with gui.add_folder("Gait file"):
         export_button = gui.add_button(
             "Export CSV",
@@ -145,6 +181,7 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int) -> Controls:
         scrubber=scrubber,
         layers=layers,
         baseline=baseline,
+        design=design,
         export_button=export_button,
         import_button=import_button,
         panel=panel,

@@ -102,6 +102,11 @@ class GaitSession:
             ]
         self._replayer, self._ensembler = self._owned or (simulator, simulator)
 
+    @property
+    def simulator(self) -> Simulator:
+        """The simulator of the session's ensembles (all cores, or the server's shared one)."""
+        return self._ensembler
+
     def close(self) -> None:
         """Stop the native threads of the simulators this session owns."""
         for simulator in self._owned:

@@ -22,7 +22,8 @@ import numpy as np
 import viser
 
 from snakeloco.app import panel
-from snakeloco.app.gait_csv import GaitCSVError, gait_comments, read_gait_csv, write_gait_csv
+from snakeloco.app.design_panel import DesignPanel
+from snakeloco.app.gait_files import GaitFiles
 from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls
 from snakeloco.app.playback import Playback
 from snakeloco.app.scene import TabScene
@@ -30,7 +31,6 @@ from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorke
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
-from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
 PHYSICS_NICE = 15
 """Nice increment of the native threads that run a tab's rollouts when the tab owns its simulators
@@ -38,7 +38,7 @@ PHYSICS_NICE = 15
 niced thread never holds the GIL that slider decoding waits for."""
 
 
-class DesignerClient:
+class DesignerClient(GaitFiles):
     """One browser tab: GUI, scene, session, a decode worker and a physics worker."""
 
     def __init__(
@@ -64,12 +64,14 @@ class DesignerClient:
         self._programmatic_z: tuple[float, ...] | None = None
         self._z_lock = threading.RLock()
         self._setting_z = False
+        self._quiet_mode_events = 0
         self._closed = threading.Event()
         self._version = 0
         self._version_lock = threading.Lock()
         self.controls = build_controls(client.gui, model.z_b_dim)
         self.scene = TabScene(client, self.controls.layers)
         self._wire()
+        self.design = DesignPanel(self, self.controls.design)
         report = lambda exc: self._report(f"{type(exc).__name__}: {exc}")  # noqa: E731
         self.decoder = LatestWorker(self._decode_job, name=f"decode-{client.client_id}", on_error=report)
         self.physics = LatestWorker(self._physics_job, name=f"physics-{client.client_id}", on_error=report)
@@ -91,7 +93,7 @@ class DesignerClient:
         c, g = self.controls, self._guarded
         for s in c.sliders:
             s.on_update(g(lambda _e: self._on_latents_changed()))
-        c.zk_mode.on_update(g(lambda _e: self.request_decode()))
+        c.zk_mode.on_update(g(lambda _e: self._on_zk_mode_changed()))
         c.zk_seed.on_update(g(lambda _e: self.request_decode()))
         c.zk_temperature.on_update(
             g(lambda _e: self.request_decode() if c.zk_mode.value == "sampled" else None)
@@ -212,6 +214,25 @@ class DesignerClient:
             self._programmatic_z = None
             self._write_sliders(z)
         self.request_decode()
+
+    def _on_zk_mode_changed(self) -> None:
+        with self._z_lock:
+            if self._quiet_mode_events:  # set from Python by show_latents, which decodes itself
+                self._quiet_mode_events -= 1
+                return
+        self.request_decode()
+
+    def show_latents(self, z_b: np.ndarray) -> int:
+        """Make the gait of exactly ``z_b`` (z_k = 0) current, the sliders moved there (rounded to
+        their step: the drawn gait stays the exact one until a slider is moved)."""
+        self._clear_baseline()
+        with self._z_lock:
+            self._programmatic_z = self._write_sliders(z_b)
+            if self.controls.zk_mode.value != "zero":
+                self._quiet_mode_events += 1  # its on_update must not decode the rounded sliders
+                self.controls.zk_mode.value = "zero"
+        latents = Latents(tuple(float(v) for v in z_b), "zero", int(self.controls.zk_seed.value), 1.0)
+        return self._submit(self.decoder, latents)
 
     def _resample(self) -> None:
         self.controls.zk_mode.value = "sampled"
@@ -338,52 +359,9 @@ class DesignerClient:
         with self._draw_lock:
             self.scene.draw_snake(sim.qpos[frame % len(sim.qpos)])
 
-    # --- files -----------------------------------------------------------------------------------
-
-    def export_text(self) -> str:
-        """The current gait as CSV text (what "Export CSV" downloads)."""
-        if self.decoded is None:
-            raise RuntimeError("no gait yet")
-        comments = gait_comments(self.decoded, self.simulated, self.model.hash, self._programmatic_z)
-        return write_gait_csv(self.decoded.commands, comments)
-
-    def export(self) -> None:
-        try:
-            text = self.export_text()
-        except RuntimeError as exc:
-            self.client.add_notification("Export CSV", str(exc), color="yellow", auto_close_seconds=5.0)
-            return
-        self.client.send_file_download("snakeloco_gait.csv", text.encode(), save_immediately=True)
-
-    def import_bytes(self, name: str, data: bytes) -> int | None:
-        """Validate an uploaded gait and submit it for replay; returns the request version or None."""
-        try:
-            table = read_gait_csv(data)
-        except GaitCSVError as exc:
-            self.client.add_notification(
-                f"Import CSV: {name} rejected",
-                f"{exc}. The current gait stays.",
-                color="red",
-                auto_close_seconds=15.0,
-            )
-            return None
-        self._clear_baseline()
-        return self._submit(self.physics, ("load", f"import: {name}", f"Import CSV: {name}", table.commands))
-
-    def load_baseline(self, name: str) -> int | None:
-        """Make the library gait ``name`` (``sim.gaits.PRESETS``) the current gait: replayed, drawn,
-        exportable, the sliders where it encodes. Returns the request version (None for "none")."""
-        if name not in GAIT_PRESETS:
-            return None
-        commands = GAIT_PRESETS[name].gait.commands()
-        return self._submit(self.physics, ("load", f"library: {name}", f"Baseline: {name}", commands))
-
-    def _on_upload(self) -> None:
-        f = self.controls.import_button.value
-        self.import_bytes(f.name, f.content)  # read_gait_csv refuses more than MAX_BYTES
-
     def close(self) -> None:
         self._closed.set()
+        self.design.close()
         self.decoder.close()
         self.physics.close()
         self.session.close()

@@ -260,12 +260,19 @@ def design(
     runner=None,
     workers: int | None = None,
     cancelled: Callable[[], bool] | None = None,
+    on_verify: Callable[[], None] | None = None,
 ) -> DesignResult:
-    """Search, then verify in MuJoCo (on ``runner``, an open backend, or one opened from ``backend``)."""
+    """Search, then verify in MuJoCo (on ``runner``, an open backend, or one opened from ``backend``).
+    ``cancelled`` is polled between search generations (True: stop; the result is then not meant to be
+    used); ``on_verify`` is called when the search is done and the replays start."""
     cfg = cfg or DesignConfig()
     t0 = time.perf_counter()
     candidates = search(model, target, cfg, cancelled)
     search_s = time.perf_counter() - t0
+    if cancelled is not None and cancelled():
+        return DesignResult(target, cfg.tolerance_for(target), candidates, False, search_s, 0.0)
+    if on_verify is not None:
+        on_verify()
     t0 = time.perf_counter()
     own = runner is None
     runner = runner or open_backend(backend, workers)

@@ -79,6 +79,14 @@ class LocalBackend:
 
         self.workers = resolve_workers(workers)
         self.simulator = Simulator(self.workers, excitation, sim)
+        self._owned = True
+
+    @classmethod
+    def on(cls, simulator) -> LocalBackend:
+        """A backend on an existing ``Simulator`` (a designer tab's); closing it leaves that running."""
+        backend = cls.__new__(cls)
+        backend.workers, backend.simulator, backend._owned = simulator.workers, simulator, False
+        return backend
 
     @property
     def replays_per_job(self) -> int:
@@ -90,7 +98,8 @@ class LocalBackend:
             yield i, fn(self.simulator, job)
 
     def close(self) -> None:
-        self.simulator.close()
+        if self._owned:
+            self.simulator.close()
 
 
 @functools.cache

@@ -4,6 +4,7 @@ and the command writes gait CSVs and a report (or refuses a malformed target in 
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -117,3 +118,57 @@ def test_malformed_targets_are_refused_in_one_line(argv, says, tmp_path, capsys)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("snakeloco: error: ") and says in err[0]
     assert not (tmp_path / "d").exists()
+
+
+def test_designer_panel_designs_on_its_own_worker_and_a_picked_candidate_becomes_the_gait(checkpoint):
+    from types import SimpleNamespace
+
+    from snakeloco.app.design_panel import ground_point
+    from snakeloco.app.server import DesignerServer
+
+    from helpers import connect_headless
+
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False)
+    client = None
+    try:
+        client, d = connect_headless(srv)
+        panel = d.design
+        panel.config = QUICK
+        # A click on the ground sets the target (the ray meets z = 0 at x = 1.5, y = -0.5).
+        panel._on_click(
+            SimpleNamespace(ray_origin=(1.5, -2.5, 2.0), ray_direction=(0.0, 0.70710678, -0.70710678))
+        )
+        assert (d.controls.design.forward.value, d.controls.design.sideways.value) == (1.5, -0.5)
+        assert panel.marker.visible and tuple(panel.marker.position[:2]) == (1.5, -0.5)
+        assert ground_point((0, 0, 1), (0, 1, 0.2)) is None  # a ray above the horizon sets nothing
+
+        d.controls.design.forward.value = 0.4
+        d.controls.design.sideways.value = 0.2
+        time.sleep(0.2)
+        first = panel.request()
+        second = panel.request()  # a newer request supersedes the first, which never draws
+        assert second == first + 1
+        d.sliders[0].value = 1.0  # the sliders stay live while the design runs
+        time.sleep(0.2)
+        assert d.wait_idle(60) and d.decoded.latents.z_b[0] == 1.0
+        assert panel.worker.wait_idle(120)
+        assert panel.result is not None and panel.result.target.forward == 0.4
+        options = d.controls.design.candidate.options
+        assert len(options) == 1 + QUICK.candidates and "m off" in options[1]
+        assert (
+            "Met" in d.controls.design.status.content or "closest reached" in d.controls.design.status.content
+        )
+
+        d.controls.design.candidate.value = options[1]  # picking the best makes it the current gait
+        time.sleep(0.3)
+        assert d.wait_idle(60)
+        best = panel.candidates[0]
+        assert (
+            d.decoded.latents.z_b == tuple(float(v) for v in best.z_b) and d.decoded.latents.zk_mode == "zero"
+        )
+        assert [s.value for s in d.sliders] == pytest.approx(np.clip(np.round(best.z_b, 2), -3, 3).tolist())
+        assert d.simulated is not None  # and it was replayed like any gait
+    finally:
+        if client is not None:
+            client.close()
+        srv.stop()
