@@ -21,6 +21,7 @@ from snakeloco.app.commands import (
     BENCHES,
     COMMANDS,
     BenchApp,
+    BenchDesign,
     BenchLoad,
     BenchModel,
     BenchScale,
@@ -320,6 +321,7 @@ def run_bench(cmd: Command) -> dict:
         BenchApp: report.app,
         BenchLoad: report.load,
         BenchScale: report.scale,
+        BenchDesign: report.design,
     }
     result = runs[type(cmd)](cmd)
     if cmd.json:

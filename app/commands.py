@@ -240,8 +240,27 @@ class BenchScale(Command):
     """Print the figures as one JSON object on the last line."""
 
 
+class BenchDesign(Command):
+    """Benchmark inverse design on held-out ends against a baseline with the same physics budget (random prior z_B, best of N replays): errors, heading, time to an answer."""
+
+    data: Path
+    """Held-out dataset (a seed not used in training): its records' ends are the targets."""
+    checkpoint: Path | None = None
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    targets: Annotated[int, Field(ge=1)] = 50
+    """Targets (every other one also asks for the record's heading change)."""
+    candidates: Annotated[int, Field(ge=1)] = 4
+    """Candidates verified per design (x4 replays each: the baseline's budget too)."""
+    seed: Seed = 1
+    """Seed of the target choice, the searches and the baseline's draws."""
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    json: bool = False
+    """Print the figures as one JSON object on the last line."""
+
+
 class Bench(Command):
-    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,scale} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,scale,design} --help`."""
 
 
 COMMANDS: dict[str, type[Command]] = {
@@ -261,5 +280,6 @@ BENCHES: dict[str, type[Command]] = {
     "app": BenchApp,
     "load": BenchLoad,
     "scale": BenchScale,
+    "design": BenchDesign,
 }
 BENCH_HELP = Bench.__doc__

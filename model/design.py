@@ -239,7 +239,18 @@ def verify(
             c.heading_error = float(abs(ends[0, 2] - target.heading))
         offsets = ends[1:, :2] - ends[0, :2]
         c.spread_m = float(np.sqrt((offsets**2).sum(axis=1).mean())) if len(offsets) else float("nan")
-    return sorted(candidates, key=lambda c: (c.broken is not None, c.error_m))
+    return sorted(candidates, key=lambda c: (c.broken is not None, simulated_cost(c, target, cfg)))
+
+
+def simulated_cost(c: Candidate, target: Target, cfg: DesignConfig) -> float:
+    """What ranks verified candidates: the search's objective on the replay's end (no prior term)."""
+    if c.simulated is None:
+        return float("inf")
+    return float(
+        objective(c.simulated[None], np.zeros((1, 1)), target, cfg.model_copy(update={"prior_weight": 0.0}))[
+            0
+        ]
+    )
 
 
 def meets(c: Candidate, target: Target, cfg: DesignConfig) -> bool:

@@ -172,3 +172,30 @@ def test_designer_panel_designs_on_its_own_worker_and_a_picked_candidate_becomes
         if client is not None:
             client.close()
         srv.stop()
+
+
+@pytest.mark.slow
+def test_bench_design_compares_with_the_same_physics_budget(checkpoint, tiny_dataset_path, capsys):
+    main(
+        [
+            "bench",
+            "design",
+            "--data",
+            str(tiny_dataset_path),
+            "--checkpoint",
+            str(checkpoint),
+            "--targets",
+            "2",
+            "--candidates",
+            "1",
+            "--workers",
+            "2",
+            "--json",
+        ]
+    )
+    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert r["targets"] == 2 and r["physics_budget_replays"] == 4
+    for name in ("design", "baseline"):
+        assert r[name]["error_rel_median"] >= 0 and r[name]["heading_error_deg_median"] is not None
+    assert r["seconds_p95"] >= r["seconds_p50"] > 0
+    assert r["unreachable"]["met"] is False and r["unreachable"]["error_m"] > 50

@@ -1,4 +1,4 @@
-"""``snakeloco bench {sim,model,app,load,scale}``: run a benchmark and print its figures for a person.
+"""``snakeloco bench {sim,model,app,load,scale,design}``: run a benchmark and print its figures for a person.
 
 Each function takes the parsed command (``app/cli.py``) and returns the figures as a dict (the CLI
 prints it as JSON with ``--json``). The benchmarks themselves live beside this file.
@@ -114,4 +114,35 @@ def scale(cmd) -> dict:
             f"{m['npz']['peak_rss_after_write_mib']:.0f} / {m['zarr']['peak_rss_after_write_mib']:.0f} MiB; "
             f"same first-epoch loss: {r['same_first_epoch_loss']}"
         )
+    return r
+
+
+def design(cmd) -> dict:
+    """Inverse design against the same physics budget spent on prior draws (``bench/design.py``)."""
+    from snakeloco.app.bench.design import bench_design
+
+    r = bench_design(cmd.checkpoint, cmd.data, cmd.targets, cmd.seed, cmd.candidates, cmd.workers)
+    for name in ("design", "baseline"):
+        f = r[name]
+        heading = (
+            f", heading error median {f['heading_error_deg_median']:.1f} deg, p90 {f['heading_error_deg_p90']:.1f} deg"
+            if f["heading_error_deg_median"] is not None
+            else ""
+        )
+        print(
+            f"{name:8s}: end error / target distance median {f['error_rel_median']:.3f}, p90 {f['error_rel_p90']:.3f}"
+            f"{heading}"
+            + (
+                f"; ensemble spread median {f['spread_m_median']:.2f} m"
+                if f["spread_m_median"] is not None
+                else ""
+            )
+        )
+    u = r["unreachable"]
+    print(
+        f"{r['targets']} targets, {r['physics_budget_replays']} replays each; met {r['design']['met_share']:.0%}; "
+        f"time to an answer p50 {r['seconds_p50']:.1f} s, p95 {r['seconds_p95']:.1f} s (search "
+        f"{r['search_s_median']:.1f} s + physics {r['physics_s_median']:.1f} s, medians); a {u['target_m']:.0f} m "
+        f"target: met {u['met']}, closest reached {u['closest_reached_m']} ({u['error_m']:.1f} m off)"
+    )
     return r
