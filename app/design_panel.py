@@ -155,5 +155,14 @@ class DesignPanel:
             return None
         return self.tab.show_latents(self.candidates[labels.index(label)].z_b)
 
+    def forget(self) -> None:
+        """Drop the candidates (of a model the tab has just left) and stop a running search."""
+        with self._lock:
+            self._version += 1
+        self.candidates, self.result = [], None
+        with self.tab.client.atomic():
+            self.controls.candidate.options = (NO_CANDIDATE,)
+            self.controls.status.content = "Set a target (or click the ground), then press **Design**."
+
     def close(self) -> None:
         self.worker.close()

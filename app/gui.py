@@ -65,6 +65,8 @@ def build_design_controls(gui: viser.GuiApi) -> DesignControls:
 class Controls:
     """The handles of one tab's GUI."""
 
+    family: viser.GuiDropdownHandle
+    zb_folder: viser.GuiFolderHandle
     sliders: list[viser.GuiSliderHandle]
     reset_button: viser.GuiButtonHandle
     random_button: viser.GuiButtonHandle
@@ -96,9 +98,9 @@ class Controls:
         self.plots["commands"].data = (RECORD.times, *commands.T)
 
 
-def build_controls(gui: viser.GuiApi, z_b_dim: int) -> Controls:
-    """Add every folder and control of a tab to ``gui``."""
-    with gui.add_folder("Body latent z_B"):
+def build_sliders(gui: viser.GuiApi, folder, z_b_dim: int):
+    """The z_B sliders (one per dimension of the model) and the Reset and Random buttons, in ``folder``."""
+    with folder:
         sliders = [
             gui.add_slider(
                 f"z_B {i + 1}", -SLIDER_RANGE, SLIDER_RANGE, 0.01, 0.0, hint=f"Body latent dimension {i + 1}"
@@ -107,6 +109,21 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int) -> Controls:
         ]
         reset_button = gui.add_button("Reset z_B", hint="All z_B to 0 (the prior mean)")
         random_button = gui.add_button("Random z_B", hint="Draw z_B from its N(0, I) prior")
+    return sliders, reset_button, random_button
+
+
+def build_controls(gui: viser.GuiApi, z_b_dim: int, families: tuple[str, ...], family: str) -> Controls:
+    """Add every folder and control of a tab to ``gui``."""
+    with gui.add_folder("Model"):
+        family_dropdown = gui.add_dropdown(
+            "Gait family",
+            families,
+            initial_value=family,
+            hint="The checkpoint this tab designs with: structured (gaits physics can predict) or paper "
+            "(the paper's random-phase gaits: only their statistics can be promised)",
+        )
+    zb_folder = gui.add_folder("Body latent z_B")
+    sliders, reset_button, random_button = build_sliders(gui, zb_folder, z_b_dim)
     with gui.add_folder("Joint latents z_k"):
         zk_mode = gui.add_dropdown("z_k mode", ("zero", "sampled"), initial_value="zero")
         zk_seed = gui.add_number("z_k seed", 0, min=0, step=1)
@@ -169,6 +186,8 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int) -> Controls:
     with gui.add_folder("Help", expand_by_default=False):
         gui.add_markdown(help_text())
     return Controls(
+        family=family_dropdown,
+        zb_folder=zb_folder,
         sliders=sliders,
         reset_button=reset_button,
         random_button=random_button,

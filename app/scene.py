@@ -40,6 +40,25 @@ LAYERS = ("Snake", "Generated path", "Simulated path", "Ensemble fan", "Joint sh
 """The Layers checkboxes, in the order they are shown."""
 
 
+END_SPREAD = {"paper": 1.57}
+"""Gait families whose decoded path is a mean, not a promise, and how far their replays' ends scatter:
+the median RMS distance of an ensemble's final positions from its own replay's, relative to the
+distance travelled, over 256 prior gaits of the shipped paper model (docs/evaluation.md). Such a
+family's decoded path is drawn thin, with a ring of that radius around its end where the replay is
+likely to end; a family not listed (structured: its records were kept only where physics predicts
+them) is drawn as the line it is."""
+BAND_COLOR = (245, 160, 60)
+
+
+def ring(center: np.ndarray, radius: float, n: int = 72) -> np.ndarray:
+    """(n, 2, 3) segments of a horizontal circle."""
+    a = np.linspace(0.0, 2 * np.pi, n + 1)
+    points = np.stack(
+        [center[0] + radius * np.cos(a), center[1] + radius * np.sin(a), np.full(n + 1, center[2])], -1
+    )
+    return polyline(points)
+
+
 def polyline(points: np.ndarray) -> np.ndarray:
     """(N, 3) points -> (N-1, 2, 3) segments for add_line_segments."""
     return np.stack([points[:-1], points[1:]], axis=1).astype(np.float32)
@@ -78,7 +97,8 @@ class TabScene:
             batched_wxyzs=np.tile([1.0, 0, 0, 0], (N_LINKS, 1)),
             batched_positions=np.zeros((N_LINKS, 3)),
         )
-        self.gen_path = self.sim_path = self.fan = None
+        self.gen_path = self.sim_path = self.fan = self.band = None
+        self.end_spread: float | None = None  # END_SPREAD of the tab's family
         scene.add_label("/shapes/decoded/label", "decoded joint shape", position=(0, 0, 1.15))
         scene.add_label("/shapes/measured/label", "re-measured joint shape", position=(0, 0, 1.15))
         self.shape_frames = {
@@ -96,6 +116,8 @@ class TabScene:
         self.grid.visible = on["Grid"]
         if self.gen_path is not None:
             self.gen_path.visible = on["Generated path"]
+        if self.band is not None:
+            self.band.visible = on["Generated path"] and self.end_spread is not None
         if self.sim_path is not None:
             self.sim_path.visible = on["Simulated path"] and simulated
         if self.fan is not None:
@@ -122,10 +144,11 @@ class TabScene:
     def draw_decoded(self, gait: DecodedGait) -> None:
         """The decoded path and joint shape; the previous replay's nodes are hidden."""
         if gait.body_ds is not None:
-            points = path_points(gait.body_ds, LINK_RADIUS)
-            self.gen_path = self._line("generated", polyline(points), GEN_COLOR, 4.0, "Generated path")
-        elif self.gen_path is not None:
-            self.gen_path.visible = False
+            self._draw_generated(gait.body_ds, LINK_RADIUS)
+        else:
+            for node in (self.gen_path, self.band):
+                if node is not None:
+                    node.visible = False
         for node in (self.sim_path, self.fan):
             if node is not None:
                 node.visible = False
@@ -146,9 +169,28 @@ class TabScene:
         elif self.fan is not None:
             self.fan.visible = False
         if self.gen_path is not None and gait.body_ds is not None:
-            points = path_points(gait.body_ds, z0)
-            self.gen_path = self._line("generated", polyline(points), GEN_COLOR, 4.0, "Generated path")
+            self._draw_generated(gait.body_ds, z0)
         self._cloud("measured", sim.shape)
+
+    def _draw_generated(self, body: np.ndarray, z0: float) -> None:
+        """The decoded path: the line it is, or, for a family in ``END_SPREAD``, a thin mean path and
+        a ring where the replay is likely to end."""
+        points = path_points(body, z0)
+        thickness = 4.0 if self.end_spread is None else 1.5
+        self.gen_path = self._line("generated", polyline(points), GEN_COLOR, thickness, "Generated path")
+        if self.end_spread is None:
+            if self.band is not None:
+                self.band.visible = False
+            return
+        radius = max(self.end_spread * float(np.linalg.norm(points[-1, :2] - points[0, :2])), 0.05)
+        self.band = self.client.scene.add_line_segments(
+            "/paths/band",
+            ring(points[-1], radius),
+            BAND_COLOR,
+            thickness=2.0,
+            thickness_units="screen",
+            visible=self.layers["Generated path"].value,
+        )
 
     def draw_snake(self, qpos: np.ndarray) -> None:
         """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame."""

@@ -23,7 +23,8 @@ import viser
 from snakeloco.app.gait_csv import MAX_BYTES
 from snakeloco.app.tab import PHYSICS_NICE, DesignerClient
 from snakeloco.app.viser_patches import refuse_large_uploads
-from snakeloco.model.api import load_pretrained
+from snakeloco.model.api import GaitModel, load_pretrained
+from snakeloco.model.checkpoint import SHIPPED, CheckpointError, resolve_checkpoint
 from snakeloco.sim import Simulator
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
@@ -94,6 +95,31 @@ def _refuse_upload(client: viser.ClientHandle, filename: str, size: int) -> None
     )
 
 
+def load_families(
+    checkpoint: str | Path | None, families: dict[str, str | Path] | None = None
+) -> tuple[dict[str, GaitModel], str]:
+    """The models a designer offers by family name, and the name of ``checkpoint``'s.
+
+    ``families`` (name -> checkpoint) if given, ``checkpoint`` then naming one of them (default: the
+    first); else every shipped checkpoint (``model.checkpoint.SHIPPED``) and ``checkpoint`` itself
+    where it is a directory of its own, under its folder's name.
+    """
+    if families is not None:
+        models = {name: load_pretrained(path) for name, path in families.items()}
+        default = str(checkpoint) if checkpoint is not None else next(iter(models))
+        if default not in models:
+            raise CheckpointError(f"checkpoint {checkpoint}: not one of the families {list(models)}")
+        return models, default
+    models = {name: load_pretrained(path) for name, path in SHIPPED.items()}
+    wanted = resolve_checkpoint(checkpoint)
+    for name, path in SHIPPED.items():
+        if path.resolve() == wanted.resolve():
+            return models, name
+    name = wanted.name if wanted.name not in models else f"{wanted.name} (directory)"
+    models[name] = load_pretrained(wanted)
+    return models, name
+
+
 class DesignerServer:
     """The viser server with one ``DesignerClient`` per connected tab."""
 
@@ -105,9 +131,12 @@ class DesignerServer:
         ensemble: int = ENSEMBLE_SIZE,
         workers: int | None = None,
         verbose: bool = True,
+        families: dict[str, str | Path] | None = None,
     ) -> None:
         check_bindable(host)
-        self.model = load_pretrained(checkpoint)
+        self.models, default = load_families(checkpoint, families)
+        self.model = self.models[default]
+        """The model a new tab starts with (``checkpoint``'s); ``models``: all its Gait family dropdown offers."""
         self.ensemble = ensemble
         self.workers = workers
         # Every tab's replays and ensembles take turns on one pool of physics threads, at nice +15.
@@ -139,6 +168,7 @@ class DesignerServer:
                 self.workers,
                 on_error=self._error,
                 simulator=self.simulator,
+                models=self.models,
             )
         except Exception as exc:  # a tab that could not be set up must not take the server down
             traceback.print_exc()

@@ -24,9 +24,9 @@ import viser
 from snakeloco.app import panel
 from snakeloco.app.design_panel import DesignPanel
 from snakeloco.app.gait_files import GaitFiles
-from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls
+from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls, build_sliders
 from snakeloco.app.playback import Playback
-from snakeloco.app.scene import TabScene
+from snakeloco.app.scene import END_SPREAD, TabScene
 from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape
@@ -49,10 +49,14 @@ class DesignerClient(GaitFiles):
         workers: int | None = None,
         on_error: Callable[[str], None] | None = None,
         simulator: Simulator | None = None,
+        models: dict[str, GaitModel] | None = None,
     ):
         self.client = client
         self._on_error = on_error
         self.model = model
+        self.models = models or {model.family: model}
+        """The gait families this tab can switch between (the Gait family dropdown), by name."""
+        family = next(name for name, m in self.models.items() if m is model)
         self.session = GaitSession(
             model, ensemble=ensemble, workers=workers, physics_nice=PHYSICS_NICE, simulator=simulator
         )
@@ -68,8 +72,9 @@ class DesignerClient(GaitFiles):
         self._closed = threading.Event()
         self._version = 0
         self._version_lock = threading.Lock()
-        self.controls = build_controls(client.gui, model.z_b_dim)
+        self.controls = build_controls(client.gui, model.z_b_dim, tuple(self.models), family)
         self.scene = TabScene(client, self.controls.layers)
+        self.scene.end_spread = END_SPREAD.get(model.family)
         self._wire()
         self.design = DesignPanel(self, self.controls.design)
         report = lambda exc: self._report(f"{type(exc).__name__}: {exc}")  # noqa: E731
@@ -89,20 +94,25 @@ class DesignerClient(GaitFiles):
         """The z_B sliders, one per latent dimension."""
         return self.controls.sliders
 
-    def _wire(self) -> None:
+    def _wire_sliders(self) -> None:
         c, g = self.controls, self._guarded
         for s in c.sliders:
             s.on_update(g(lambda _e: self._on_latents_changed()))
+        c.reset_button.on_click(g(lambda _e: self._set_z(np.zeros(self.model.z_b_dim))))
+        c.random_button.on_click(
+            g(lambda _e: self._set_z(np.random.default_rng().standard_normal(self.model.z_b_dim)))
+        )
+
+    def _wire(self) -> None:
+        c, g = self.controls, self._guarded
+        self._wire_sliders()
+        c.family.on_update(g(lambda _e: self.switch_family(c.family.value)))
         c.zk_mode.on_update(g(lambda _e: self._on_zk_mode_changed()))
         c.zk_seed.on_update(g(lambda _e: self.request_decode()))
         c.zk_temperature.on_update(
             g(lambda _e: self.request_decode() if c.zk_mode.value == "sampled" else None)
         )
         c.resample_button.on_click(g(lambda _e: self._resample()))
-        c.reset_button.on_click(g(lambda _e: self._set_z(np.zeros(self.model.z_b_dim))))
-        c.random_button.on_click(
-            g(lambda _e: self._set_z(np.random.default_rng().standard_normal(self.model.z_b_dim)))
-        )
         c.play_button.on_click(g(lambda _e: self.playback.toggle()))
         c.scrubber.on_update(g(lambda event: self.playback.on_scrub(event)))
         for layer in c.layers.values():
@@ -215,6 +225,28 @@ class DesignerClient(GaitFiles):
             self._write_sliders(z)
         self.request_decode()
 
+    def switch_family(self, name: str) -> int | None:
+        """Design with the ``name`` family's model from now on: sliders rebuilt for its z_B, its
+        gait at z_B = 0 decoded (the request version; None if it already is this tab's model)."""
+        model = self.models[name]
+        if model is self.model:
+            return None
+        c = self.controls
+        with self._draw_lock, self._z_lock:
+            self.model = self.session.model = model
+            self.scene.end_spread = END_SPREAD.get(model.family)
+            for handle in (*c.sliders, c.reset_button, c.random_button):
+                handle.remove()
+            c.sliders, c.reset_button, c.random_button = build_sliders(
+                self.client.gui, c.zb_folder, model.z_b_dim
+            )
+            self._programmatic_z = None
+            self._wire_sliders()
+            self.design.forget()
+        if c.family.value != name:
+            c.family.value = name
+        return self.request_decode()
+
     def _on_zk_mode_changed(self) -> None:
         with self._z_lock:
             if self._quiet_mode_events:  # set from Python by show_latents, which decodes itself
@@ -249,8 +281,8 @@ class DesignerClient(GaitFiles):
 
     def _decode_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, latents = item
-        if not self.is_current(version):
-            return
+        if not self.is_current(version) or len(latents.z_b) != self.model.z_b_dim:
+            return  # superseded (or sliders of a family this tab has just left)
         timing = self._timing(version)
         timing.started = time.perf_counter()
         decoded = self.session.decode(latents)

@@ -45,6 +45,11 @@ class GaitModel:
         self._traced: dict[str, torch.jit.ScriptModule | None] = {}  # one-z_B graphs, made on first use
 
     @property
+    def family(self) -> str:
+        """Gait family of the training data: paper (chaotic on this robot) or structured."""
+        return self.config.family
+
+    @property
     def z_b_dim(self) -> int:
         return self.config.model.z_b_dim
 

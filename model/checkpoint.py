@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -108,6 +109,9 @@ class CheckpointConfig(BaseModel):
     normalization: Normalization
     freqs: list[float] = Field(description="(L,) excited frequencies of the training data (Hz)")
     dataset_meta_sha256: str
+    family: Literal["paper", "structured"] = Field(
+        "paper", description="Gait family of the training data (checkpoints from before families: paper)."
+    )
     servo_response: list[list[list[float]]] | None = Field(
         None,
         description="(8, L, 2) mean measured/commanded complex gain of each joint at each frequency in "

@@ -205,6 +205,7 @@ def train(
         normalization=norm,
         freqs=ds.freqs.tolist(),
         dataset_meta_sha256=ds.meta_hash,
+        family=ds.meta.get("family", "paper"),
         servo_response=servo_response(
             ds.rows("commands", train_idx), ds.rows("joint_angles", train_idx)
         ).tolist(),

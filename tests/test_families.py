@@ -1,0 +1,84 @@
+"""Gait families in the designer: a dropdown per tab switches checkpoints (sliders rebuilt for that
+model's z_B), another tab keeps its own, and each family's decoded path is drawn as what it promises."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from snakeloco.app.gait_csv import read_gait_csv
+from snakeloco.app.server import DesignerServer
+from snakeloco.model import TrainConfig, load_pretrained, train
+from snakeloco.sim import GenerateConfig, generate_dataset
+
+from helpers import SMALL, connect_headless
+
+
+@pytest.fixture(scope="module")
+def structured_checkpoint(tmp_path_factory):
+    """A tiny checkpoint of the structured family with another z_B size (2) than the shared one (3)."""
+    work = tmp_path_factory.mktemp("structured")
+    data = generate_dataset(
+        GenerateConfig(num_samples=3, seed=3, family="structured"), work / "s.npz", workers=2
+    )
+    cfg = TrainConfig(epochs=2, batch_size=2, val_fraction=0.34)
+    train(data, work / "ckpt", cfg, SMALL.model_copy(update={"z_b_dim": 2}), log=None, progress=False)
+    return work / "ckpt"
+
+
+def _settle(d) -> None:
+    time.sleep(0.3)
+    assert d.wait_idle(60)
+
+
+@pytest.mark.slow
+def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
+    checkpoint, structured_checkpoint
+):
+    assert load_pretrained(structured_checkpoint).family == "structured"  # recorded from its data
+    families = {"paper": checkpoint, "structured": structured_checkpoint}
+    srv = DesignerServer(port=0, checkpoint="paper", families=families, ensemble=3, workers=2, verbose=False)
+    clients = []
+    try:
+        c1, d1 = connect_headless(srv)
+        c2, d2 = connect_headless(srv)
+        clients += [c1, c2]
+        assert d1.controls.family.options == ("paper", "structured") and d1.controls.family.value == "paper"
+        assert len(d1.sliders) == 3 and d1.scene.band is not None and d1.scene.band.visible  # a mean + a ring
+
+        d1.controls.family.value = "structured"
+        _settle(d1)
+        assert d1.model is srv.models["structured"] and d1.session.model is d1.model
+        assert len(d1.sliders) == 2 and d1.decoded.latents.z_b == (0.0, 0.0)
+        assert not d1.scene.band.visible  # drawn as the line it is
+        assert d1.simulated is not None and d1.simulated.ensemble_body.shape[0] == 3
+        assert d2.model is srv.models["paper"] and len(d2.sliders) == 3  # the other tab keeps its family
+
+        # Sliders, export/import and design all work for the new family's z_B.
+        d1.sliders[1].value = 0.5
+        _settle(d1)
+        assert d1.decoded.latents.z_b == (0.0, 0.5) and d1.simulated is not None
+        text = d1.export_text()
+        assert d1.import_bytes("again.csv", text.encode()) is not None
+        _settle(d1)
+        assert d1.decoded.source == "import: again.csv" and len(d1.sliders) == 2
+        np.testing.assert_array_equal(
+            d1.decoded.commands, read_gait_csv(text).commands
+        )  # exactly as exported
+        from snakeloco.model.design import DesignConfig
+
+        d1.design.config = DesignConfig(candidates=1, screen=16, starts=1, generations=3, population=4)
+        d1.design.request()
+        assert d1.design.worker.wait_idle(120) and len(d1.design.candidates[0].z_b) == 2
+
+        assert d1.switch_family("paper") is not None
+        _settle(d1)
+        assert len(d1.sliders) == 3 and d1.decoded.latents.z_b == (0.0, 0.0, 0.0)
+        assert d1.design.candidates == []  # the other model's candidates are gone
+        assert srv.errors == []
+    finally:
+        for c in clients:
+            c.close()
+        srv.stop()
