@@ -69,3 +69,16 @@ class ModelConfig(BaseModel):
     )
     beta: float = Field(10.0, ge=0, description="Weight of MMD(q(z_k) || p(z_k)).")
     gamma: float = Field(10.0, ge=0, description="Weight of MMD(q(z_B) || N(0, I)).")
+
+
+TINY = ModelConfig(
+    z_b_dim=3,
+    z_j_dim=4,
+    cnn_channels=(4, 8, 8),
+    root_hidden=16,
+    child_hidden=8,
+    joint_embed=8,
+    positional_channels=2,
+)
+"""A network small enough to train in seconds on a few records: the test suite's, and the one
+``snakeloco bench scale`` trains to measure the data path rather than the model."""

@@ -11,17 +11,9 @@ import pytest
 
 from snakeloco.app.bench.headless import HeadlessClient
 from snakeloco.app.bench.load_driver import CHROMIUM
-from snakeloco.model import ModelConfig
+from snakeloco.model.config import TINY
 
-SMALL = ModelConfig(
-    z_b_dim=3,
-    z_j_dim=4,
-    cnn_channels=(4, 8, 8),
-    root_hidden=16,
-    child_hidden=8,
-    joint_embed=8,
-    positional_channels=2,
-)
+SMALL = TINY
 """A network small enough to train in seconds on the 4-record test dataset."""
 
 

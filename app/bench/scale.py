@@ -23,22 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.model import ModelConfig, TrainConfig, train
+from snakeloco.model import TrainConfig, train
+from snakeloco.model.config import TINY
 from snakeloco.sim import GenerateConfig, generate_dataset, load_dataset
 from snakeloco.sim.backend import BackendConfig, open_backend
 from snakeloco.sim.generate import default_chunk_size
 from snakeloco.sim.writer import open_writer
 
 KEYS = ("commands", "joint_angles", "body", "body_ds", "phases", "amplitude", "attempts", "shape")
-MEMORY_MODEL = ModelConfig(
-    z_b_dim=3,
-    z_j_dim=4,
-    cnn_channels=(4, 8, 8),
-    root_hidden=16,
-    child_hidden=8,
-    joint_embed=8,
-    positional_channels=2,
-)
+MEMORY_MODEL = TINY
 """A small model for the memory run's one epoch: the figure measured is the data path's."""
 
 
