@@ -106,6 +106,10 @@ def shape_to_commands(
     return np.clip(commands, -limit, limit)
 
 
+MIN_EXCITATION = 1e-3
+"""Smallest commanded coefficient (rad) at which a record's measured/commanded ratio is counted."""
+
+
 def servo_response(
     commands: np.ndarray,
     joint_angles: np.ndarray,
@@ -118,15 +122,22 @@ def servo_response(
         commands, joint_angles: (N, T, 8) records (rad): arrays, or ``Dataset.rows`` read a chunk at a
             time.
 
+    A record counts at a joint and frequency only where it commands at least ``MIN_EXCITATION`` there
+    (every paper-family record does at every bin; a structured gait only at its own one or two): the
+    mean is over those records, and a joint and frequency no record excites keeps gain 1.
+
     Returns:
         (8, L, 2) real and imaginary parts of mean_n (X_meas / X_cmd): |G| is the amplitude ratio,
         arg G the phase lag.
     """
     total = np.zeros((N_JOINTS, len(cfg.bins)), dtype=np.complex128)
+    count = np.zeros((N_JOINTS, len(cfg.bins)), dtype=np.int64)
     for i in range(0, len(commands), chunk):
         u = joint_shape(np.asarray(commands[i : i + chunk], np.float64), cfg)
         q = joint_shape(np.asarray(joint_angles[i : i + chunk], np.float64), cfg)
         cu, cq = u[..., 0] + 1j * u[..., 1], q[..., 0] + 1j * q[..., 1]
-        total += (cq / cu).sum(axis=0)
-    g = total / len(commands)
+        excited = np.abs(cu) > MIN_EXCITATION
+        total += np.where(excited, cq / np.where(excited, cu, 1.0), 0.0).sum(axis=0)
+        count += excited.sum(axis=0)
+    g = np.where(count > 0, total / np.maximum(count, 1), 1.0 + 0.0j)
     return np.stack([g.real, g.imag], axis=-1)

@@ -270,6 +270,29 @@ def test_body_states_frame():
 # --- dataset ---------------------------------------------------------------------------------------
 
 
+def test_servo_response_averages_only_the_records_that_excite_a_frequency(tiny_dataset):
+    from snakeloco.sim import servo_response
+    from snakeloco.sim.gaits import PRESETS
+
+    u, q = tiny_dataset.commands.astype(np.float64), tiny_dataset.joint_angles.astype(np.float64)
+    cu, cq = (joint_shape(x) for x in (u, q))
+    ratio = (cq[..., 0] + 1j * cq[..., 1]) / (cu[..., 0] + 1j * cu[..., 1])
+    gain = servo_response(tiny_dataset.commands, tiny_dataset.joint_angles)
+    assert np.array_equal(gain[..., 0] + 1j * gain[..., 1], ratio.sum(axis=0) / len(u))  # paper: all, as ever
+    # A library gait excites one frequency: the others are left out, not divided by ~0.
+    gait = PRESETS["undulate"].gait
+    wave = gait.commands()[None]
+    single = servo_response(
+        np.concatenate([wave, u]), np.concatenate([replay(wave[0]).joint_angles[None], q])
+    )
+    assert np.isfinite(single).all()
+    alone = servo_response(wave, replay(wave[0]).joint_angles[None])
+    excited = np.abs(joint_shape(wave[0])[..., 0] + 1j * joint_shape(wave[0])[..., 1]) > 1e-3
+    assert excited.any() and not excited.all()
+    np.testing.assert_array_equal(alone[~excited], np.tile([1.0, 0.0], (int((~excited).sum()), 1)))
+    assert np.all(np.abs(alone[excited][:, 0] + 1j * alone[excited][:, 1]) > 0.5)
+
+
 def test_servo_lag_compensation_brings_the_measured_shape_to_the_target(tiny_dataset):
     """Dividing a wanted (measured) shape by the servos' complex gain gives commands whose replay
     measures closer to it than resynthesising the shape as is."""
