@@ -43,6 +43,14 @@ class ModelConfig(BaseModel):
         "decoder memorised training bodies through the 128 joint-latent numbers (epoch 21 of the full "
         "run: train body loss 0.75, held-out body R^2 0.04) instead of putting the path into z_B.",
     )
+    body_sees_signals: bool = Field(
+        False,
+        description="Add to the body decoder's output a convolution over the gait's joint signals (the "
+        "joint shape synthesised at the body's time stamps): the oscillations a predictable gait "
+        "imposes on the body (vertical, pitch, roll) come from its joints, phase and all, which a "
+        "decoder of z_B alone at 1/8 of the body's rate cannot draw. For the structured family; "
+        "off for the paper family, whose body does not follow its joints.",
+    )
     body_sees_stats: bool = Field(
         True,
         description="Modulate the body decoder by the gait's predicted body statistics (model "

@@ -175,9 +175,9 @@ def fit_path_decoder(
                 mu, _ = net.encode_body(y[i : i + BATCH])
                 zb.append(mu)
                 zj.append(net.run_joints(mu, x[i : i + BATCH], sample_posterior=False)["z_j"])
-            return [torch.cat(zb), torch.cat(zj), st, y]
+            return [torch.cat(zb), torch.cat(zj), st, x, y]
         f32 = torch.float32
-        return [torch.as_tensor(z_b, dtype=f32), torch.as_tensor(z_j, dtype=f32), st, y]
+        return [torch.as_tensor(z_b, dtype=f32), torch.as_tensor(z_j, dtype=f32), st, x, y]
 
     rec_va, gen_va = inputs(*records_val), inputs(*gaits_val)
     train_set = [torch.cat(parts) for parts in zip(inputs(*records), inputs(*gaits), strict=True)]
@@ -185,15 +185,10 @@ def fit_path_decoder(
     @torch.no_grad()
     def mse(t: list[torch.Tensor]) -> float:
         net.eval()
-        z_b, z_j, st, y = t
+        z_b, z_j, st, x, y = t
+        part = lambda i: slice(i, i + BATCH)  # noqa: E731
         sse = sum(
-            (
-                (
-                    net.decode_body(z_b[i : i + BATCH], z_j[i : i + BATCH], st[i : i + BATCH])
-                    - y[i : i + BATCH]
-                )
-                ** 2
-            )
+            ((net.decode_body(z_b[part(i)], z_j[part(i)], st[part(i)], x[part(i)]) - y[part(i)]) ** 2)
             .sum()
             .item()
             for i in range(0, len(y), BATCH)
@@ -203,10 +198,15 @@ def fit_path_decoder(
     before = {"generated": mse(gen_va), "dataset": mse(rec_va)}
 
     def batch_loss(idx: torch.Tensor) -> torch.Tensor:
-        z_b, z_j, st, y = (t[idx] for t in train_set)
-        return torch.nn.functional.mse_loss(net.decode_body(z_b, z_j, st), y)
+        z_b, z_j, st, x, y = (t[idx] for t in train_set)
+        return torch.nn.functional.mse_loss(net.decode_body(z_b, z_j, st, x), y)
 
-    modules = [net.dec_in, *([net.dec_film] if net.cfg.body_sees_stats else []), net.decoder]
+    modules = [
+        net.dec_in,
+        *([net.dec_film] if net.cfg.body_sees_stats else []),
+        *([net.body_sig] if net.cfg.body_sees_signals else []),
+        net.decoder,
+    ]
     best_epoch, _ = fit_best(
         net,
         torch.nn.ModuleList(modules),

@@ -124,6 +124,23 @@ class HierarchicalVAE(nn.Module):
             _SeparableConv(c1, cfg.body_channels, cfg.kernel),
         )
         c_sig = cfg.signal_channels
+        if cfg.body_sees_signals:
+            # A residual from the joint signals to the body, zero-initialised (training starts from
+            # the z_B decoder); circular like the signals, which are periodic over the record.
+            body_sig: list[nn.Module] = []
+            c_prev = 2 * cfg.n_joints
+            for d in cfg.signal_dilations:
+                body_sig += [
+                    nn.Conv1d(
+                        c_prev, c_sig, cfg.kernel, padding=d * pad, dilation=d, padding_mode="circular"
+                    ),
+                    nn.GELU(),
+                ]
+                c_prev = c_sig
+            body_sig.append(nn.Conv1d(c_sig, cfg.body_channels, 1))
+            nn.init.zeros_(body_sig[-1].weight)
+            nn.init.zeros_(body_sig[-1].bias)
+            self.body_sig = nn.Sequential(*body_sig)
         layers: list[nn.Module] = []
         c_prev = 2 * cfg.n_joints  # angle and rate of each joint
         for d in cfg.signal_dilations:
@@ -222,10 +239,15 @@ class HierarchicalVAE(nn.Module):
         return mu, logvar.clamp(-12.0, 6.0)
 
     def decode_body(
-        self, z_b: torch.Tensor, z_j: torch.Tensor, stats: torch.Tensor | None = None
+        self,
+        z_b: torch.Tensor,
+        z_j: torch.Tensor,
+        stats: torch.Tensor | None = None,
+        shape: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """z_b (B, Db), z_j (B, K, Dj), the gait's predicted normalised statistics (B, n_stats)
-        (needed when ``cfg.body_sees_stats``) -> body (B, T, C)."""
+        (needed when ``cfg.body_sees_stats``) and its normalised joint shape (B, K, L, 2) (needed when
+        ``cfg.body_sees_signals``) -> body (B, T, C)."""
         if not self.cfg.body_sees_joint_latents:
             z_j = torch.zeros_like(z_j)  # the joint-latent weights then see only zeros
         lat = torch.cat([z_b, z_j.flatten(1)], dim=1)  # (B, Db + K Dj)
@@ -236,6 +258,10 @@ class HierarchicalVAE(nn.Module):
             scale, shift = self.dec_film(stats).chunk(2, dim=1)  # (B, c3) each
             h = h * (1.0 + scale[:, :, None]) + shift[:, :, None]
         x = self.decoder(h)[:, :, : self.cfg.body_steps]  # (B, C, T)
+        if self.cfg.body_sees_signals:
+            if shape is None:
+                raise ValueError("this body decoder sees the gait's joint signals: pass its shape")
+            x = x + self.body_sig(self.joint_signals(shape))
         return x.transpose(1, 2)
 
     def predict_stats(self, shape: torch.Tensor) -> torch.Tensor:
@@ -330,7 +356,7 @@ class HierarchicalVAE(nn.Module):
         z_b = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         joints = self.run_joints(z_b, shape, sample_posterior=sample)
         stats = self.predict_stats(shape)  # teacher forcing: the true shape
-        body_hat = self.decode_body(z_b, joints["z_j"], stats.detach())
+        body_hat = self.decode_body(z_b, joints["z_j"], stats.detach(), shape)
         return Output(
             shape=joints["shape"],
             body=body_hat,
@@ -352,7 +378,7 @@ class HierarchicalVAE(nn.Module):
         joints = self.run_joints(z_b, z_j=z_j)
         shape = joints["shape"]
         stats = self.predict_stats(shape)
-        return shape, self.decode_body(z_b, joints["z_j"], stats), stats
+        return shape, self.decode_body(z_b, joints["z_j"], stats, shape), stats
 
     def sample_joints(self, z_b: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
         """Joint latents drawn from the learned prior given z_b (B, Db), noise eps (B, K, Dj)."""

@@ -255,6 +255,36 @@ def test_body_decoder_sees_the_gait_statistics_but_does_not_train_them():
     assert net.dec_film.weight.grad.abs().sum() > 0
 
 
+def test_body_decoder_that_sees_the_joint_signals_starts_as_the_z_b_decoder_and_learns_from_them(
+    tiny_dataset_path, tmp_path
+):
+    torch.manual_seed(0)
+    net = _net(SMALL.model_copy(update={"body_sees_signals": True}))
+    plain = _net()
+    plain.load_state_dict({k: v for k, v in net.state_dict().items() if not k.startswith("body_sig.")})
+    z_b, z_j, st = torch.randn(3, 3), torch.zeros(3, 8, 4), torch.zeros(3, 4)
+    shape = torch.randn(3, 8, 8, 2)
+    with torch.no_grad():  # zero-initialised: the z_B decoder's output exactly
+        assert torch.equal(net.decode_body(z_b, z_j, st, shape), plain.decode_body(z_b, z_j, st))
+        net.body_sig[-1].weight.normal_()
+        assert not torch.allclose(net.decode_body(z_b, z_j, st, shape), net.decode_body(z_b, z_j, st, -shape))
+    with pytest.raises(ValueError, match="pass its shape"):
+        net.decode_body(z_b, z_j, st)
+    # Trained, saved, loaded and decoded through the API like any checkpoint.
+    train(
+        tiny_dataset_path,
+        tmp_path,
+        TrainConfig(epochs=1, batch_size=2, val_fraction=0.25),
+        SMALL.model_copy(update={"body_sees_signals": True}),
+        log=None,
+        progress=False,
+    )
+    model = load_pretrained(tmp_path)
+    assert model.config.model.body_sees_signals
+    _, body_np = model.decode(np.zeros((2, 3)))
+    assert np.isfinite(body_np).all() and body_np.shape == (2, 500, 6)
+
+
 def test_schema_2_checkpoint_loads_with_its_statistics_blind_decoder(tmp_path):
     """Checkpoints written before the decoder saw the statistics still load and decode as built."""
     old_cfg = SMALL.model_copy(update={"body_sees_stats": False})
