@@ -53,6 +53,13 @@ class CheckpointError(ValueError):
     """A checkpoint is missing, corrupt or does not match this code; the message says which."""
 
 
+SHAPE_STD_FLOOR = 0.05
+"""A bin's shape std is at least this fraction of the largest: a bin the data barely excite (the
+structured family's gaits use 1-3 of the 8 bins; the others hold 1e-4 rad of harmonics) is not
+blown up to unit scale, where the reconstruction loss would chase its noise. Paper-family bins are
+within 0.9x of each other, so the floor never acts there."""
+
+
 class Normalization(BaseModel):
     """Per-feature statistics: normalised = (physical - mean) / std."""
 
@@ -78,7 +85,9 @@ class Normalization(BaseModel):
             stats_mean=stats.mean(axis=0).tolist(),
             stats_std=np.maximum(stats.std(axis=0), 1e-6).tolist(),
             shape_mean=shape.mean(axis=(0, 1)).tolist(),
-            shape_std=np.maximum(shape.std(axis=(0, 1)), 1e-6).tolist(),
+            shape_std=np.maximum(
+                std := shape.std(axis=(0, 1)), max(SHAPE_STD_FLOOR * std.max(), 1e-6)
+            ).tolist(),
             body_mean=body.mean(axis=(0, 1)).tolist(),
             body_std=np.maximum(body.std(axis=(0, 1)), 1e-6).tolist(),
         )

@@ -285,6 +285,18 @@ def test_body_decoder_that_sees_the_joint_signals_starts_as_the_z_b_decoder_and_
     assert np.isfinite(body_np).all() and body_np.shape == (2, 500, 6)
 
 
+def test_a_barely_excited_bin_is_not_blown_up_by_the_shape_normalisation():
+    rng = np.random.default_rng(0)
+    shape = rng.normal(0.0, 0.2, (50, 8, 8, 2))
+    body, stats = rng.normal(size=(50, 500, 6)), rng.normal(size=(50, 4))
+    even = np.array(Normalization.fit(shape, body, stats).shape_std)
+    np.testing.assert_array_equal(even, shape.std(axis=(0, 1)))  # paper-like bins: as they are
+    shape[:, :, 1] *= 1e-3  # a bin the data barely use (a structured gait's unused frequency)
+    floored = np.array(Normalization.fit(shape, body, stats).shape_std)
+    assert floored[1].min() == pytest.approx(0.05 * floored.max())
+    np.testing.assert_array_equal(np.delete(floored, 1, axis=0), np.delete(shape.std(axis=(0, 1)), 1, axis=0))
+
+
 def test_schema_2_checkpoint_loads_with_its_statistics_blind_decoder(tmp_path):
     """Checkpoints written before the decoder saw the statistics still load and decode as built."""
     old_cfg = SMALL.model_copy(update={"body_sees_stats": False})
