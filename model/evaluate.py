@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from snakeloco.model.api import GaitModel, load_pretrained
+from snakeloco.model.checkpoint import SHAPE_STD_FLOOR
 from snakeloco.model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
 from snakeloco.model.replays import check_same_gaits, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.stats import median_relative_errors
@@ -36,17 +37,32 @@ def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, bat
     n_l = shape.shape[2]
     shape_by_freq = shape.transpose(0, 1, 3, 2).reshape(-1, n_l)  # (N K 2, L)
     hat_by_freq = s_hat.transpose(0, 1, 3, 2).reshape(-1, n_l)
+    std = shape_by_freq.std(axis=0)
+    excited_bins = std >= SHAPE_STD_FLOOR * std.max()
     return {
         "r2_shape": r2_overall(
             shape.reshape(len(shape), -1)[..., None], s_hat.reshape(len(shape), -1)[..., None]
         ),
+        # A bin the data barely excite (a structured gait uses 1-3 of the 8) has ~1e-8 variance: its
+        # R^2 says nothing, so it is reported as None ("not excited"), by the normalisation's rule.
         "r2_shape_per_freq": dict(
             zip(
                 map(str, model.freqs.round(3)),
-                r2_per_channel(shape_by_freq, hat_by_freq).tolist(),
+                [
+                    r if excited else None
+                    for r, excited in zip(
+                        r2_per_channel(shape_by_freq, hat_by_freq).tolist(),
+                        excited_bins,
+                        strict=True,
+                    )
+                ],
                 strict=True,
             )
         ),
+        "r2_shape_per_joint": r2_per_channel(
+            shape.transpose(0, 2, 3, 1).reshape(-1, shape.shape[1]),
+            s_hat.transpose(0, 2, 3, 1).reshape(-1, shape.shape[1]),
+        ).tolist(),
         "r2_body": r2_overall(body_ds, b_hat),
         "r2_body_per_channel": dict(zip(BODY_CHANNELS, r2_per_channel(body_ds, b_hat).tolist(), strict=True)),
         # The statistics head on the true shapes: median relative error against the records' own.
@@ -215,7 +231,12 @@ def format_report(r: dict) -> str:
     lines += [
         f"checkpoint {r['checkpoint']} on {r['data']} ({r['n_samples']} samples)",
         f"R^2 joint shape {r['r2_shape']:.3f}; per frequency: "
-        + ", ".join(f"{k} Hz {v:.3f}" for k, v in r["r2_shape_per_freq"].items()),
+        + ", ".join(
+            f"{k} Hz " + ("not excited" if v is None else f"{v:.3f}")
+            for k, v in r["r2_shape_per_freq"].items()
+        )
+        + "; per joint: "
+        + ", ".join(f"{v:.3f}" for v in r["r2_shape_per_joint"]),
         f"R^2 body {r['r2_body']:.3f}; per channel: "
         + ", ".join(f"{k} {v:.3f}" for k, v in r["r2_body_per_channel"].items()),
         "body statistics predicted for the records' own shapes, median relative error: "

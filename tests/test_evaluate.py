@@ -195,3 +195,23 @@ def test_consistency_replays_are_written_reused_and_checked(
     with pytest.raises(SystemExit) as exc:
         _evaluate_cli(tiny_dataset_path, checkpoint, "--replays", bad)
     assert exc.value.code == 2 and "not a consistency-replays .npz" in capsys.readouterr().err
+
+
+def test_reconstruction_reports_a_bin_the_data_do_not_excite_as_such(checkpoint, tiny_dataset):
+    from snakeloco.model.api import load_pretrained
+    from snakeloco.model.evaluate import format_report, reconstruction
+
+    model = load_pretrained(checkpoint)
+    shape, body = tiny_dataset.shape.astype(np.float64), tiny_dataset.body_ds.astype(np.float64)
+    every = reconstruction(model, shape, body)
+    assert (
+        all(v is not None for v in every["r2_shape_per_freq"].values())
+        and len(every["r2_shape_per_joint"]) == 8
+    )
+    shape[:, :, 1] *= 1e-4  # as a structured gait leaves most bins: ~1e-4 rad of harmonics
+    unused = reconstruction(model, shape, body)["r2_shape_per_freq"]
+    assert [k for k, v in unused.items() if v is None] == [str(round(float(model.freqs[1]), 3))]
+    report = {"checkpoint": "c", "data": "d", "n_samples": 4, **reconstruction(model, shape, body)}
+    report |= {"stats_median_rel_err": {}, "mmd_zb": 0.0, "mmd_zb_null95": 0.0, "active_units_zb": 1}
+    report |= {"active_units_zj": 1, "inter_intra_ratio": 1.0}
+    assert "Hz not excited" in format_report(report)
