@@ -89,8 +89,8 @@ def test_design_command_writes_replayable_candidates_and_the_report(tmp_path, ch
     assert REPORT_KEYS <= set(report) and report == json.loads((out / "report.json").read_text())
     assert report["target"] == {"forward": 0.5, "sideways": -0.3, "heading": -10.0, "max_roll": None}
     assert len(report["candidates"]) == 2 and report["tolerance_m"] == 0.25
-    errors = [c["error_m"] for c in report["candidates"]]
-    assert errors == sorted(errors)  # ranked by what physics did
+    ranks = [c["error_m"] + QUICK.heading_weight * c["heading_error_deg"] for c in report["candidates"]]
+    assert ranks == sorted(ranks)  # ranked by what physics did: the end's error and the heading's
     for c in report["candidates"]:
         assert CANDIDATE_KEYS <= set(c) and set(c["simulated"]) == {"forward", "sideways", "heading"}
         # The CSV is the gait that was verified: its replay ends where the report says.
