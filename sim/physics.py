@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import mujoco
@@ -37,6 +38,23 @@ class ReplayResult:
     """(T,) sample times (s), 0 at the start of the record."""
     qpos: np.ndarray
     """(T, nq) MuJoCo qpos at the sample times (world frame; for drawing the robot)."""
+
+
+@dataclass(frozen=True)
+class StreamedReplay:
+    """What a streamed replay (``Simulator.stream``) has measured so far: its first ``samples``
+    record samples (arrays as ``ReplayResult``'s, that long)."""
+
+    samples: int
+    joint_angles: np.ndarray  # (samples, 8) rad
+    body: np.ndarray  # (samples, 6)
+    qpos: np.ndarray  # (samples, nq)
+    failure: str | None  # why the simulation broke (then the stream ends), or None
+    done: bool  # the whole record is in
+
+
+STREAM_CHUNK = 100
+"""Record samples per chunk of a streamed replay: 5 s of record, ~60 ms of physics on one core."""
 
 
 @dataclass(frozen=True)
@@ -277,6 +295,59 @@ class Simulator:
                 f"(limit {self.config.max_com_speed} m/s) at {at(step)}"
             )
         return None
+
+    def stream(self, commands: np.ndarray, chunk_samples: int = STREAM_CHUNK) -> Iterator[StreamedReplay]:
+        """Replay one record (T, 8) rad in chunks of ``chunk_samples`` record samples, yielding after
+        each chunk everything simulated so far (the first chunk also holds the lead-in).
+
+        The physics state and the solver's warm start carry over from chunk to chunk, so the arrays
+        are bit-identical to ``replay``'s (prefixes of them until the last part). Each chunk takes
+        the simulator's lock on its own, so other callers' batches run between chunks; a caller that
+        stops iterating (a superseded replay) stops the physics at that chunk boundary. A chunk that
+        breaks the simulation ends the stream with its ``failure`` set.
+        """
+        commands = np.asarray(commands, dtype=np.float64)
+        n_t = self.excitation.n_samples
+        if commands.shape != (n_t, N_JOINTS):
+            raise ValueError(f"expected ({n_t}, {N_JOINTS}) commands, got {commands.shape}")
+        if not np.isfinite(commands).all():
+            raise ValueError("commands contain NaN or Inf")
+        ctrl = expand_commands(commands[None], self.substeps, self.config)
+        m, n_steps = self.model, ctrl.shape[1]
+        state = np.empty((n_steps, mujoco.mj_stateSize(m, _STATE_SPEC)))
+        sens = np.empty((n_steps, m.nsensordata))
+        record = self.config.lead_in * self.substeps + self.substeps * np.arange(n_t)
+        bounds = [
+            *range(record[0] + chunk_samples * self.substeps, n_steps, chunk_samples * self.substeps),
+            n_steps,
+        ]
+        initial, warm, done = self.initial_state[None], np.zeros((1, m.nv)), 0
+        for end in bounds:
+            with self._lock:
+                if self._closed:
+                    raise SimulationError("the simulator was closed (the server is stopping)")
+                data = self._datas[0]
+                s, se = mj_rollout.rollout(m, data, initial, ctrl[:, done:end], initial_warmstart=warm)
+                warm = data.qacc_warmstart[None].copy()
+            state[done:end], sens[done:end] = s[0], se[0]
+            initial, done = s[:, -1], end
+            failure = self._diagnose_one(state[:done], sens[:done], m.opt.timestep)
+            n = int(np.searchsorted(record, done))  # samples whose step has been simulated
+            sampled = sens[record[:n]]
+            quat = sampled[:, self._quat_cols]
+            quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True).clip(min=1e-12)
+            with np.errstate(invalid="ignore"):
+                body = body_states(sampled[None, :, self._pos_cols], quat[None])[0]
+            yield StreamedReplay(
+                samples=n,
+                joint_angles=sampled[:, self._q_cols],
+                body=body,
+                qpos=state[record[:n] - 1, 1 : 1 + m.nq],
+                failure=failure,
+                done=done == n_steps,
+            )
+            if failure is not None:
+                return
 
     def replay(self, commands: np.ndarray) -> ReplayResult:
         """Simulate one record exactly as data generation does; raise SimulationError if it breaks."""

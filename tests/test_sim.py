@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import snakeloco.sim as sim
+import snakeloco.sim.physics as sim_physics
 from snakeloco.sim import (
     COMMAND_LIMIT,
     ExcitationConfig,
@@ -312,3 +313,37 @@ def test_servo_lag_compensation_brings_the_measured_shape_to_the_target(tiny_dat
         measured = joint_shape(replay(u).joint_angles)
         errors.append(np.linalg.norm(measured - target) / np.linalg.norm(target))
     assert errors[1] < 0.7 * errors[0], errors
+
+
+def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_left():
+    from snakeloco.sim.gaits import PRESETS
+
+    simulator = Simulator(workers=1)
+    commands = PRESETS["sidewind"].gait.commands()
+    whole = simulator.replay(commands)
+    parts = list(simulator.stream(commands, chunk_samples=300))
+    assert [p.samples for p in parts] == [300, 600, 900, 1200, 1500, 1800, 2000]
+    assert [p.done for p in parts] == [False] * 6 + [True] and all(p.failure is None for p in parts)
+    for p in parts:  # every part is a prefix of the un-chunked replay, to the bit
+        np.testing.assert_array_equal(p.joint_angles, whole.joint_angles[: p.samples])
+        np.testing.assert_array_equal(p.body, whole.body[: p.samples])
+        np.testing.assert_array_equal(p.qpos, whole.qpos[: p.samples])
+    # A consumer that leaves after the first part (a superseded replay) costs one chunk of physics.
+    calls = []
+    rollout = sim_physics.mj_rollout.rollout
+    sim_physics.mj_rollout.rollout = lambda *a, **k: calls.append(1) or rollout(*a, **k)
+    try:
+        stream = simulator.stream(commands, chunk_samples=300)
+        next(stream)
+        stream.close()
+    finally:
+        sim_physics.mj_rollout.rollout = rollout
+    assert len(calls) == 1
+    # A gait that breaks the physics ends its stream with the reason, as replay raises it.
+    strict = Simulator(workers=1, config=SimConfig(max_com_height=0.03))
+    last = list(strict.stream(commands, chunk_samples=300))[-1]
+    assert last.failure is not None and "thrown" in last.failure and not last.done
+    with pytest.raises(SimulationError, match="thrown"):
+        strict.replay(commands)
+    with pytest.raises(ValueError, match="NaN"):
+        next(simulator.stream(np.full((2000, 8), np.nan)))
