@@ -1,9 +1,16 @@
-"""A tab's gait files: Export CSV, Import CSV and the library Baseline (``DesignerClient`` mixes it in:
-it uses the tab's current gait, its notifications and its physics worker)."""
+"""A tab's gait files: Export CSV, Import CSV and the library Baseline, and the physics job that loads
+such a gait (``DesignerClient`` mixes it in: it uses the tab's current gait, its notifications, its
+session and its physics worker)."""
 
 from __future__ import annotations
 
+import time
+
+import numpy as np
+
 from snakeloco.app.gait_csv import GaitCSVError, gait_comments, read_gait_csv, write_gait_csv
+from snakeloco.app.session import DecodedGait, Timing
+from snakeloco.sim import SimulationError, joint_shape
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
 
@@ -51,3 +58,35 @@ class GaitFiles:
     def _on_upload(self) -> None:
         f = self.controls.import_button.value
         self.import_bytes(f.name, f.content)  # read_gait_csv refuses more than MAX_BYTES
+
+    def _load_job(self, source: str, title: str, commands: np.ndarray, timing: Timing, is_current) -> None:
+        """Replay given commands (an imported CSV, a library gait) as the current gait, with the
+        sliders moved to where it encodes; ``title`` heads its notifications."""
+        shape = joint_shape(commands)
+        gait = DecodedGait(None, shape, None, commands, 0.0, source=source)
+        try:
+            sim = self.session.replay(gait)
+        except SimulationError as exc:
+            timing.failed = str(exc)
+            self.client.add_notification(
+                f"{title} not loaded", f"Its replay broke: {exc}. The current gait stays.", color="red"
+            )
+            return
+        z_b = self.session.encode_replay(sim)
+        with self._draw_lock:
+            if not is_current():
+                return
+            self.decoded, self.simulated = gait, sim
+            self._draw_decoded(gait)
+            self._draw_simulated(gait, sim, ensemble=False)
+            with self._z_lock:
+                self._programmatic_z = self._write_sliders(z_b)
+            timing.replayed = time.perf_counter()
+        sim = self.session.run_ensemble(gait, sim, seed=timing.version)
+        with self._draw_lock:
+            if is_current():
+                self._draw_simulated(gait, sim, ensemble=True)
+                timing.ensembled = time.perf_counter()
+                self.client.add_notification(
+                    title, "Replayed; the sliders show where it sits in z_B.", auto_close_seconds=5.0
+                )

@@ -42,6 +42,11 @@ class Playback:
         self.playing = not self.playing
         self.controls.play_button.label = "Pause" if self.playing else "Play"
 
+    def restart(self) -> None:
+        """Back to t = 0 (a new replay starts streaming in)."""
+        self.frame = 0
+        self._position = 0.0
+
     def on_scrub(self, event) -> None:
         """Jump to the scrubber's time (a user's move; the animation's own updates are ignored)."""
         if event.client is None:

@@ -154,6 +154,16 @@ class TabScene:
                 node.visible = False
         self._cloud("decoded", gait.shape)
 
+    def draw_streaming(self, body: np.ndarray, qpos0: np.ndarray) -> None:
+        """The simulated path so far (a streamed replay's first samples); the fan of the previous
+        gait stays hidden."""
+        self.start = self.kinematics.start_frame(qpos0)
+        z0 = float(self.start[0][2])
+        if len(body) > 1:
+            self.sim_path = self._line(
+                "simulated", polyline(path_points(body, z0)), SIM_COLOR, 4.0, "Simulated path"
+            )
+
     def draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
         """The simulated path (and the ensemble fan once it ran), the re-measured joint shape, and the
         decoded path again at the replay's starting height."""

@@ -18,6 +18,7 @@ import numpy as np
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, BODY_RATE, SimulationError, Simulator, joint_shape
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, compare, perturbed_commands
+from snakeloco.sim.physics import StreamedReplay
 
 ZkMode = Literal["zero", "sampled"]
 
@@ -68,6 +69,7 @@ class Timing:
     submitted: float
     started: float = float("nan")  # the decode worker picked the request up
     decoded: float = float("nan")
+    first_motion: float = float("nan")  # the first streamed chunk of the replay was drawn
     replayed: float = float("nan")
     ensembled: float = float("nan")
     decode_ms: float = float("nan")
@@ -142,6 +144,28 @@ class GaitSession:
             shape=joint_shape(result.joint_angles, self._replayer.excitation),
             ensemble_body=result.body[None],
             replay_ms=replay_ms,
+        )
+
+    def replay_streamed(
+        self, gait: DecodedGait, on_part: Callable[[StreamedReplay], bool]
+    ) -> SimulatedGait | None:
+        """``replay`` in chunks (``Simulator.stream``): ``on_part`` gets what is simulated so far after
+        each chunk and returns whether to go on. Returns the same SimulatedGait as ``replay`` (bit for
+        bit), or None where ``on_part`` stopped it; raises SimulationError if physics breaks."""
+        t0 = time.perf_counter()
+        part = None
+        for part in self._replayer.stream(gait.commands):
+            if part.failure is not None:
+                raise SimulationError(part.failure)
+            if not on_part(part):
+                return None
+        return SimulatedGait(
+            joint_angles=part.joint_angles,
+            body=part.body,
+            qpos=part.qpos,
+            shape=joint_shape(part.joint_angles, self._replayer.excitation),
+            ensemble_body=part.body[None],
+            replay_ms=1e3 * (time.perf_counter() - t0),
         )
 
     def run_ensemble(self, gait: DecodedGait, sim: SimulatedGait, seed: int = 0) -> SimulatedGait:

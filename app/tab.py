@@ -29,7 +29,7 @@ from snakeloco.app.playback import Playback
 from snakeloco.app.scene import END_SPREAD, TabScene
 from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
 from snakeloco.model.api import GaitModel
-from snakeloco.sim import BODY_DOWNSAMPLE, SimulationError, Simulator, joint_shape
+from snakeloco.sim import BODY_DOWNSAMPLE, SimulationError, Simulator
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
 PHYSICS_NICE = 15
@@ -62,6 +62,7 @@ class DesignerClient(GaitFiles):
         )
         self.decoded: DecodedGait | None = None
         self.simulated: SimulatedGait | None = None
+        self.streaming = None  # the current gait's streamed replay so far (sim.StreamedReplay)
         self.timings: deque[Timing] = deque(maxlen=2000)
         self._timing_by_version: dict[int, Timing] = {}
         self._draw_lock = threading.RLock()
@@ -83,7 +84,7 @@ class DesignerClient(GaitFiles):
         self.playback = Playback(
             self.controls,
             self._draw_snake,
-            lambda: self.simulated is not None,
+            lambda: self.simulated is not None or self.streaming is not None,
             self._closed,
             name=f"animate-{client.client_id}",
         )
@@ -290,7 +291,7 @@ class DesignerClient(GaitFiles):
         with self._draw_lock:
             if not self.is_current(version):
                 return
-            self.decoded, self.simulated = decoded, None
+            self.decoded, self.simulated, self.streaming = decoded, None, None
             self._draw_decoded(decoded)
             timing.decoded = time.perf_counter()
             self.physics.submit((version, ("gait", decoded)))
@@ -306,9 +307,27 @@ class DesignerClient(GaitFiles):
         else:
             self._simulate(payload[0], timing, is_current)
 
+    def _draw_part(self, part, timing: Timing, is_current) -> bool:
+        """Draw a streamed replay's first samples: the snake moves from t = 0 at once, the simulated
+        path grows. Returns whether the replay is still wanted (else it stops at this chunk)."""
+        with self._draw_lock:
+            if not is_current():
+                return False
+            first = self.streaming is None
+            self.streaming = part
+            with self.client.atomic():
+                self.scene.draw_streaming(part.body, part.qpos[0])
+            if first:
+                self.playback.restart()
+                self._draw_snake(0)
+                timing.first_motion = time.perf_counter()
+        return True
+
     def _simulate(self, decoded: DecodedGait, timing: Timing, is_current) -> SimulatedGait | None:
         try:
-            sim = self.session.replay(decoded)
+            sim = self.session.replay_streamed(
+                decoded, lambda part: self._draw_part(part, timing, is_current)
+            )
         except SimulationError as exc:
             timing.failed = str(exc)
             with self._draw_lock:
@@ -318,11 +337,13 @@ class DesignerClient(GaitFiles):
                         "Replay failed", str(exc), color="red", auto_close_seconds=8.0
                     )
             return None
+        if sim is None:
+            return None  # superseded mid-stream
         timing.replay_ms = sim.replay_ms
         with self._draw_lock:
             if not is_current():
                 return None
-            self.simulated = sim
+            self.simulated, self.streaming = sim, None
             self._draw_simulated(decoded, sim, ensemble=False)
             timing.replayed = time.perf_counter()
         sim = self.session.run_ensemble(decoded, sim, seed=timing.version)
@@ -333,38 +354,6 @@ class DesignerClient(GaitFiles):
             self._draw_simulated(decoded, sim, ensemble=True)
             timing.ensembled = time.perf_counter()
         return sim
-
-    def _load_job(self, source: str, title: str, commands: np.ndarray, timing: Timing, is_current) -> None:
-        """Replay given commands (an imported CSV, a library gait) as the current gait, with the
-        sliders moved to where it encodes; ``title`` heads its notifications."""
-        shape = joint_shape(commands)
-        gait = DecodedGait(None, shape, None, commands, 0.0, source=source)
-        try:
-            sim = self.session.replay(gait)
-        except SimulationError as exc:
-            timing.failed = str(exc)
-            self.client.add_notification(
-                f"{title} not loaded", f"Its replay broke: {exc}. The current gait stays.", color="red"
-            )
-            return
-        z_b = self.session.encode_replay(sim)
-        with self._draw_lock:
-            if not is_current():
-                return
-            self.decoded, self.simulated = gait, sim
-            self._draw_decoded(gait)
-            self._draw_simulated(gait, sim, ensemble=False)
-            with self._z_lock:
-                self._programmatic_z = self._write_sliders(z_b)
-            timing.replayed = time.perf_counter()
-        sim = self.session.run_ensemble(gait, sim, seed=timing.version)
-        with self._draw_lock:
-            if is_current():
-                self._draw_simulated(gait, sim, ensemble=True)
-                timing.ensembled = time.perf_counter()
-                self.client.add_notification(
-                    title, "Replayed; the sliders show where it sits in z_B.", auto_close_seconds=5.0
-                )
 
     # --- drawing ---------------------------------------------------------------------------------
 
@@ -384,12 +373,15 @@ class DesignerClient(GaitFiles):
 
     def _draw_snake(self, frame: int | None = None) -> None:
         """Pose the snake at record sample ``frame`` (default: the playback's) of the current replay."""
-        sim = self.simulated
-        if sim is None:
+        motion = self.simulated if self.simulated is not None else self.streaming
+        if motion is None:
             return
         frame = self.playback.frame if frame is None else frame
+        qpos = motion.qpos
+        if motion is self.streaming:  # physics is still filling in: hold the newest pose there is
+            frame = min(frame, len(qpos) - 1)
         with self._draw_lock:
-            self.scene.draw_snake(sim.qpos[frame % len(sim.qpos)])
+            self.scene.draw_snake(qpos[frame % len(qpos)])
 
     def close(self) -> None:
         self._closed.set()

@@ -53,7 +53,10 @@ def test_slider_change_decodes_replays_and_draws(server):
         assert d.wait_idle(60)
         assert d.decoded.latents.z_b[0] == 1.5
         last = d.timings[-1]
-        assert last.version > first.version and last.decoded <= last.replayed <= last.ensembled
+        assert (
+            last.version > first.version
+            and last.decoded <= last.first_motion <= last.replayed <= last.ensembled
+        )
         assert d.simulated is not None and d.simulated.ensemble_body.shape == (3, 2000, 6)
         assert d.scene.gen_path is not None and d.scene.sim_path is not None and d.scene.fan is not None
         assert set(d.scene.clouds) == {"decoded", "measured"}
@@ -227,7 +230,8 @@ def test_bench_app_json(checkpoint, capsys):
     main(["bench", "app", "--json", "--checkpoint", str(checkpoint), "--moves", "2"])
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["moves"] >= 1
-    assert 0 < result["decoded_p50_ms"] <= result["replay_ready_p50_ms"]
+    assert 0 < result["decoded_p50_ms"] <= result["first_motion_p50_ms"] <= result["replay_ready_p50_ms"]
+    assert result["first_motion_p95_ms"] >= result["first_motion_p50_ms"]
     assert result["replay_ratio"] > 0 and result["ensemble_ratio"] > 0
 
 
@@ -290,15 +294,17 @@ def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server
     client, d = connect_headless(server)
     try:
         gate = threading.Event()
-        replay = d.session.replay
-        replayed = []
+        replay = d.session.replay_streamed
+        replayed, parts = [], []
 
-        def gated_replay(gait):  # the real replay, held until the test releases it
+        def gated_replay(gait, on_part):  # the real (streamed) replay, held until the test releases it
             gate.wait(60)
             replayed.append(gait.latents.z_b[0])
-            return replay(gait)
+            return replay(
+                gait, lambda part: parts.append((gait.latents.z_b[0], part.samples)) or on_part(part)
+            )
 
-        d.session.replay = gated_replay
+        d.session.replay_streamed = gated_replay
         d.sliders[0].value = 1.0
         time.sleep(0.3)
         first = d.timings[-1]
@@ -310,8 +316,11 @@ def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server
             assert d.decoded.latents.z_b[0] == v and np.isfinite(d.timings[-1].decoded)
         gate.set()
         assert d.wait_idle(60)
-        # The held (stale) replay finished but was never drawn; the newest one was.
+        # The held (stale) replay stopped at its first chunk and was never drawn; the newest one was,
+        # streamed chunk by chunk to the whole record.
         assert replayed == [1.0, 1.6]
+        assert [n for z, n in parts if z == 1.0] == [100]
+        assert [n for z, n in parts if z == 1.6] == list(range(100, 2001, 100))
         assert not np.isfinite(first.replayed) and np.isfinite(d.timings[-1].ensembled)
         np.testing.assert_allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
         assert d.decoded.latents.z_b[0] == 1.6

@@ -64,6 +64,7 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, s
                     1e3 * (t.replayed - t.submitted),
                     t.replay_ms / bare_ms,
                     t.ensemble_ms / bare_ens_ms,
+                    1e3 * (t.first_motion - t.submitted),
                 )
             )
     finally:
@@ -76,6 +77,8 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, s
         "decoded_p95_ms": float(np.percentile(a[:, 0], 95)),
         "replay_ready_p50_ms": float(np.percentile(a[:, 1], 50)),
         "replay_ready_p95_ms": float(np.percentile(a[:, 1], 95)),
+        "first_motion_p50_ms": float(np.percentile(a[:, 4], 50)),
+        "first_motion_p95_ms": float(np.percentile(a[:, 4], 95)),
         "replay_ratio": float(np.median(a[:, 2])),
         "ensemble_ratio": float(np.median(a[:, 3])),
     }

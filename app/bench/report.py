@@ -43,6 +43,7 @@ def app(cmd) -> dict:
     r = bench_app(cmd.checkpoint, cmd.moves)
     print(
         f"{r['moves']} slider moves: decoded view p50 {r['decoded_p50_ms']:.1f} ms, p95 {r['decoded_p95_ms']:.1f} ms; "
+        f"first motion p50 {r['first_motion_p50_ms']:.0f} ms, p95 {r['first_motion_p95_ms']:.0f} ms; "
         f"replay ready p50 {r['replay_ready_p50_ms']:.0f} ms, p95 {r['replay_ready_p95_ms']:.0f} ms; "
         f"replay_ratio {r['replay_ratio']:.3f} (replay / bare mj_step), "
         f"ensemble_ratio {r['ensemble_ratio']:.3f} (ensemble / bare mujoco.rollout)"
