@@ -173,9 +173,7 @@ class TabScene:
             "simulated", polyline(path_points(sim.body, z0)), SIM_COLOR, 4.0, "Simulated path"
         )
         if ensemble and len(sim.ensemble_body) > 1:
-            members = sim.ensemble_body[1:, ::BODY_DOWNSAMPLE]
-            segments = np.concatenate([polyline(path_points(b, z0)) for b in members])
-            self.fan = self._line("ensemble", segments, FAN_COLOR, 1.0, "Ensemble fan")
+            self.draw_fan(sim.ensemble_body)
         elif self.fan is not None:
             self.fan.visible = False
         if self.gen_path is not None and gait.body_ds is not None:
@@ -201,6 +199,15 @@ class TabScene:
             thickness_units="screen",
             visible=self.layers["Generated path"].value,
         )
+
+    def draw_fan(self, ensemble_body: np.ndarray) -> None:
+        """The ensemble's perturbed members (K, T, 6; member 0, the replay, is the simulated path),
+        at the current replay's starting height: drawn as the members come in."""
+        z0 = float(self.start[0][2])
+        members = ensemble_body[1:, ::BODY_DOWNSAMPLE]
+        if len(members):
+            segments = np.concatenate([polyline(path_points(b, z0)) for b in members])
+            self.fan = self._line("ensemble", segments, FAN_COLOR, 1.0, "Ensemble fan")
 
     def draw_snake(self, qpos: np.ndarray) -> None:
         """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame."""

@@ -168,13 +168,29 @@ class GaitSession:
             replay_ms=1e3 * (time.perf_counter() - t0),
         )
 
-    def run_ensemble(self, gait: DecodedGait, sim: SimulatedGait, seed: int = 0) -> SimulatedGait:
-        """Replay K-1 perturbed copies in one batched rollout over all cores and score the gait."""
+    def run_ensemble(
+        self,
+        gait: DecodedGait,
+        sim: SimulatedGait,
+        seed: int = 0,
+        keep_going: Callable[[np.ndarray], bool] | None = None,
+    ) -> SimulatedGait | None:
+        """Replay K-1 perturbed copies over all cores, a batch (one per thread) at a time, and score
+        the gait. ``keep_going`` gets the ensemble's clean bodies so far (member 0 the replay) after
+        each batch and returns whether to go on: None is returned where it stopped. The members are
+        those of one batched rollout, bit for bit."""
         t0 = time.perf_counter()
         members = perturbed_commands(gait.commands, self.ensemble, seed=seed)[1:]
-        result = self._ensembler.simulate(members)
-        ok = [i for i, f in enumerate(result.failures) if f is None]
-        sim.ensemble_body = np.concatenate([sim.body[None], result.body[ok]])
+        step = self._ensembler.workers
+        bodies, failures = [sim.body[None]], []
+        for i in range(0, len(members), step):
+            result = self._ensembler.simulate(members[i : i + step])
+            failures += result.failures
+            bodies.append(result.body[[j for j, f in enumerate(result.failures) if f is None]])
+            if keep_going is not None and not keep_going(np.concatenate(bodies)):
+                return None
+        ok = [i for i, f in enumerate(failures) if f is None]
+        sim.ensemble_body = np.concatenate(bodies)
         sim.ensemble_ms = 1e3 * (time.perf_counter() - t0)
         decoded = gait.body_ds if gait.source == "model" else None
         ds = sim.ensemble_body[:, ::BODY_DOWNSAMPLE]

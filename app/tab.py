@@ -346,7 +346,11 @@ class DesignerClient(GaitFiles):
             self.simulated, self.streaming = sim, None
             self._draw_simulated(decoded, sim, ensemble=False)
             timing.replayed = time.perf_counter()
-        sim = self.session.run_ensemble(decoded, sim, seed=timing.version)
+        sim = self.session.run_ensemble(
+            decoded, sim, timing.version, lambda b: self._draw_members(b, is_current)
+        )
+        if sim is None:
+            return None  # superseded between batches
         timing.ensemble_ms = sim.ensemble_ms
         with self._draw_lock:
             if not is_current():
@@ -354,6 +358,15 @@ class DesignerClient(GaitFiles):
             self._draw_simulated(decoded, sim, ensemble=True)
             timing.ensembled = time.perf_counter()
         return sim
+
+    def _draw_members(self, bodies: np.ndarray, is_current) -> bool:
+        """Draw the ensemble members in so far; whether the ensemble is still wanted."""
+        with self._draw_lock:
+            if not is_current():
+                return False
+            with self.client.atomic():
+                self.scene.draw_fan(bodies)
+        return True
 
     # --- drawing ---------------------------------------------------------------------------------
 

@@ -363,3 +363,26 @@ def test_panel_spread_is_relative_only_where_the_mean_is_a_scale():
     # A net roll going both ways: std above the mean's size, so no percentage.
     assert spread_text(15.0, 7.894) == "±15"
     assert spread_text(2.0, 1.0) == "±2"
+
+
+def test_the_ensemble_comes_in_batches_equal_to_one_rollout_and_stops_when_left(checkpoint):
+    from snakeloco.app.session import GaitSession, Latents
+    from snakeloco.model import load_pretrained
+    from snakeloco.sim.consistency import perturbed_commands
+
+    session = GaitSession(load_pretrained(checkpoint), ensemble=5, workers=2)
+    try:
+        gait = session.decode(Latents(z_b=(0.5, -0.5, 0.0)))
+        sim = session.replay(gait)
+        seen = []
+        full = session.run_ensemble(gait, sim, seed=7, keep_going=lambda b: seen.append(len(b)) or True)
+        assert seen == [3, 5]  # the replay, then two members per batch (one per thread)
+        members = perturbed_commands(gait.commands, 5, seed=7)[1:]
+        np.testing.assert_array_equal(full.ensemble_body[1:], session.simulator.simulate(members).body)
+        calls = []
+        left = session.run_ensemble(
+            gait, session.replay(gait), seed=7, keep_going=lambda b: calls.append(1) and False
+        )
+        assert left is None and len(calls) == 1  # a superseded ensemble stops after its first batch
+    finally:
+        session.close()
