@@ -77,6 +77,7 @@ class Controls:
     play_button: viser.GuiButtonHandle
     speed: viser.GuiSliderHandle
     scrubber: viser.GuiSliderHandle
+    follow: viser.GuiCheckboxHandle
     layers: dict[str, viser.GuiCheckboxHandle]
     baseline: viser.GuiDropdownHandle
     design: DesignControls
@@ -134,6 +135,7 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int, families: tuple[str, ...], f
         speed = gui.add_slider("Speed", 0.25, 8.0, 0.25, 1.0, hint="Playback speed (x real time)")
         last = float(RECORD.times[-1])
         scrubber = gui.add_slider("Time (s)", 0.0, last, 1.0 / RECORD.sample_rate, 0.0)
+        follow = gui.add_checkbox("Follow snake", False, hint="Keep the camera on the snake as it travels")
     with gui.add_folder("Layers"):
         layers = {name: gui.add_checkbox(name, True) for name in LAYERS}
     with gui.add_folder("Baseline"):
@@ -198,6 +200,7 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int, families: tuple[str, ...], f
         play_button=play_button,
         speed=speed,
         scrubber=scrubber,
+        follow=follow,
         layers=layers,
         baseline=baseline,
         design=design,

@@ -209,8 +209,14 @@ class TabScene:
             segments = np.concatenate([polyline(path_points(b, z0)) for b in members])
             self.fan = self._line("ensemble", segments, FAN_COLOR, 1.0, "Ensemble fan")
 
-    def draw_snake(self, qpos: np.ndarray) -> None:
-        """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame."""
+    def draw_snake(self, qpos: np.ndarray, follow: bool = False) -> None:
+        """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame; with
+        ``follow``, move the camera with the snake (the same offset from it, as the user left it)."""
         positions, wxyzs = self.kinematics.poses(qpos, self.start)
         self.snake.batched_positions = positions
         self.snake.batched_wxyzs = wxyzs
+        if follow:  # viser moves look_at with position: one shift keeps the view, centred on the snake
+            camera = self.client.camera
+            camera.position = tuple(
+                np.asarray(camera.position) + positions.mean(axis=0) - np.asarray(camera.look_at)
+            )

@@ -393,8 +393,8 @@ class DesignerClient(GaitFiles):
         qpos = motion.qpos
         if motion is self.streaming:  # physics is still filling in: hold the newest pose there is
             frame = min(frame, len(qpos) - 1)
-        with self._draw_lock:
-            self.scene.draw_snake(qpos[frame % len(qpos)])
+        with self._draw_lock, self.client.atomic():
+            self.scene.draw_snake(qpos[frame % len(qpos)], follow=self.controls.follow.value)
 
     def close(self) -> None:
         self._closed.set()

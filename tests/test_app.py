@@ -386,3 +386,22 @@ def test_the_ensemble_comes_in_batches_equal_to_one_rollout_and_stops_when_left(
         assert left is None and len(calls) == 1  # a superseded ensemble stops after its first batch
     finally:
         session.close()
+
+
+def test_follow_snake_keeps_the_camera_on_the_snake(server):
+    client, d = connect_headless(server)
+    try:
+        camera = d.client.camera
+        offset = np.asarray(camera.position) - np.asarray(camera.look_at)
+        d.controls.follow.value = True
+        d._draw_snake(1500)  # 75 s into the replay: the snake has moved
+        center = d.scene.snake.batched_positions.mean(axis=0)
+        np.testing.assert_allclose(camera.look_at, center, atol=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(camera.position) - np.asarray(camera.look_at), offset, atol=1e-6
+        )
+        d.controls.follow.value = False
+        d._draw_snake(10)
+        np.testing.assert_allclose(camera.look_at, center, atol=1e-6)  # left where it was
+    finally:
+        client.close()
