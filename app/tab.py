@@ -24,7 +24,8 @@ import viser
 from snakeloco.app import panel
 from snakeloco.app.design_panel import DesignPanel
 from snakeloco.app.gait_files import GaitFiles
-from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls, build_sliders
+from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls
+from snakeloco.app.latent_moves import LatentMoves
 from snakeloco.app.playback import Playback
 from snakeloco.app.scene import END_SPREAD, TabScene
 from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
@@ -38,7 +39,12 @@ PHYSICS_NICE = 15
 niced thread never holds the GIL that slider decoding waits for."""
 
 
-class DesignerClient(GaitFiles):
+STREAM_PATH_PERIOD_S = 0.25
+"""How often a streaming replay's growing path is sent to the browser (the whole path is sent again
+each time; the snake's pose goes every animation frame)."""
+
+
+class DesignerClient(GaitFiles, LatentMoves):
     """One browser tab: GUI, scene, session, a decode worker and a physics worker."""
 
     def __init__(
@@ -63,6 +69,7 @@ class DesignerClient(GaitFiles):
         self.decoded: DecodedGait | None = None
         self.simulated: SimulatedGait | None = None
         self.streaming = None  # the current gait's streamed replay so far (sim.StreamedReplay)
+        self._path_drawn = 0.0
         self.timings: deque[Timing] = deque(maxlen=2000)
         self._timing_by_version: dict[int, Timing] = {}
         self._draw_lock = threading.RLock()
@@ -226,47 +233,6 @@ class DesignerClient(GaitFiles):
             self._write_sliders(z)
         self.request_decode()
 
-    def switch_family(self, name: str) -> int | None:
-        """Design with the ``name`` family's model from now on: sliders rebuilt for its z_B, its
-        gait at z_B = 0 decoded (the request version; None if it already is this tab's model)."""
-        model = self.models[name]
-        if model is self.model:
-            return None
-        c = self.controls
-        with self._draw_lock, self._z_lock:
-            self.model = self.session.model = model
-            self.scene.end_spread = END_SPREAD.get(model.family)
-            for handle in (*c.sliders, c.reset_button, c.random_button):
-                handle.remove()
-            c.sliders, c.reset_button, c.random_button = build_sliders(
-                self.client.gui, c.zb_folder, model.z_b_dim
-            )
-            self._programmatic_z = None
-            self._wire_sliders()
-            self.design.forget()
-        if c.family.value != name:
-            c.family.value = name
-        return self.request_decode()
-
-    def _on_zk_mode_changed(self) -> None:
-        with self._z_lock:
-            if self._quiet_mode_events:  # set from Python by show_latents, which decodes itself
-                self._quiet_mode_events -= 1
-                return
-        self.request_decode()
-
-    def show_latents(self, z_b: np.ndarray) -> int:
-        """Make the gait of exactly ``z_b`` (z_k = 0) current, the sliders moved there (rounded to
-        their step: the drawn gait stays the exact one until a slider is moved)."""
-        self._clear_baseline()
-        with self._z_lock:
-            self._programmatic_z = self._write_sliders(z_b)
-            if self.controls.zk_mode.value != "zero":
-                self._quiet_mode_events += 1  # its on_update must not decode the rounded sliders
-                self.controls.zk_mode.value = "zero"
-        latents = Latents(tuple(float(v) for v in z_b), "zero", int(self.controls.zk_seed.value), 1.0)
-        return self._submit(self.decoder, latents)
-
     def _resample(self) -> None:
         self.controls.zk_mode.value = "sampled"
         self.controls.zk_seed.value = int(self.controls.zk_seed.value) + 1
@@ -315,8 +281,11 @@ class DesignerClient(GaitFiles):
                 return False
             first = self.streaming is None
             self.streaming = part
-            with self.client.atomic():
-                self.scene.draw_streaming(part.body, part.qpos[0])
+            now = time.perf_counter()
+            if first or now - self._path_drawn > STREAM_PATH_PERIOD_S:  # the snake moves every frame
+                self._path_drawn = now
+                with self.client.atomic():
+                    self.scene.draw_streaming(part.body, part.qpos[0])
             if first:
                 self.playback.restart()
                 self._draw_snake(0)
