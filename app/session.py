@@ -135,15 +135,17 @@ class GaitSession:
     def replay(self, gait: DecodedGait) -> SimulatedGait:
         """Replay the commands (one thread); raises SimulationError if physics breaks."""
         t0 = time.perf_counter()
-        result = self._replayer.replay(gait.commands)
-        replay_ms = 1e3 * (time.perf_counter() - t0)
+        return self._simulated(self._replayer.replay(gait.commands), t0)
+
+    def _simulated(self, result, t0: float) -> SimulatedGait:
+        """A whole replay (``ReplayResult`` or the last ``StreamedReplay``) begun at ``t0``."""
         return SimulatedGait(
             joint_angles=result.joint_angles,
             body=result.body,
             qpos=result.qpos,
             shape=joint_shape(result.joint_angles, self._replayer.excitation),
             ensemble_body=result.body[None],
-            replay_ms=replay_ms,
+            replay_ms=1e3 * (time.perf_counter() - t0),
         )
 
     def replay_streamed(
@@ -159,14 +161,7 @@ class GaitSession:
                 raise SimulationError(part.failure)
             if not on_part(part):
                 return None
-        return SimulatedGait(
-            joint_angles=part.joint_angles,
-            body=part.body,
-            qpos=part.qpos,
-            shape=joint_shape(part.joint_angles, self._replayer.excitation),
-            ensemble_body=part.body[None],
-            replay_ms=1e3 * (time.perf_counter() - t0),
-        )
+        return self._simulated(part, t0)
 
     def run_ensemble(
         self,
