@@ -1,0 +1,70 @@
+"""``snakeloco design``: run the search and its verification, write candidate_N.csv (gait CSV) and
+report.json to the command's OUT, say whether the target was met (or the closest reached)."""
+
+from __future__ import annotations
+
+import json as jsonlib
+import time
+
+
+def write_design(cmd) -> dict:
+    """Design, write the candidates' gait CSVs and report.json, say whether the target was met."""
+    from snakeloco.app.gait_csv import write_gait_csv
+    from snakeloco.model import load_pretrained
+    from snakeloco.model.design import design
+
+    t0 = time.perf_counter()
+    model = load_pretrained(cmd.checkpoint)
+    result = design(model, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers)
+    cmd.out.mkdir(parents=True, exist_ok=True)
+    candidates = []
+    for rank, c in enumerate(result.candidates, start=1):
+        csv = cmd.out / f"candidate_{rank}.csv"
+        comments = {
+            "snakeloco gait": "commands (rad) at 20 Hz, replay with `snakeloco` or sim.replay",
+            "designed for": _target_text(cmd.target),
+            "z_B": "[" + ", ".join(f"{v:.4f}" for v in c.z_b) + "]",
+            "z_k mode": "zero",
+            "checkpoint sha256": model.hash,
+            "simulated": "broke"
+            if c.simulated is None
+            else f"forward {c.simulated[0]:.3f} m, sideways "
+            f"{c.simulated[1]:.3f} m, heading {c.simulated[2]:.1f} deg, error {c.error_m:.3f} m, ensemble "
+            f"spread {c.spread_m:.3f} m",
+        }
+        csv.write_text(write_gait_csv(model.commands(c.shape), comments))
+        candidates.append({"csv": str(csv), **c.report()})
+    report = {
+        "target": cmd.target.model_dump(),
+        "tolerance_m": result.tolerance_m,
+        "met": result.met,
+        "candidates": candidates,
+        "checkpoint": str(model.path),
+        "search_s": result.search_s,
+        "physics_s": result.physics_s,
+        "seconds": time.perf_counter() - t0,
+    }
+    (cmd.out / "report.json").write_text(jsonlib.dumps(report, indent=1))
+    best = result.candidates[0] if result.candidates else None
+    if best is None or best.simulated is None:
+        print(f"not met: every candidate broke the simulation; report in {cmd.out / 'report.json'}")
+    else:
+        where = f"forward {best.simulated[0]:.2f} m, sideways {best.simulated[1]:.2f} m"
+        verdict = "met" if result.met else "not met: the closest reached is"
+        print(
+            f"{verdict} {where} ({best.error_m:.2f} m from the target, tolerance {result.tolerance_m:.2f} m; "
+            f"ensemble spread {best.spread_m:.2f} m); {len(candidates)} candidates in {cmd.out} "
+            f"(search {result.search_s:.1f} s, physics {result.physics_s:.1f} s)"
+        )
+    if cmd.json:
+        print(jsonlib.dumps(report))
+    return report
+
+
+def _target_text(t) -> str:
+    text = f"forward {t.forward} m, sideways {t.sideways} m"
+    if t.heading is not None:
+        text += f", heading {t.heading} deg"
+    if t.max_roll is not None:
+        text += f", |net roll| <= {t.max_roll} rad"
+    return text
