@@ -12,6 +12,7 @@ import trimesh
 import viser
 
 from snakeloco.app.session import DecodedGait, SimulatedGait
+from snakeloco.app.viser_patches import set_arrays
 from snakeloco.sim import BODY_DOWNSAMPLE, LINK_LENGTH, LINK_RADIUS, N_LINKS, LinkPoses
 
 JOINT_COLORS = np.array(
@@ -211,12 +212,18 @@ class TabScene:
 
     def draw_snake(self, qpos: np.ndarray, follow: bool = False) -> None:
         """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame; with
-        ``follow``, move the camera with the snake (the same offset from it, as the user left it)."""
+        ``follow``, move the camera with the snake (the same offset from it, as the user left it).
+
+        One frame is one message group (``atomic``): both pose arrays in a single update message,
+        and the camera with them. Nothing is sent for a snake whose layer is off, unless the
+        camera follows it."""
+        if not (follow or self.layers["Snake"].value):
+            return
         positions, wxyzs = self.kinematics.poses(qpos, self.start)
-        self.snake.batched_positions = positions
-        self.snake.batched_wxyzs = wxyzs
-        if follow:  # viser moves look_at with position: one shift keeps the view, centred on the snake
-            camera = self.client.camera
-            camera.position = tuple(
-                np.asarray(camera.position) + positions.mean(axis=0) - np.asarray(camera.look_at)
-            )
+        with self.client.atomic():
+            set_arrays(self.snake, batched_positions=positions, batched_wxyzs=wxyzs)
+            if follow:  # viser moves look_at with position: one shift keeps the view on the snake
+                camera = self.client.camera
+                camera.position = tuple(
+                    np.asarray(camera.position) + positions.mean(axis=0) - np.asarray(camera.look_at)
+                )

@@ -240,6 +240,7 @@ class DesignerClient(GaitFiles, LatentMoves):
     def _apply_layers(self) -> None:
         with self._draw_lock, self.client.atomic():
             self.scene.apply_layers(simulated=self.simulated is not None)
+        self._draw_snake()  # a snake whose layer was off was not posed meanwhile
 
     # --- the jobs: decode -> draw | replay -> draw -> ensemble -> draw ----------------------------
 

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import viser
+from viser import _messages
 
 TARGET_VISER = "1.1"
 """The viser minor version these patches were written and tested against."""
@@ -24,8 +26,6 @@ def refuse_large_uploads(
     does not know). Returns whether the patch took; where it did not, callers still check the size
     in ``on_upload``.
     """
-    from viser import _messages
-
     gui = server.gui
     interface = getattr(gui, "_websock_interface", None)
     original = getattr(gui, "_handle_file_transfer_start", None)
@@ -46,3 +46,39 @@ def refuse_large_uploads(
         return False
     interface.register_handler(_messages.FileTransferStartUpload, bounded)
     return True
+
+
+def set_arrays(handle, **values: np.ndarray) -> None:
+    """Assign several array properties of a scene node in one update message.
+
+    viser sends one ``SceneNodeUpdateMessage`` per assigned property; a snake pose is two (link
+    positions and orientations), 20 times a second per animating tab. Here the handle's stored
+    props are updated as viser's own setter does (same dtype, a private copy for the wire) and one
+    message carries both. Where the internals differ, each property is assigned the usual way.
+    """
+    impl = getattr(handle, "_impl", None)
+    api = getattr(impl, "api", None)
+    props = getattr(impl, "props", None)
+    if (
+        api is None
+        or props is None
+        or not hasattr(api, "_queue_scene_message")
+        or getattr(impl, "removed", False)
+        or not all(isinstance(getattr(props, name, None), np.ndarray) for name in values)
+    ):
+        for name, value in values.items():
+            setattr(handle, name, value)
+        return
+    updates = {}
+    for name, value in values.items():
+        current = getattr(props, name)
+        value = np.asarray(value, dtype=current.dtype)
+        if value.shape == current.shape:
+            if np.array_equal(current, value):
+                continue
+            current[:] = value
+        else:
+            setattr(props, name, value.copy())
+        updates[name] = value.copy()
+    if updates:
+        api._queue_scene_message(_messages.SceneNodeUpdateMessage(impl.name, updates))

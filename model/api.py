@@ -139,15 +139,20 @@ class GaitModel:
             )
         _finite("body_ds", body_ds)
         with self._lock, torch.inference_mode():
-            mu, _ = self.net.encode_body(self.normalize_body(body_ds))
-            joints = self.net.run_joints(mu, self.normalize_shape(shape), sample_posterior=False)
+            x = self.normalize_shape(shape)
+            mu, _ = self.net.encode_body(self.normalize_body(body_ds), x)
+            joints = self.net.run_joints(mu, x, sample_posterior=False)
         return mu.numpy().astype(np.float64), joints["z_j"].numpy().astype(np.float64)
 
-    def encode_body(self, body_ds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """q(z_B | x_B): body series (B, 500, 6) -> posterior mean and log-variance, each (B, Db)."""
+    def encode_body(
+        self, body_ds: np.ndarray, shape: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """q(z_B | x_B): body series (B, 500, 6) -> posterior mean and log-variance, each (B, Db).
+        A model whose encoder sees the joint signals also needs the records' shapes (B, 8, L, 2)."""
         body_ds = _finite("body_ds", np.asarray(body_ds, np.float64))
+        x = None if shape is None else self.normalize_shape(self._check_shape(shape))
         with self._lock, torch.inference_mode():
-            mu, logvar = self.net.encode_body(self.normalize_body(body_ds))
+            mu, logvar = self.net.encode_body(self.normalize_body(body_ds), x)
         return mu.numpy().astype(np.float64), logvar.numpy().astype(np.float64)
 
     def decode(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -51,6 +51,17 @@ class ModelConfig(BaseModel):
         "decoder of z_B alone at 1/8 of the body's rate cannot draw. For the structured family; "
         "off for the paper family, whose body does not follow its joints.",
     )
+    body_signals_see_latent: bool = Field(
+        False,
+        description="Feed z_B (broadcast over time) to the joint-signal convolution beside the signals "
+        "(needs body_sees_signals): the phase and size of a gait's vertical and pitch oscillation "
+        "relative to its joints depend on how the body settled, which the signals alone do not say.",
+    )
+    encoder_sees_signals: bool = Field(
+        False,
+        description="Feed the gait's joint signals to the body encoder beside the body series, so that "
+        "z_B can carry the body's oscillation relative to the joints (with body_signals_see_latent).",
+    )
     body_sees_stats: bool = Field(
         True,
         description="Modulate the body decoder by the gait's predicted body statistics (model "

@@ -77,7 +77,7 @@ def latent_health(model: GaitModel, z_b: np.ndarray, z_j: np.ndarray, shape, bod
     rng = np.random.default_rng(seed)
     n = min(len(z_b), 1024)
     # Samples of the aggregate posterior q(z_B): posterior means plus their own noise.
-    _, logvar = model.encode_body(body_ds[:n])
+    _, logvar = model.encode_body(body_ds[:n], np.asarray(shape[:n]))
     std = np.exp(0.5 * logvar)
     q = z_b[:n] + std * rng.standard_normal(std.shape)
     mmd = mmd_numpy(q, rng.standard_normal(q.shape))

@@ -172,7 +172,7 @@ def fit_path_decoder(
         if z_b is None:  # a record: its posterior means
             zb, zj = [], []
             for i in range(0, len(x), BATCH):
-                mu, _ = net.encode_body(y[i : i + BATCH])
+                mu, _ = net.encode_body(y[i : i + BATCH], x[i : i + BATCH])
                 zb.append(mu)
                 zj.append(net.run_joints(mu, x[i : i + BATCH], sample_posterior=False)["z_j"])
             return [torch.cat(zb), torch.cat(zj), st, x, y]

@@ -87,6 +87,8 @@ class HierarchicalVAE(nn.Module):
         self.cfg = cfg
         c1, c2, c3 = cfg.cnn_channels
         c_in = cfg.body_channels + cfg.positional_channels
+        if cfg.encoder_sees_signals:
+            c_in += 2 * cfg.n_joints
         pad = cfg.kernel // 2
         self.encoder = nn.Sequential(
             _SeparableConv(c_in, c1, cfg.kernel),
@@ -128,7 +130,7 @@ class HierarchicalVAE(nn.Module):
             # A residual from the joint signals to the body, zero-initialised (training starts from
             # the z_B decoder); circular like the signals, which are periodic over the record.
             body_sig: list[nn.Module] = []
-            c_prev = 2 * cfg.n_joints
+            c_prev = 2 * cfg.n_joints + (cfg.z_b_dim if cfg.body_signals_see_latent else 0)
             for d in cfg.signal_dilations:
                 body_sig += [
                     nn.Conv1d(
@@ -230,11 +232,18 @@ class HierarchicalVAE(nn.Module):
         )
         return torch.cat([q, dq], dim=1)  # (B, 2K, T)
 
-    def encode_body(self, body: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """body (B, T, C) -> mu, logvar (B, Db)."""
+    def encode_body(
+        self, body: torch.Tensor, shape: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """body (B, T, C) and, when ``cfg.encoder_sees_signals``, the record's normalised joint shape
+        (B, K, L, 2) -> mu, logvar (B, Db)."""
         x = body.transpose(1, 2)  # (B, C, T)
-        pos = self.positional.expand(x.shape[0], -1, -1)  # (B, P, T)
-        h = self.encoder(torch.cat([x, pos], dim=1))  # (B, c3, T/8)
+        parts = [x, self.positional.expand(x.shape[0], -1, -1)]  # (B, P, T)
+        if self.cfg.encoder_sees_signals:
+            if shape is None:
+                raise ValueError("this body encoder sees the gait's joint signals: pass its shape")
+            parts.append(self.joint_signals(shape))
+        h = self.encoder(torch.cat(parts, dim=1))  # (B, c3, T/8)
         mu, logvar = self.enc_head(h.mean(dim=2)).chunk(2, dim=1)  # global average pooling
         return mu, logvar.clamp(-12.0, 6.0)
 
@@ -261,7 +270,10 @@ class HierarchicalVAE(nn.Module):
         if self.cfg.body_sees_signals:
             if shape is None:
                 raise ValueError("this body decoder sees the gait's joint signals: pass its shape")
-            x = x + self.body_sig(self.joint_signals(shape))
+            sig = self.joint_signals(shape)  # (B, 2K, T)
+            if self.cfg.body_signals_see_latent:
+                sig = torch.cat([sig, z_b[:, :, None].expand(-1, -1, sig.shape[2])], dim=1)
+            x = x + self.body_sig(sig)
         return x.transpose(1, 2)
 
     def predict_stats(self, shape: torch.Tensor) -> torch.Tensor:
@@ -352,7 +364,7 @@ class HierarchicalVAE(nn.Module):
 
     def forward(self, shape: torch.Tensor, body: torch.Tensor, sample: bool = True) -> Output:
         """Reconstruct normalised shape (B, K, L, 2) and body (B, T, C) through the posteriors."""
-        mu, logvar = self.encode_body(body)
+        mu, logvar = self.encode_body(body, shape)
         z_b = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         joints = self.run_joints(z_b, shape, sample_posterior=sample)
         stats = self.predict_stats(shape)  # teacher forcing: the true shape

@@ -73,10 +73,18 @@ class TrainPreset(NamedTuple):
 
 PRESETS: dict[str, TrainPreset] = {
     "paper": TrainPreset(TrainConfig(epochs=140), ModelConfig()),
+    "structured": TrainPreset(
+        TrainConfig(epochs=200, cycle_epochs=50.0),
+        ModelConfig(
+            z_b_dim=8, body_sees_signals=True, body_signals_see_latent=True, encoder_sees_signals=True
+        ),
+    ),
 }
 """``snakeloco train --preset NAME`` starts from these (any option still overrides them). ``paper``:
 the shipped checkpoint of the paper family (``model/pretrained``), 140 epochs on the 4096-record
-dataset (docs/model.md)."""
+dataset (docs/model.md). ``structured``: the structured family's recipe, chosen on its first 1744
+records (docs/model-notes.md: z_B of 8, the body decoder and encoder both seeing the joint
+signals, 200 epochs in cycles of 50)."""
 
 
 def cyclic_lr(epoch: float, cfg: TrainConfig) -> float:
