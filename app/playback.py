@@ -13,6 +13,29 @@ from snakeloco.sim import RECORD
 SCRUBBER_PERIOD_S = 0.5
 """How often the playing animation moves the time scrubber (the snake itself moves every frame)."""
 
+PAUSE_WHEN_HIDDEN_JS = """
+(() => {
+  if (window.__snakelocoPauseWhenHidden) return;
+  window.__snakelocoPauseWhenHidden = true;
+  const button = (label) =>
+    Array.from(document.querySelectorAll("button")).find((b) => b.textContent.trim() === label);
+  let pausedByHiding = false;
+  document.addEventListener("visibilitychange", () => {
+    if (document.hidden) {
+      const pause = button("Pause");
+      if (pause) { pause.click(); pausedByHiding = true; }
+    } else if (pausedByHiding) {
+      pausedByHiding = false;
+      const play = button("Play");
+      if (play) play.click();
+    }
+  });
+})();
+"""
+"""Sent to each page: while the tab is hidden (another browser tab in front, a minimised window)
+the page presses Pause, and Play again when it is shown, so a hidden tab receives no poses. A
+user's own Pause stays (the page only undoes the pause it made)."""
+
 
 class Playback:
     """Which record sample the snake shows, advanced one sample per frame at speed 1 (20 Hz).

@@ -49,6 +49,8 @@ family's decoded path is drawn thin, with a ring of that radius around its end w
 likely to end; a family not listed (structured: its records were kept only where physics predicts
 them) is drawn as the line it is."""
 BAND_COLOR = (245, 160, 60)
+FAN_STEP = 2 * BODY_DOWNSAMPLE
+"""The ensemble fan is drawn at 2.5 Hz (thin grey lines; the simulated path at the body's 5 Hz)."""
 
 
 def ring(center: np.ndarray, radius: float, n: int = 72) -> np.ndarray:
@@ -98,7 +100,11 @@ class TabScene:
             batched_wxyzs=np.tile([1.0, 0, 0, 0], (N_LINKS, 1)),
             batched_positions=np.zeros((N_LINKS, 3)),
         )
-        self.gen_path = self.sim_path = self.fan = self.band = None
+        self.gen_path = self.sim_path = self.band = None
+        self.fan: list[viser.LineSegmentsHandle] = []  # one node per batch of ensemble members
+        self._fan_members: list[int] = []
+        self._sim_drawn = 0  # replay samples the simulated path shows
+        self._measured: np.ndarray | None = None  # the re-measured shape drawn
         self.end_spread: float | None = None  # END_SPREAD of the tab's family
         scene.add_label("/shapes/decoded/label", "decoded joint shape", position=(0, 0, 1.15))
         scene.add_label("/shapes/measured/label", "re-measured joint shape", position=(0, 0, 1.15))
@@ -121,18 +127,20 @@ class TabScene:
             self.band.visible = on["Generated path"] and self.end_spread is not None
         if self.sim_path is not None:
             self.sim_path.visible = on["Simulated path"] and simulated
-        if self.fan is not None:
-            self.fan.visible = on["Ensemble fan"] and simulated
+        for node in self.fan:
+            node.visible = on["Ensemble fan"] and simulated
         for frame in self.shape_frames.values():
             frame.visible = on["Joint shapes"]
 
-    def _line(self, which: str, segments: np.ndarray, color, thickness: float, layer: str):
+    def _line(self, which: str, segments: np.ndarray, color, thickness: float, layer: str, z0: float):
+        """A path node at height ``z0`` (its points carry the body's height relative to the start)."""
         return self.client.scene.add_line_segments(
             f"/paths/{which}",
             segments,
             color,
             thickness=thickness,
             thickness_units="screen",
+            position=(0.0, 0.0, z0),
             visible=self.layers[layer].value,
         )
 
@@ -143,50 +151,61 @@ class TabScene:
         )
 
     def draw_decoded(self, gait: DecodedGait) -> None:
-        """The decoded path and joint shape; the previous replay's nodes are hidden."""
+        """The decoded path and joint shape; the previous replay's nodes are hidden (its fan removed)."""
         if gait.body_ds is not None:
             self._draw_generated(gait.body_ds, LINK_RADIUS)
         else:
             for node in (self.gen_path, self.band):
                 if node is not None:
                     node.visible = False
-        for node in (self.sim_path, self.fan):
-            if node is not None:
-                node.visible = False
+        if self.sim_path is not None:
+            self.sim_path.visible = False
+        for node in self.fan:
+            node.remove()
+        self.fan, self._fan_members = [], []
+        self._sim_drawn = 0
+        self._measured = None
         self._cloud("decoded", gait.shape)
 
-    def draw_streaming(self, body: np.ndarray, qpos0: np.ndarray) -> None:
-        """The simulated path so far (a streamed replay's first samples); the fan of the previous
-        gait stays hidden."""
-        self.start = self.kinematics.start_frame(qpos0)
+    def _draw_sim_path(self, body: np.ndarray) -> None:
+        """The simulated path at the body series' rate (the decoded path's, ``BODY_DOWNSAMPLE``),
+        unless this many samples of it are drawn already."""
+        if len(body) <= max(self._sim_drawn, 1):
+            return
+        points = path_points(body[::BODY_DOWNSAMPLE], 0.0)
+        if len(body) % BODY_DOWNSAMPLE != 1:  # end where the replay so far ends
+            points = np.concatenate([points, path_points(body[-1:], 0.0)])
         z0 = float(self.start[0][2])
-        if len(body) > 1:
-            self.sim_path = self._line(
-                "simulated", polyline(path_points(body, z0)), SIM_COLOR, 4.0, "Simulated path"
-            )
+        self.sim_path = self._line("simulated", polyline(points), SIM_COLOR, 4.0, "Simulated path", z0)
+        self._sim_drawn = len(body)
+
+    def draw_streaming(self, body: np.ndarray, qpos0: np.ndarray) -> None:
+        """The simulated path so far (a streamed replay's first samples)."""
+        self.start = self.kinematics.start_frame(qpos0)
+        self._draw_sim_path(body)
 
     def draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
         """The simulated path (and the ensemble fan once it ran), the re-measured joint shape, and the
-        decoded path again at the replay's starting height."""
+        decoded path moved to the replay's starting height: only what is not drawn already (a
+        streamed replay drew its path, an ensemble's batches their members)."""
         self.start = self.kinematics.start_frame(sim.qpos[0])
         z0 = float(self.start[0][2])
-        self.sim_path = self._line(
-            "simulated", polyline(path_points(sim.body, z0)), SIM_COLOR, 4.0, "Simulated path"
-        )
+        self._draw_sim_path(sim.body)
         if ensemble and len(sim.ensemble_body) > 1:
             self.draw_fan(sim.ensemble_body)
-        elif self.fan is not None:
-            self.fan.visible = False
-        if self.gen_path is not None and gait.body_ds is not None:
-            self._draw_generated(gait.body_ds, z0)
-        self._cloud("measured", sim.shape)
+        for node in (self.gen_path, self.band):
+            if node is not None:
+                node.position = (0.0, 0.0, z0)
+        if self._measured is not sim.shape:
+            self._cloud("measured", sim.shape)
+            self._measured = sim.shape
 
     def _draw_generated(self, body: np.ndarray, z0: float) -> None:
         """The decoded path: the line it is, or, for a family in ``END_SPREAD``, a thin mean path and
         a ring where the replay is likely to end."""
-        points = path_points(body, z0)
+        points = path_points(body, 0.0)
         thickness = 4.0 if self.end_spread is None else 1.5
-        self.gen_path = self._line("generated", polyline(points), GEN_COLOR, thickness, "Generated path")
+        self.gen_path = self._line("generated", polyline(points), GEN_COLOR, thickness, "Generated path", z0)
         if self.end_spread is None:
             if self.band is not None:
                 self.band.visible = False
@@ -198,17 +217,21 @@ class TabScene:
             BAND_COLOR,
             thickness=2.0,
             thickness_units="screen",
+            position=(0.0, 0.0, z0),
             visible=self.layers["Generated path"].value,
         )
 
     def draw_fan(self, ensemble_body: np.ndarray) -> None:
-        """The ensemble's perturbed members (K, T, 6; member 0, the replay, is the simulated path),
-        at the current replay's starting height: drawn as the members come in."""
-        z0 = float(self.start[0][2])
-        members = ensemble_body[1:, ::BODY_DOWNSAMPLE]
+        """The ensemble's perturbed members (K, T, 6; member 0, the replay, is the simulated path)
+        that are not drawn yet, one node a batch, at ``FAN_STEP`` (drawn as the members come in)."""
+        members = ensemble_body[1 + sum(self._fan_members) :, ::FAN_STEP]
         if len(members):
-            segments = np.concatenate([polyline(path_points(b, z0)) for b in members])
-            self.fan = self._line("ensemble", segments, FAN_COLOR, 1.0, "Ensemble fan")
+            segments = np.concatenate([polyline(path_points(b, 0.0)) for b in members])
+            z0 = float(self.start[0][2])
+            self.fan.append(
+                self._line(f"ensemble/{len(self.fan)}", segments, FAN_COLOR, 1.0, "Ensemble fan", z0)
+            )
+            self._fan_members.append(len(members))
 
     def draw_snake(self, qpos: np.ndarray, follow: bool = False) -> None:
         """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame; with

@@ -26,9 +26,10 @@ from snakeloco.app.design_panel import DesignPanel
 from snakeloco.app.gait_files import GaitFiles
 from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls
 from snakeloco.app.latent_moves import LatentMoves
-from snakeloco.app.playback import Playback
+from snakeloco.app.playback import PAUSE_WHEN_HIDDEN_JS, Playback
 from snakeloco.app.scene import END_SPREAD, TabScene
 from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
+from snakeloco.app.viser_patches import run_javascript
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, SimulationError, Simulator
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
@@ -95,6 +96,7 @@ class DesignerClient(GaitFiles, LatentMoves):
             self._closed,
             name=f"animate-{client.client_id}",
         )
+        run_javascript(client, PAUSE_WHEN_HIDDEN_JS)
         self.request_decode()
 
     @property
@@ -350,7 +352,8 @@ class DesignerClient(GaitFiles, LatentMoves):
     def _draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
         with self.client.atomic():
             self.scene.draw_simulated(gait, sim, ensemble)
-            self.controls.show_paths(gait.body_ds, sim.body[::BODY_DOWNSAMPLE])
+            if not ensemble:  # the ensemble's draw follows the replay's: the same two series
+                self.controls.show_paths(gait.body_ds, sim.body[::BODY_DOWNSAMPLE])
             self.controls.panel.content = panel.simulated_text(gait, sim, ensemble)
         self._draw_snake()
 

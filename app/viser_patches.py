@@ -82,3 +82,14 @@ def set_arrays(handle, **values: np.ndarray) -> None:
         updates[name] = value.copy()
     if updates:
         api._queue_scene_message(_messages.SceneNodeUpdateMessage(impl.name, updates))
+
+
+def run_javascript(client: viser.ClientHandle, source: str) -> bool:
+    """Run ``source`` once in ``client``'s page (viser's own message for plotly's set-up); whether
+    it was sent."""
+    connection = getattr(client, "_websock_connection", None)
+    message = getattr(_messages, "RunJavascriptMessage", None)
+    if connection is None or message is None or not hasattr(connection, "queue_message"):
+        return False
+    connection.queue_message(message(source=source))
+    return True

@@ -69,3 +69,47 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
             browser.close()
     finally:
         srv.stop()
+
+
+def _set_hidden(page, hidden: bool) -> None:
+    """What a browser does when its tab goes to the background (or comes back)."""
+    state = "hidden" if hidden else "visible"
+    page.evaluate(
+        f"""() => {{
+            Object.defineProperty(document, "hidden", {{value: {str(hidden).lower()}, configurable: true}});
+            Object.defineProperty(document, "visibilityState", {{value: "{state}", configurable: true}});
+            document.dispatchEvent(new Event("visibilitychange"));
+        }}"""
+    )
+
+
+def test_a_hidden_tab_pauses_its_animation_and_resumes_when_shown(checkpoint):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    try:
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.goto(f"http://127.0.0.1:{srv.port}")
+            assert wait_until(lambda: len(srv.clients) == 1), "the page never connected"
+            d = next(iter(srv.clients.values()))
+            assert d.wait_idle(90) and d.playback.playing
+            page.get_by_role("button", name="Pause").wait_for(timeout=30000)
+            _set_hidden(page, True)
+            assert wait_until(lambda: not d.playback.playing, 30), "hiding the tab did not pause it"
+            frame = d.playback.frame
+            page.wait_for_timeout(500)
+            assert d.playback.frame == frame  # no poses while hidden
+            _set_hidden(page, False)
+            assert wait_until(lambda: d.playback.playing, 30), "showing the tab did not resume it"
+            # A user's own pause survives hiding and showing the tab.
+            page.get_by_role("button", name="Pause").click()
+            assert wait_until(lambda: not d.playback.playing, 30)
+            _set_hidden(page, True)
+            page.wait_for_timeout(300)
+            _set_hidden(page, False)
+            page.wait_for_timeout(1000)
+            assert not d.playback.playing
+            browser.close()
+    finally:
+        srv.stop()
