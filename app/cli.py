@@ -26,6 +26,7 @@ from snakeloco.app.commands import (
     BenchModel,
     BenchScale,
     BenchSim,
+    BenchTabs,
     Calibrate,
     Command,
     Design,
@@ -264,6 +265,7 @@ def run_bench(cmd: Command) -> dict:
         BenchModel: report.model,
         BenchApp: report.app,
         BenchLoad: report.load,
+        BenchTabs: report.tabs,
         BenchScale: report.scale,
         BenchDesign: report.design,
     }

@@ -221,6 +221,24 @@ class BenchLoad(Command):
     """Let the pages draw the 3D view and animate the snake (software WebGL: far fewer slider updates)."""
     pin_cpus: bool = False
     """Pin the server to the first half of the CPUs and the browsers to the second half."""
+    single_seconds: Annotated[float | None, Field(gt=0)] = None
+    """Length of the single-client phase (default: --seconds), e.g. a short reference before a
+    10-minute multi-client run that watches memory."""
+
+
+class BenchTabs(Command):
+    """Several designer tabs rendering and animating in one headless Chromium: key press -> value at the server, Export CSV time."""
+
+    tabs: Annotated[int, Field(ge=1)] = 3
+    """Pages in the one browser, all animating."""
+    rounds: Annotated[int, Field(ge=1)] = 10
+    """Key presses per tab (one tab after another)."""
+    json: bool = False
+    """Print the figures as one JSON object on the last line."""
+    checkpoint: Path | None = None
+    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    ensemble: Ensemble = ENSEMBLE_SIZE
+    """Replays per gait (as in `snakeloco serve`)."""
 
 
 class BenchScale(Command):
@@ -260,7 +278,7 @@ class BenchDesign(Command):
 
 
 class Bench(Command):
-    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,scale,design} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design} --help`."""
 
 
 COMMANDS: dict[str, type[Command]] = {
@@ -279,6 +297,7 @@ BENCHES: dict[str, type[Command]] = {
     "model": BenchModel,
     "app": BenchApp,
     "load": BenchLoad,
+    "tabs": BenchTabs,
     "scale": BenchScale,
     "design": BenchDesign,
 }

@@ -18,7 +18,7 @@ import numpy as np
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, BODY_RATE, SimulationError, Simulator, joint_shape
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, compare, perturbed_commands
-from snakeloco.sim.physics import StreamedReplay
+from snakeloco.sim.physics import StreamedReplay, replay_runner
 
 ZkMode = Literal["zero", "sampled"]
 
@@ -88,6 +88,7 @@ class GaitSession:
         workers: int | None = None,
         physics_nice: int = 0,
         simulator: Simulator | None = None,
+        replay_nice: int = 0,
     ) -> None:
         self.model = model
         self.ensemble = ensemble
@@ -103,6 +104,9 @@ class GaitSession:
                 Simulator(workers, nice=physics_nice),
             ]
         self._replayer, self._ensembler = self._owned or (simulator, simulator)
+        # Streamed replays run on a native thread of the session's own, ``replay_nice`` below the
+        # caller: below a server's own threads (decoding, drawing), above its ensembles.
+        self._stream_runner = replay_runner(replay_nice)
 
     @property
     def simulator(self) -> Simulator:
@@ -113,6 +117,7 @@ class GaitSession:
         """Stop the native threads of the simulators this session owns."""
         for simulator in self._owned:
             simulator.close()
+        self._stream_runner.close()
 
     def decode(self, latents: Latents) -> DecodedGait:
         """Decode latents to a joint shape, a body path and resynthesised commands."""
@@ -156,7 +161,7 @@ class GaitSession:
         bit), or None where ``on_part`` stopped it; raises SimulationError if physics breaks."""
         t0 = time.perf_counter()
         part = None
-        for part in self._replayer.stream(gait.commands):
+        for part in self._replayer.stream(gait.commands, runner=self._stream_runner):
             if part.failure is not None:
                 raise SimulationError(part.failure)
             if not on_part(part):

@@ -135,6 +135,12 @@ def _start_pool(nthread: int, nice: int) -> mj_rollout.Rollout:
     return made[0]
 
 
+def replay_runner(nice: int) -> mj_rollout.Rollout:
+    """A one-thread rollout pool at ``nice`` below the caller, for ``Simulator.stream`` (close it
+    when done): a server runs its tabs' replays below its own threads and above its ensembles."""
+    return _start_pool(1, nice) if nice > 0 else mj_rollout.Rollout(nthread=1)
+
+
 def resolve_workers(workers: int | None) -> int:
     """Simulation threads to use: ``workers``, or one per core of this machine where it is None."""
     return max(1, int(workers)) if workers is not None else (os.cpu_count() or 1)
@@ -296,15 +302,25 @@ class Simulator:
             )
         return None
 
-    def stream(self, commands: np.ndarray, chunk_samples: int = STREAM_CHUNK) -> Iterator[StreamedReplay]:
+    def stream(
+        self,
+        commands: np.ndarray,
+        chunk_samples: int = STREAM_CHUNK,
+        runner: mj_rollout.Rollout | None = None,
+    ) -> Iterator[StreamedReplay]:
         """Replay one record (T, 8) rad in chunks of ``chunk_samples`` record samples, yielding after
         each chunk everything simulated so far (the first chunk also holds the lead-in).
 
         The physics state and the solver's warm start carry over from chunk to chunk, so the arrays
-        are bit-identical to ``replay``'s (prefixes of them until the last part). Each chunk takes
-        the simulator's lock on its own, so other callers' batches run between chunks; a caller that
-        stops iterating (a superseded replay) stops the physics at that chunk boundary. A chunk that
-        breaks the simulation ends the stream with its ``failure`` set.
+        are bit-identical to ``replay``'s (prefixes of them until the last part). The chunks run on
+        the calling thread with an ``MjData`` of the stream's own, outside the simulator's lock (the
+        rollout releases the GIL): a replay never waits in line behind other callers' batches, the
+        operating system shares the cores, and a simulator with ``nice`` > 0 runs its batches below
+        the streams' priority (an interactive replay preempts ensembles). A caller that stops
+        iterating (a superseded replay) stops the physics at that chunk boundary. A chunk that
+        breaks the simulation ends the stream with its ``failure`` set. ``runner``: a one-thread
+        pool (``replay_runner``) to run the chunks on at its own priority instead of the calling
+        thread's (same results).
         """
         commands = np.asarray(commands, dtype=np.float64)
         n_t = self.excitation.n_samples
@@ -322,13 +338,15 @@ class Simulator:
             n_steps,
         ]
         initial, warm, done = self.initial_state[None], np.zeros((1, m.nv)), 0
+        data = mujoco.MjData(m)
         for end in bounds:
-            with self._lock:
-                if self._closed:
-                    raise SimulationError("the simulator was closed (the server is stopping)")
-                data = self._datas[0]
+            if self._closed:
+                raise SimulationError("the simulator was closed (the server is stopping)")
+            if runner is None:
                 s, se = mj_rollout.rollout(m, data, initial, ctrl[:, done:end], initial_warmstart=warm)
-                warm = data.qacc_warmstart[None].copy()
+            else:
+                s, se = runner.rollout(m, [data], initial, ctrl[:, done:end], initial_warmstart=warm)
+            warm = data.qacc_warmstart[None].copy()
             state[done:end], sens[done:end] = s[0], se[0]
             initial, done = s[:, -1], end
             failure = self._diagnose_one(state[:done], sens[:done], m.opt.timestep)

@@ -237,6 +237,8 @@ def test_bench_app_json(checkpoint, capsys):
     assert 0 < result["decoded_p50_ms"] <= result["first_motion_p50_ms"] <= result["replay_ready_p50_ms"]
     assert result["first_motion_p95_ms"] >= result["first_motion_p50_ms"]
     assert result["replay_ratio"] > 0 and result["ensemble_ratio"] > 0
+    # An animating tab gets a pose a frame (~200 B of arrays each at 20 Hz); a move, its paths and plots.
+    assert 2e3 < result["animating_bytes_per_s"] < 1e5 and result["bytes_per_move"] > 5e4
 
 
 def _square_wave_csv() -> bytes:

@@ -30,6 +30,8 @@ def test_bench_load_two_tabs(checkpoint, capsys):
             "2",
             "--seconds",
             "6",
+            "--single-seconds",
+            "4",
             "--ensemble",
             "2",
             "--json",
@@ -46,7 +48,45 @@ def test_bench_load_two_tabs(checkpoint, capsys):
         [r["single_decoded_p95_ms"], *r["multi_decoded_p95_ms"], r["rss_peak_mb"], r["rss_idle_after_mb"]]
     ).all()
     assert min(r["mouse_moves"]) > 0  # every page dragged, each from its own driver process
+    assert np.isfinite(  # server side: first motion and replay per client, and their fairness; browser side
+        [
+            r["single_first_motion_p95_ms"],
+            *r["multi_first_motion_p95_ms"],
+            *r["multi_replay_p95_ms"],
+            r["first_motion_worst_best"],
+            r["replay_worst_best"],
+            *r["multi_move_p95_ms"],
+        ]
+    ).all()
+    assert r["first_motion_worst_best"] >= 1 and r["replay_worst_best"] >= 1
     if r["server_cpus"] is not None:  # the server's and the browsers' CPUs were kept apart
         assert not set(r["server_cpus"]) & set(r["browser_cpus"])
     if cpus is not None:
         assert os.sched_getaffinity(0) == cpus  # and this process got all of its CPUs back
+
+
+def test_bench_tabs_two_rendering_tabs_in_one_browser(checkpoint, capsys):
+    pytest.importorskip("playwright.sync_api")
+    from snakeloco.app.cli import main
+
+    main(
+        [
+            "bench",
+            "tabs",
+            "--tabs",
+            "2",
+            "--rounds",
+            "2",
+            "--ensemble",
+            "2",
+            "--json",
+            "--checkpoint",
+            str(checkpoint),
+        ]
+    )
+    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert r["lost_presses"] == [0, 0]  # every key press reached the server
+    assert len(r["press_to_server_p95_ms"]) == 2
+    assert np.isfinite(r["press_to_server_p95_ms"]).all()
+    assert r["export_ok"] == [True, True]  # each tab's export is a valid file of its own current gait
+    assert r["server_exceptions"] == 0

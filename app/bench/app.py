@@ -67,6 +67,7 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, s
                     1e3 * (t.first_motion - t.submitted),
                 )
             )
+        traffic = _traffic(designer, client, rng)
     finally:
         client.close()
         server.stop()
@@ -81,4 +82,28 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, s
         "first_motion_p95_ms": float(np.percentile(a[:, 4], 95)),
         "replay_ratio": float(np.median(a[:, 2])),
         "ensemble_ratio": float(np.median(a[:, 3])),
+        **traffic,
     }
+
+
+def _traffic(designer, client: HeadlessClient, rng, seconds: float = 5.0, moves: int = 5) -> dict:
+    """What a tab receives: bytes per second while the snake animates (the gait idle), and bytes
+    per slider move (decoded view, streamed replay, ensemble, plots; animation paused)."""
+    designer.wait_idle(120)
+    time.sleep(0.5)
+    b0, t0 = client.bytes_received, time.monotonic()
+    time.sleep(seconds)
+    animating = (client.bytes_received - b0) / (time.monotonic() - t0)
+    designer.playback.toggle()  # pause: only the moves' own messages from here
+    time.sleep(0.5)
+    b0 = client.bytes_received
+    for _ in range(moves):
+        designer.sliders[int(rng.integers(len(designer.sliders)))].value = float(
+            np.round(rng.uniform(-2, 2), 2)
+        )
+        time.sleep(0.05)
+        designer.wait_idle(120)
+    time.sleep(0.5)
+    per_move = (client.bytes_received - b0) / moves
+    designer.playback.toggle()
+    return {"animating_bytes_per_s": float(animating), "bytes_per_move": float(per_move)}

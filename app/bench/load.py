@@ -64,6 +64,19 @@ def _p(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
+def _ratio(pick, values: list[float], reference: float) -> float:
+    return float(pick(values) / reference) if reference > 0 else float("nan")
+
+
+def _spread(values: list[float]) -> float:
+    """Worst over best of the clients' figures."""
+    return (
+        float(np.nanmax(values) / np.nanmin(values))
+        if len(values) and np.nanmin(values) > 0
+        else float("nan")
+    )
+
+
 class _Browser:
     """One user: a Chromium page driven from a process of its own (``load_driver``), so that
     every page drags at its own pace, as users' browsers on their own machines do."""
@@ -173,7 +186,10 @@ def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: i
     if not np.allclose(d.controls.plots["forward (m)"].data[1], body[0, :, 1], atol=1e-9):
         problems.append("drawn generated path is not the decode of the final sliders")
     if d.simulated is None:
-        problems.append("no replay drawn for the final sliders")
+        failed = d.timings[-1].failed if d.timings else None
+        problems.append(
+            "no replay drawn for the final sliders" + (f" (replay failed: {failed})" if failed else "")
+        )
     elif not np.allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::4, 1], atol=1e-12):
         problems.append("drawn simulated path is not the final replay")
     path = tmp / f"client{index}.csv"
@@ -237,6 +253,7 @@ def _drive(
         ts = [t for t in list(d.timings) if t.submitted >= start]
         dec = np.array([1e3 * (t.decoded - t.submitted) for t in ts if np.isfinite(t.decoded)])
         rep = np.array([1e3 * (t.replayed - t.submitted) for t in ts if np.isfinite(t.replayed)])
+        motion = np.array([1e3 * (t.first_motion - t.submitted) for t in ts if np.isfinite(t.first_motion)])
         drawn = [t for t in ts if np.isfinite(t.decoded) and np.isfinite(t.started)]
         # Where a decoded view's latency goes: waiting for the decode worker, decoding, drawing.
         wait = np.array([1e3 * (t.started - t.submitted) for t in drawn])
@@ -256,6 +273,8 @@ def _drive(
                 "draw_p95_ms": _p(draw, 95),
                 "replay_p50_ms": _p(rep, 50),
                 "replay_p95_ms": _p(rep, 95),
+                "first_motion_p50_ms": _p(motion, 50),
+                "first_motion_p95_ms": _p(motion, 95),
                 "stale": stale,
             }
         )
@@ -283,6 +302,7 @@ def bench_load(
     log=print,
     render: bool = False,
     pin_cpus: bool = False,
+    single_seconds: float | None = None,
 ) -> dict:
     """Run the single-client and ``clients``-client phases and summarise them (see module docstring)."""
     import tempfile
@@ -310,10 +330,11 @@ def bench_load(
     try:
         with tempfile.TemporaryDirectory() as tmp:
             for n in sorted({1, clients}):
+                length = single_seconds if n == 1 and single_seconds else seconds
                 if log:
-                    log(f"{n} client(s) dragging sliders for {seconds:g} s")
+                    log(f"{n} client(s) dragging sliders for {length:g} s")
                 phases[n] = _phase(
-                    server, n, seconds, rng, Path(tmp), log, render, split[1] if split else None
+                    server, n, length, rng, Path(tmp), log, render, split[1] if split else None
                 )
     finally:
         rss.stop()
@@ -344,6 +365,17 @@ def bench_load(
         "multi_decoded_p50_ms": [c["decoded_p50_ms"] for c in multi["clients"]],
         "multi_decoded_p95_ms": p95s,
         "multi_replay_p95_ms": [c["replay_p95_ms"] for c in multi["clients"]],
+        "single_first_motion_p95_ms": single["first_motion_p95_ms"],
+        "multi_first_motion_p95_ms": [c["first_motion_p95_ms"] for c in multi["clients"]],
+        # Fairness: the worst client against one alone and against the best client.
+        "replay_p95_ratio": _ratio(
+            max, [c["replay_p95_ms"] for c in multi["clients"]], single["replay_p95_ms"]
+        ),
+        "first_motion_p95_ratio": _ratio(
+            max, [c["first_motion_p95_ms"] for c in multi["clients"]], single["first_motion_p95_ms"]
+        ),
+        "replay_worst_best": _spread([c["replay_p95_ms"] for c in multi["clients"]]),
+        "first_motion_worst_best": _spread([c["first_motion_p95_ms"] for c in multi["clients"]]),
         "single_breakdown_p95_ms": {k: single[f"{k}_p95_ms"] for k in ("wait", "decode", "draw")},
         "multi_breakdown_p95_ms": {
             k: [c[f"{k}_p95_ms"] for c in multi["clients"]] for k in ("wait", "decode", "draw")
@@ -352,6 +384,10 @@ def bench_load(
         "updates": [c["updates"] for c in multi["clients"]],
         "mouse_moves": [c["mouse_moves"] for c in multi["clients"]],
         "slowest_move_s": [c["slowest_move_s"] for c in multi["clients"]],
+        "page_stalls": [c["stalls"] for c in multi["clients"]],
+        # Browser side: how long a page took to take a pointer move (dispatch -> handled).
+        "single_move_p95_ms": single["move_p95_ms"],
+        "multi_move_p95_ms": [c["move_p95_ms"] for c in multi["clients"]],
         "server_exceptions": len(phases[1]["server_exceptions"]) + len(multi["server_exceptions"]),
         "exception_messages": (phases[1]["server_exceptions"] + multi["server_exceptions"])[:10],
         "page_errors": len(phases[1]["page_errors"]) + len(multi["page_errors"]),

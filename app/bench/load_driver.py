@@ -66,6 +66,8 @@ class _Dragger:
         self.rng = rng
         self.moves = 0
         self.slowest_step_s = 0.0  # the longest a page took to take one pointer move
+        self.step_s: list[float] = []  # each pointer move: dispatched until the page took it
+        self.stalls = 0  # times the page did not show its sliders within 30 s
         self._steps_left = 0
         self._x = self._y = 0.0
         self._target = 0.0
@@ -74,9 +76,15 @@ class _Dragger:
         mouse = self.page.mouse
         if self._steps_left == 0:
             mouse.up()
+            from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
             thumb = self.page.get_by_role("slider").nth(int(self.rng.integers(self.n_sliders)))
-            box = thumb.bounding_box()
-            track = thumb.locator("xpath=..").bounding_box()
+            try:  # a page starved of CPU may not lay out its sliders within Playwright's 30 s
+                box = thumb.bounding_box()
+                track = thumb.locator("xpath=..").bounding_box()
+            except PlaywrightTimeout:
+                self.stalls += 1
+                return
             if box is None or track is None:
                 return
             self._x, self._y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
@@ -159,11 +167,21 @@ class _Driver:
             for dr in draggers:
                 t0 = time.perf_counter()
                 dr.step()
-                dr.slowest_step_s = max(dr.slowest_step_s, time.perf_counter() - t0)
+                dr.step_s.append(time.perf_counter() - t0)
+                dr.slowest_step_s = max(dr.slowest_step_s, dr.step_s[-1])
             time.sleep(max(0.0, 1.0 / POINTER_HZ - (time.perf_counter() - round_start)))
         for dr in draggers:
             dr.release()
-        return [{"mouse_moves": dr.moves, "slowest_move_s": dr.slowest_step_s} for dr in draggers]
+        return [
+            {
+                "mouse_moves": dr.moves,
+                "stalls": dr.stalls,
+                "slowest_move_s": dr.slowest_step_s,
+                "move_p50_ms": float(np.percentile(dr.step_s, 50)) * 1e3 if dr.step_s else float("nan"),
+                "move_p95_ms": float(np.percentile(dr.step_s, 95)) * 1e3 if dr.step_s else float("nan"),
+            }
+            for dr in draggers
+        ]
 
     def shown(self, index: int) -> list[float]:
         """The slider values page ``index`` shows (aria-valuenow)."""

@@ -46,7 +46,31 @@ def app(cmd) -> dict:
         f"first motion p50 {r['first_motion_p50_ms']:.0f} ms, p95 {r['first_motion_p95_ms']:.0f} ms; "
         f"replay ready p50 {r['replay_ready_p50_ms']:.0f} ms, p95 {r['replay_ready_p95_ms']:.0f} ms; "
         f"replay_ratio {r['replay_ratio']:.3f} (replay / bare mj_step), "
-        f"ensemble_ratio {r['ensemble_ratio']:.3f} (ensemble / bare mujoco.rollout)"
+        f"ensemble_ratio {r['ensemble_ratio']:.3f} (ensemble / bare mujoco.rollout); "
+        f"a tab receives {r['animating_bytes_per_s'] / 1e3:.1f} kB/s while the snake animates and "
+        f"{r['bytes_per_move'] / 1e3:.0f} kB per slider move"
+    )
+    return r
+
+
+def tabs(cmd) -> dict:
+    """Several rendering tabs in one Chromium (``bench/tabs.py``)."""
+    from snakeloco.app.bench.tabs import bench_tabs
+
+    r = bench_tabs(cmd.tabs, cmd.rounds, cmd.checkpoint, cmd.ensemble)
+    print(
+        f"{r['tabs']} tabs animating in one Chromium on {r['cpus']} CPUs, {r['rounds']} key presses each\n"
+        "key press -> value at the server p50 / p95 per tab (ms): "
+        + ", ".join(
+            f"{a:.0f} / {b:.0f}"
+            for a, b in zip(r["press_to_server_p50_ms"], r["press_to_server_p95_ms"], strict=True)
+        )
+        + f"; all tabs p95 {r['press_to_server_p95_all_ms']:.0f} ms (goal <= 1000); lost {r['lost_presses']}\n"
+        "Export CSV click -> file (s): "
+        + ", ".join(
+            f"{t:.1f}{'' if ok else ' FAILED'}" for t, ok in zip(r["export_s"], r["export_ok"], strict=True)
+        )
+        + f" (goal <= 10); server exceptions {r['server_exceptions']}"
     )
     return r
 
@@ -63,6 +87,7 @@ def load(cmd) -> dict:
         cmd.seed,
         render=cmd.render,
         pin_cpus=cmd.pin_cpus,
+        single_seconds=cmd.single_seconds,
     )
     where = (
         f"server on CPUs {r['server_cpus']}, browsers on CPUs {r['browser_cpus']}"
@@ -81,6 +106,14 @@ def load(cmd) -> dict:
         + ", ".join(f"{v:.1f}" for v in r["multi_decoded_p95_ms"])
         + f" ms; worst / single p95 = {r['p95_ratio']:.2f} (goal <= 2)\n"
         f"p95 breakdown (ms), 1 client -> each of {r['clients']}: {breakdown}\n"
+        f"first motion p95: 1 client {r['single_first_motion_p95_ms']:.0f} ms, each of {r['clients']} "
+        + ", ".join(f"{v:.0f}" for v in r["multi_first_motion_p95_ms"])
+        + f" ms (worst / single {r['first_motion_p95_ratio']:.2f}, worst / best {r['first_motion_worst_best']:.2f})\n"
+        f"replay ready p95: 1 client {r['single_replay_p95_ms']:.0f} ms, each of {r['clients']} "
+        + ", ".join(f"{v:.0f}" for v in r["multi_replay_p95_ms"])
+        + f" ms (worst / single {r['replay_p95_ratio']:.2f}, worst / best {r['replay_worst_best']:.2f})\n"
+        f"browser side, a page taking a pointer move p95: 1 client {r['single_move_p95_ms']:.0f} ms, each of "
+        f"{r['clients']} " + ", ".join(f"{v:.0f}" for v in r["multi_move_p95_ms"]) + " ms\n"
         f"updates per client {r['updates']}; server exceptions {r['server_exceptions']}, "
         f"page errors {r['page_errors']}, stale draws {r['stale_draws']}\n"
         f"server RSS {r['rss_start_mb']:.0f} MB at start, {r['rss_multi_start_mb']:.0f} -> "

@@ -1,0 +1,145 @@
+"""``snakeloco bench tabs``: several designer tabs animating in one headless Chromium.
+
+The pages render (software WebGL) and animate the snake the whole time, as tabs tiled side by side
+on one screen do; nothing is hidden or paused. Round after round, each tab in turn gets one
+ArrowRight on its first z_B slider, as a person's key press; what is timed:
+
+- key press -> the new value at the server (``press_to_server``: the page handled the key, sent
+  the value, the server applied it), per tab p50/p95, and how long the press itself took in the
+  page (``press_call``: a starved page takes long to handle input at all);
+- after the rounds, each tab's Export CSV: click -> the browser holds the downloaded file (a valid
+  gait file of that tab's current z_B).
+
+The browser and Playwright run at nice +10, as in ``bench load`` (in use they sit on other
+machines).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from snakeloco.app.bench.load import CHROMIUM, CHROMIUM_ARGS, MissingBrowserError, wait_until
+from snakeloco.app.bench.processes import BrowserNice, RssSampler
+from snakeloco.app.gait_csv import read_gait_csv
+from snakeloco.app.server import DesignerServer, tune_process
+from snakeloco.sim.consistency import ENSEMBLE_SIZE
+
+BROWSER_NICE = 10
+VALUE_TIMEOUT_S = 30.0
+"""How long a key press may take to reach the server before it counts as lost."""
+
+
+def _changed(read, old: float, timeout: float) -> bool:
+    """Poll ``read()`` every 2 ms until it differs from ``old`` (True) or ``timeout`` s pass."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if read() != old:
+            return True
+        time.sleep(0.002)
+    return False
+
+
+def _p(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def bench_tabs(
+    tabs: int = 3,
+    rounds: int = 10,
+    checkpoint=None,
+    ensemble: int = ENSEMBLE_SIZE,
+    log=print,
+) -> dict:
+    """Open ``tabs`` rendering pages in one Chromium and time key presses and exports (module doc)."""
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        raise MissingBrowserError(
+            "bench tabs drives Chromium through Playwright, which is not installed: pip install -e '.[test]'"
+        ) from None
+    if not Path(CHROMIUM).exists():
+        raise MissingBrowserError(
+            f"bench tabs drives Debian chromium at {CHROMIUM}, which is missing: apt-get install -y chromium"
+        )
+    tune_process()
+    server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
+    rss = RssSampler()
+    nice = BrowserNice(BROWSER_NICE)
+    press_server: list[list[float]] = [[] for _ in range(tabs)]
+    press_call: list[list[float]] = [[] for _ in range(tabs)]
+    lost = [0] * tabs
+    exports: list[float] = []
+    export_ok: list[bool] = []
+    try:
+        with sync_playwright() as p, tempfile.TemporaryDirectory() as tmp:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            context = browser.new_context(viewport={"width": 1280, "height": 800}, accept_downloads=True)
+            pages, designers = [], []
+            for _ in range(tabs):
+                before = set(server.clients)
+                page = context.new_page()
+                page.goto(f"http://127.0.0.1:{server.port}")
+                if not wait_until(lambda b=before: set(server.clients) - b, 90):
+                    raise RuntimeError("a browser page never connected to the designer")
+                designers.append(server.clients[(set(server.clients) - before).pop()])
+                pages.append(page)
+            for d in designers:
+                d.wait_idle(120)
+            if log:
+                log(f"{tabs} tabs open and animating; {rounds} rounds of one key press per tab")
+            sliders = [page.get_by_role("slider").first for page in pages]
+            for slider in sliders:
+                slider.focus()
+            for r in range(rounds):
+                for i, (slider, d) in enumerate(zip(sliders, designers, strict=True)):
+                    key = "ArrowRight" if (r // 5) % 2 == 0 else "ArrowLeft"  # stay inside the range
+                    value = d.sliders[0].value
+                    t0 = time.monotonic()
+                    slider.press(key)
+                    t1 = time.monotonic()
+                    press_call[i].append(1e3 * (t1 - t0))
+                    if _changed(lambda d=d: d.sliders[0].value, value, VALUE_TIMEOUT_S):
+                        press_server[i].append(1e3 * (time.monotonic() - t0))
+                    else:
+                        lost[i] += 1
+                if log:
+                    log(f"  round {r + 1}/{rounds}")
+            for i, (page, d) in enumerate(zip(pages, designers, strict=True)):
+                t0 = time.monotonic()
+                try:
+                    with page.expect_download(timeout=60_000) as info:
+                        page.get_by_role("button", name="Export CSV").click()
+                    path = Path(tmp) / f"tab{i}.csv"
+                    info.value.save_as(path)
+                    exports.append(time.monotonic() - t0)
+                    read_gait_csv(path.read_bytes())  # a whole, valid gait file, of this tab's gait
+                    export_ok.append(f"# z_B: [{d.sliders[0].value:.4f}" in path.read_text())
+                except Exception as exc:  # a timeout or a bad file: reported, not raised
+                    exports.append(time.monotonic() - t0)
+                    export_ok.append(False)
+                    if log:
+                        log(f"  tab {i + 1}: export failed: {type(exc).__name__}: {exc}")
+            browser.close()
+    finally:
+        nice.stop()
+        rss.stop()
+        server.stop()
+    every = [v for per in press_server for v in per]
+    return {
+        "tabs": tabs,
+        "rounds": rounds,
+        "cpus": len(os.sched_getaffinity(0)),
+        "press_to_server_p50_ms": [_p(v, 50) for v in press_server],
+        "press_to_server_p95_ms": [_p(v, 95) for v in press_server],
+        "press_to_server_p95_all_ms": _p(every, 95),
+        "press_call_p95_ms": [_p(v, 95) for v in press_call],
+        "lost_presses": lost,
+        "export_s": exports,
+        "export_ok": export_ok,
+        "server_exceptions": len(server.errors),
+    }
