@@ -10,6 +10,9 @@ from collections.abc import Callable
 from snakeloco.app.gui import Controls
 from snakeloco.sim import RECORD
 
+FRAME_HZ = 20.0
+"""Snake poses sent per second while playing (the record's rate: one sample a frame at speed 1; 10 did
+not make 3 tabs rendering in one software-WebGL Chromium answer key presses sooner, docs/robustness.md)."""
 SCRUBBER_PERIOD_S = 0.5
 """How often the playing animation moves the time scrubber (the snake itself moves every frame)."""
 
@@ -80,11 +83,12 @@ class Playback:
 
     def _run(self) -> None:
         last_scrub = 0.0
-        while not self._closed.wait(1.0 / RECORD.sample_rate):
+        step = RECORD.sample_rate / FRAME_HZ  # record samples per frame at speed 1
+        while not self._closed.wait(1.0 / FRAME_HZ):
             if not self.playing or not self._ready():
                 continue
             try:
-                self._position = (self._position + float(self.controls.speed.value)) % RECORD.n_samples
+                self._position = (self._position + step * float(self.controls.speed.value)) % RECORD.n_samples
                 self.frame = int(self._position)
                 self._draw(self.frame)
                 now = time.monotonic()
