@@ -60,6 +60,20 @@ class MissingBrowserError(RuntimeError):
     """``bench load`` needs Playwright and Debian chromium; one of them is missing."""
 
 
+def require_browser(what: str) -> None:
+    """Fail with one line, before any server starts, where Playwright or Debian chromium is missing."""
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        raise MissingBrowserError(
+            f"{what} drives Chromium through Playwright, which is not installed: pip install -e '.[test]'"
+        ) from None
+    if not Path(CHROMIUM).exists():
+        raise MissingBrowserError(
+            f"{what} drives Debian chromium at {CHROMIUM}, which is missing: apt-get install -y chromium"
+        )
+
+
 def _p(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
@@ -307,16 +321,7 @@ def bench_load(
     """Run the single-client and ``clients``-client phases and summarise them (see module docstring)."""
     import tempfile
 
-    try:
-        import playwright.sync_api  # noqa: F401 (fail here, before the server starts, if it is missing)
-    except ImportError:
-        raise MissingBrowserError(
-            "bench load drives Chromium through Playwright, which is not installed: pip install -e '.[test]'"
-        ) from None
-    if not Path(CHROMIUM).exists():
-        raise MissingBrowserError(
-            f"bench load drives Debian chromium at {CHROMIUM}, which is missing: apt-get install -y chromium"
-        )
+    require_browser("bench load")
     split = split_cpus() if pin_cpus else None
     all_cpus = sorted(os.sched_getaffinity(0)) if split else None
     if split:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.bench.load import CHROMIUM, CHROMIUM_ARGS, MissingBrowserError, wait_until
+from snakeloco.app.bench.load import CHROMIUM, CHROMIUM_ARGS, require_browser, wait_until
 from snakeloco.app.bench.processes import BrowserNice, RssSampler
 from snakeloco.app.gait_csv import read_gait_csv
 from snakeloco.app.server import DesignerServer, tune_process
@@ -56,16 +56,9 @@ def bench_tabs(
     log=print,
 ) -> dict:
     """Open ``tabs`` rendering pages in one Chromium and time key presses and exports (module doc)."""
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        raise MissingBrowserError(
-            "bench tabs drives Chromium through Playwright, which is not installed: pip install -e '.[test]'"
-        ) from None
-    if not Path(CHROMIUM).exists():
-        raise MissingBrowserError(
-            f"bench tabs drives Debian chromium at {CHROMIUM}, which is missing: apt-get install -y chromium"
-        )
+    require_browser("bench tabs")
+    from playwright.sync_api import sync_playwright
+
     tune_process()
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
     rss = RssSampler()
