@@ -1,12 +1,15 @@
 """``snakeloco bench tabs``: several designer tabs animating in one headless Chromium.
 
 The pages render (software WebGL) and animate the snake the whole time, as tabs tiled side by side
-on one screen do; nothing is hidden or paused. Round after round, each tab in turn gets one
-ArrowRight on its first z_B slider, as a person's key press; what is timed:
+on one screen do; nothing is hidden or paused. Round after round, each tab in turn is brought to the
+front and gets one arrow key on its first z_B slider, as a person switches tabs and types; the
+others keep animating behind it. What is timed (from bringing the tab to the front):
 
 - key press -> the new value at the server (``press_to_server``: the page handled the key, sent
   the value, the server applied it), per tab p50/p95, and how long the press itself took in the
-  page (``press_call``: a starved page takes long to handle input at all);
+  page (``press_call``: a starved page takes long to handle input at all); a press the page did
+  not take within 30 s, or whose value did not reach the server within ``VALUE_TIMEOUT_S``, counts
+  as lost;
 - after the rounds, each tab's Export CSV: click -> the browser holds the downloaded file (a valid
   gait file of that tab's current z_B).
 
@@ -57,6 +60,7 @@ def bench_tabs(
 ) -> dict:
     """Open ``tabs`` rendering pages in one Chromium and time key presses and exports (module doc)."""
     require_browser("bench tabs")
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
     from playwright.sync_api import sync_playwright
 
     tune_process()
@@ -86,14 +90,17 @@ def bench_tabs(
             if log:
                 log(f"{tabs} tabs open and animating; {rounds} rounds of one key press per tab")
             sliders = [page.get_by_role("slider").first for page in pages]
-            for slider in sliders:
-                slider.focus()
             for r in range(rounds):
-                for i, (slider, d) in enumerate(zip(sliders, designers, strict=True)):
+                for i, (page, slider, d) in enumerate(zip(pages, sliders, designers, strict=True)):
                     key = "ArrowRight" if (r // 5) % 2 == 0 else "ArrowLeft"  # stay inside the range
                     value = d.sliders[0].value
                     t0 = time.monotonic()
-                    slider.press(key)
+                    try:
+                        page.bring_to_front()  # as a person switches to the tab they type in
+                        slider.press(key)
+                    except PlaywrightTimeout:  # the page did not take the key within 30 s
+                        lost[i] += 1
+                        continue
                     t1 = time.monotonic()
                     press_call[i].append(1e3 * (t1 - t0))
                     if _changed(lambda d=d: d.sliders[0].value, value, VALUE_TIMEOUT_S):
@@ -105,6 +112,7 @@ def bench_tabs(
             for i, (page, d) in enumerate(zip(pages, designers, strict=True)):
                 t0 = time.monotonic()
                 try:
+                    page.bring_to_front()
                     with page.expect_download(timeout=60_000) as info:
                         page.get_by_role("button", name="Export CSV").click()
                     path = Path(tmp) / f"tab{i}.csv"
