@@ -102,7 +102,7 @@ class TabScene:
         )
         self.gen_path = self.sim_path = self.band = None
         self.fan: list[viser.LineSegmentsHandle] = []  # one node per batch of ensemble members
-        self._fan_members: list[int] = []
+        self._fan_drawn = 0  # ensemble members the fan shows
         self._sim_drawn = 0  # replay samples the simulated path shows
         self._measured: np.ndarray | None = None  # the re-measured shape drawn
         self.end_spread: float | None = None  # END_SPREAD of the tab's family
@@ -162,7 +162,7 @@ class TabScene:
             self.sim_path.visible = False
         for node in self.fan:
             node.remove()
-        self.fan, self._fan_members = [], []
+        self.fan, self._fan_drawn = [], 0
         self._sim_drawn = 0
         self._measured = None
         self._cloud("decoded", gait.shape)
@@ -224,14 +224,14 @@ class TabScene:
     def draw_fan(self, ensemble_body: np.ndarray) -> None:
         """The ensemble's perturbed members (K, T, 6; member 0, the replay, is the simulated path)
         that are not drawn yet, one node a batch, at ``FAN_STEP`` (drawn as the members come in)."""
-        members = ensemble_body[1 + sum(self._fan_members) :, ::FAN_STEP]
+        members = ensemble_body[1 + self._fan_drawn :, ::FAN_STEP]
         if len(members):
             segments = np.concatenate([polyline(path_points(b, 0.0)) for b in members])
             z0 = float(self.start[0][2])
             self.fan.append(
                 self._line(f"ensemble/{len(self.fan)}", segments, FAN_COLOR, 1.0, "Ensemble fan", z0)
             )
-            self._fan_members.append(len(members))
+            self._fan_drawn += len(members)
 
     def draw_snake(self, qpos: np.ndarray, follow: bool = False) -> None:
         """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame; with

@@ -61,7 +61,7 @@ def test_slider_change_decodes_replays_and_draws(server):
         assert d.scene.gen_path is not None and d.scene.sim_path is not None and d.scene.fan
         assert set(d.scene.clouds) == {"decoded", "measured"}
         # Every perturbed member is drawn once (one node per batch); the path ends where the replay does.
-        assert sum(d.scene._fan_members) == len(d.simulated.ensemble_body) - 1
+        assert d.scene._fan_drawn == len(d.simulated.ensemble_body) - 1
         end = d.scene.sim_path.points[-1, 1] + d.scene.sim_path.position
         np.testing.assert_allclose(end[:2], d.simulated.body[-1, 1:3], atol=1e-5)
         assert "Predictability" in d.controls.panel.content
