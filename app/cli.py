@@ -201,6 +201,7 @@ def run_evaluate(cmd: Evaluate) -> dict:
             progress,
             cmd.replays,
             backend=cmd.backend,
+            floor_records=cmd.floor_records,
         )
     finally:
         if bar[0] is not None:

@@ -93,6 +93,8 @@ class Evaluate(Command):
     """Also write the figures, with every generated gait's statistics, to this JSON file."""
     replays: Path | None = None
     """Consistency replays (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same draw), else written there after replaying; re-scores a recalibrated checkpoint without simulating."""
+    floor_records: Annotated[int, Field(ge=0)] = 0
+    """Replay this many of the dataset's records with 1e-3 relative command noise and report the body R^2 physics allows beside the model's (0 skips it)."""
 
 
 class Calibrate(Command):

@@ -18,7 +18,15 @@ from snakeloco.model.replays import check_same_gaits, load_side_file, replay_sha
 from snakeloco.model.stats import median_relative_errors
 from snakeloco.sim import BODY_CHANNELS, BODY_RATE, load_dataset
 from snakeloco.sim.backend import BackendConfig, open_backend
-from snakeloco.sim.consistency import ENSEMBLE_SIZE, PREDICTABLE, compare, path_stats
+from snakeloco.sim.consistency import (
+    ENSEMBLE_NOISE,
+    ENSEMBLE_SIZE,
+    PREDICTABLE,
+    compare,
+    diversity,
+    path_stats,
+    perturbed_commands,
+)
 
 
 def _stats_errors(predicted: dict[str, np.ndarray], body_ds: np.ndarray) -> dict[str, float]:
@@ -169,8 +177,9 @@ def consistency(
             row = compare(bodies[i], sim_bodies[i][ok].astype(np.float64), BODY_RATE, predicted)
             row["ensemble_broken"] = float((~ok).sum())
             rows.append(row)
-        keys = rows[0].keys() if rows else []
+        keys = [k for k in (rows[0] if rows else {}) if k not in ("heading_deg", "rolls")]
         summary = {k: float(np.median([r[k] for r in rows])) for k in keys}
+        summary["diversity"] = diversity(rows)
         for k in PREDICTABLE:  # how far another draw of gaits could move the medians that are judged
             for part in ("err", "floor"):
                 if rows:
@@ -187,6 +196,36 @@ def consistency(
     return report
 
 
+def physics_floor(
+    commands: np.ndarray, body_ds: np.ndarray, runner, seed: int = 0, batch: int = 16
+) -> dict:
+    """The body R^2 physics allows: each record's commands (n, T, 8) replayed with ``ENSEMBLE_NOISE``
+    relative noise (record i's noise seeded ``seed + i``), its 5 Hz body series scored against the
+    record's own ``body_ds`` (n, 500, 6) as a reconstruction is. A model cannot beat this on a
+    family whose paths physics does not repeat (the paper family's is about 0). Records whose noisy
+    replay broke are left out (``n_broken``)."""
+    from snakeloco.sim.backend import simulate_bodies
+
+    jobs = [
+        np.stack([perturbed_commands(c, 2, seed=seed + i)[1] for i, c in enumerate(commands[s : s + batch], s)])
+        for s in range(0, len(commands), batch)
+    ]
+    replayed, ran = np.zeros(body_ds.shape), np.zeros(len(commands), bool)
+    for b, (body, failures) in runner.map(simulate_bodies, iter(jobs)):  # a backend may finish out of order
+        rows = slice(b * batch, b * batch + len(failures))
+        replayed[rows], ran[rows] = body, [f is None for f in failures]
+    target, replayed = body_ds[ran], replayed[ran]
+    return {
+        "r2_body_floor": r2_overall(target, replayed),
+        "r2_body_floor_per_channel": dict(
+            zip(BODY_CHANNELS, r2_per_channel(target, replayed).tolist(), strict=True)
+        ),
+        "floor_noise": ENSEMBLE_NOISE,
+        "floor_records": int(ran.sum()),
+        "floor_broken": int((~ran).sum()),
+    }
+
+
 def evaluate(
     checkpoint: str | Path | None,
     data: str | Path,
@@ -197,9 +236,11 @@ def evaluate(
     progress=None,
     replays: str | Path | None = None,
     backend: BackendConfig | None = None,
+    floor_records: int = 0,
 ) -> dict:
     """All evaluation figures for a checkpoint on a (held-out) dataset (``replays``, ``backend``:
-    ``consistency``)."""
+    ``consistency``; ``floor_records``: how many of the dataset's records ``physics_floor`` replays,
+    0 none)."""
     model = load_pretrained(checkpoint)
     ds = load_dataset(data)
     shape, body_ds = ds.shape.astype(np.float64), ds.body_ds.astype(np.float64)
@@ -213,6 +254,13 @@ def evaluate(
         **rec,
     }
     out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=seed))
+    if floor_records > 0:
+        n = min(floor_records, len(ds))
+        runner = open_backend(backend, workers)
+        try:
+            out.update(physics_floor(ds.commands[:n].astype(np.float64), body_ds[:n], runner, seed))
+        finally:
+            runner.close()
     if n_prior > 0:
         out["consistency"] = consistency(
             model, n_prior, ensemble, seed, workers, progress=progress, replays=replays, backend=backend
@@ -239,6 +287,14 @@ def format_report(r: dict) -> str:
         + ", ".join(f"{v:.3f}" for v in r["r2_shape_per_joint"]),
         f"R^2 body {r['r2_body']:.3f}; per channel: "
         + ", ".join(f"{k} {v:.3f}" for k, v in r["r2_body_per_channel"].items()),
+    ]
+    if "r2_body_floor" in r:
+        lines.append(
+            f"physics' floor ({r['floor_records']} records replayed with {r['floor_noise']:g} relative "
+            f"command noise, {r['floor_broken']} broke): R^2 body {r['r2_body_floor']:.3f}; per channel: "
+            + ", ".join(f"{k} {v:.3f}" for k, v in r["r2_body_floor_per_channel"].items())
+        )
+    lines += [
         "body statistics predicted for the records' own shapes, median relative error: "
         + ", ".join(f"{k} {v:.3f}" for k, v in r["stats_median_rel_err"].items()),
         f"MMD(q(z_B) || N(0, I)) {r['mmd_zb']:.5f} (null 95th percentile {r['mmd_zb_null95']:.5f})",
@@ -267,6 +323,17 @@ def format_report(r: dict) -> str:
             )
         lines.append(
             f"  xy-path R^2 {c.get('xy_r2', float('nan')):.3f}; decoded final position inside the ensemble's "
-            f"spread in {100 * c['final_inside_fraction']:.0f}% (median distance {c.get('final_z', float('nan')):.1f} x RMS spread)"
+            f"spread in {100 * c['final_inside_fraction']:.0f}% (median distance {c.get('final_z', float('nan')):.1f} x RMS spread); "
+            f"final-position error {100 * c.get('final_error_rel', float('nan')):.1f}% of the distance travelled"
         )
+        d = c.get("diversity")
+        if d:
+            q, v = d["heading_quadrants"], d["speed_bl_s_quantiles"]
+            lines.append(
+                "  where the replays went: heading quadrants "
+                + ", ".join(f"{k} {n}" for k, n in q.items())
+                + f"; speed p10/p50/p90/max {v['p10']:.3f}/{v['p50']:.3f}/{v['p90']:.3f}/{v['max']:.3f} body lengths/s "
+                f"({100 * d['share_speed_ge_0.15_bl_s']:.0f}% >= 0.15); {100 * d['share_travel_ge_5m']:.0f}% travel >= 5 m; "
+                f"{100 * d['share_rolling']:.0f}% roll"
+            )
     return "\n".join(lines)

@@ -102,7 +102,9 @@ def compare(
     predictable statistic against the unperturbed replay (``<stat>_err``), ``xy_r2``, and whether
     the decoded final position lies inside the ensemble's spread (``final_inside``: within twice
     the RMS distance of the ensemble's final positions from their mean, or 5 cm, whichever is
-    larger), with that distance in units of the spread (``final_z``).
+    larger), with that distance in units of the spread (``final_z``), the decoded final position's
+    distance from the replay's (``final_error_m``; over the replay's displacement:
+    ``final_error_rel``), and where the replay went (``where_it_went``).
     """
     dec = path_stats(decoded, sample_rate)
     dec.update({k: np.asarray(v, np.float64) for k, v in (decoded_stats or {}).items() if k in PREDICTABLE})
@@ -119,5 +121,55 @@ def compare(
     out["final_inside"] = float(dist <= radius)
     out["final_z"] = dist / max(rms, 1e-9)
     out["final_error_m"] = float(np.linalg.norm(dec["final_xy"] - ens["final_xy"][0]))
+    travelled = float(ens["displacement"][0])
+    out["final_error_rel"] = out["final_error_m"] / max(travelled, 1e-9)
     out["xy_r2"] = xy_r2(decoded, ensemble[0])
+    out.update(where_it_went(ensemble[0], sample_rate))
     return out
+
+
+ROLLING = 2 * np.pi
+"""|net roll| (rad) from which a gait counts as rolling: at least one full turn about its axis."""
+
+
+def where_it_went(body: np.ndarray, sample_rate: float) -> dict[str, float]:
+    """Where one simulated body series (T, 6) went: ``displacement_m``, ``speed_bl_s`` (displacement
+    over the record's duration, in body lengths per second), ``heading_deg`` (the displacement's
+    direction in the start frame: 0 forward, +90 left), ``net_roll`` (rad) and ``rolls`` (1.0 when
+    |net roll| >= ``ROLLING``)."""
+    from snakeloco.sim.robot import BODY_LENGTH
+
+    s = path_stats(body, sample_rate)
+    fx, fy = (float(v) for v in s["final_xy"])
+    duration = (body.shape[-2] - 1) / sample_rate
+    roll = float(s["net_roll"])
+    return {
+        "displacement_m": float(s["displacement"]),
+        "speed_bl_s": float(s["displacement"]) / duration / BODY_LENGTH,
+        "heading_deg": float(np.degrees(np.arctan2(fy, fx))),
+        "net_roll": roll,
+        "rolls": float(abs(roll) >= ROLLING),
+    }
+
+
+def diversity(rows: list[dict[str, float]]) -> dict:
+    """Where a set of gaits went (rows of ``where_it_went``): final headings by quadrant (centred on
+    forward, left, backward, right) and in 30-degree bins, speed quantiles in body lengths per
+    second, the share at least 0.15 body lengths/s, the share travelling at least 5 m and the
+    share rolling."""
+    if not rows:
+        return {}
+    heading = np.array([r["heading_deg"] for r in rows])
+    speed = np.array([r["speed_bl_s"] for r in rows])
+    quadrant = (((heading + 45.0) % 360.0) // 90.0).astype(int)  # 0 forward, 1 left, 2 back, 3 right
+    names = ("forward", "left", "backward", "right")
+    return {
+        "heading_quadrants": {n: int((quadrant == i).sum()) for i, n in enumerate(names)},
+        "heading_hist_30deg": np.histogram(heading, bins=np.arange(-180, 181, 30))[0].tolist(),
+        "speed_bl_s_quantiles": dict(
+            zip(("p10", "p50", "p90", "max"), np.quantile(speed, [0.1, 0.5, 0.9, 1.0]).tolist(), strict=True)
+        ),
+        "share_speed_ge_0.15_bl_s": float((speed >= 0.15).mean()),
+        "share_travel_ge_5m": float(np.mean([r["displacement_m"] >= 5.0 for r in rows])),
+        "share_rolling": float(np.mean([r["rolls"] for r in rows])),
+    }

@@ -9,8 +9,16 @@ import pytest
 import torch
 
 from snakeloco.app.cli import main
-from snakeloco.model.evaluate import evaluate, format_report
-from snakeloco.sim.consistency import compare, ensemble_spread, path_stats, perturbed_commands
+from snakeloco.model.evaluate import evaluate, format_report, physics_floor
+from snakeloco.sim.backend import open_backend
+from snakeloco.sim.consistency import (
+    compare,
+    diversity,
+    ensemble_spread,
+    path_stats,
+    perturbed_commands,
+    where_it_went,
+)
 
 
 def test_perturbed_commands():
@@ -54,8 +62,55 @@ def test_path_stats_and_compare():
     assert c["path_length_floor"] == spread["path_length_floor"]
 
 
+def _straight(heading_deg: float, speed: float, roll_rate: float = 0.0) -> np.ndarray:
+    """A body series (500, 6) at 5 Hz moving straight at ``speed`` m/s in direction ``heading_deg``."""
+    t = np.arange(500) / 5.0
+    body = np.zeros((500, 6))
+    body[:, 1] = speed * t * np.cos(np.radians(heading_deg))
+    body[:, 2] = speed * t * np.sin(np.radians(heading_deg))
+    body[:, 3] = roll_rate * t
+    return body
+
+
+def test_where_gaits_went_and_their_diversity():
+    w = where_it_went(_straight(120.0, 0.2, roll_rate=0.1), 5.0)
+    assert w["heading_deg"] == pytest.approx(120.0)
+    assert w["displacement_m"] == pytest.approx(0.2 * 99.8)
+    assert w["speed_bl_s"] == pytest.approx(0.2 / 0.95, rel=0.01)  # the body is 0.95 m long
+    assert w["rolls"] == 1.0 and w["net_roll"] == pytest.approx(9.98)
+    assert where_it_went(_straight(0.0, 0.2, roll_rate=0.05), 5.0)["rolls"] == 0.0  # 5 rad: under a turn
+    rows = [where_it_went(_straight(h, v), 5.0) for h, v in [(10, 0.01), (80, 0.2), (-100, 0.06), (170, 0.3)]]
+    d = diversity(rows)
+    assert d["heading_quadrants"] == {"forward": 1, "left": 1, "backward": 1, "right": 1}
+    assert sum(d["heading_hist_30deg"]) == 4
+    assert d["share_travel_ge_5m"] == 0.75  # 1 m, 20 m, 6 m, 30 m
+    assert d["share_speed_ge_0.15_bl_s"] == 0.5
+    assert d["share_rolling"] == 0.0
+    assert d["speed_bl_s_quantiles"]["max"] == pytest.approx(0.3 * 99.8 / 99.8 / 0.95, rel=0.01)
+    assert diversity([]) == {}
+    # compare scores the decoded final position against the replay's distance travelled.
+    ens = np.stack([_straight(0, 0.1), _straight(0, 0.1) * 1.01])
+    c = compare(_straight(0, 0.09), ens, 5.0)
+    assert c["final_error_rel"] == pytest.approx(0.1)
+    assert c["heading_deg"] == pytest.approx(0.0)
+
+
+def test_physics_floor_scores_noisy_replays_of_the_records(tiny_dataset):
+    runner = open_backend(None, 2)
+    try:
+        floor = physics_floor(tiny_dataset.commands.astype(np.float64), tiny_dataset.body_ds, runner, batch=3)
+    finally:
+        runner.close()
+    assert floor["floor_records"] + floor["floor_broken"] == len(tiny_dataset.commands)
+    assert set(floor["r2_body_floor_per_channel"]) == {"vertical", "forward", "sideways", "roll", "pitch", "yaw"}
+    # A replay with 0.1% command noise is close to its record but, on these chaotic multisines, not equal.
+    assert 0.0 < floor["r2_body_floor"] < 1.0
+    assert all(np.isfinite(v) for v in floor["r2_body_floor_per_channel"].values())
+
+
 def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
-    report = evaluate(checkpoint, tiny_dataset_path, n_prior=2, ensemble=2, workers=2)
+    report = evaluate(checkpoint, tiny_dataset_path, n_prior=2, ensemble=2, workers=2, floor_records=2)
+    assert report["floor_records"] + report["floor_broken"] == 2 and "r2_body_floor" in report
     for key in ("r2_shape", "r2_body", "mmd_zb", "mmd_zb_null95", "inter_intra_ratio"):
         assert np.isfinite(report[key])
     assert set(report["r2_body_per_channel"]) == {"vertical", "forward", "sideways", "roll", "pitch", "yaw"}
@@ -65,8 +120,10 @@ def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
         for k in ("vertical_std_err", "net_roll_floor"):
             lo, hi = c[k + "_ci90"]
             assert lo <= c[k] <= hi
+        assert sum(c["diversity"]["heading_quadrants"].values()) == c["n_gaits"]
     text = format_report(report)
     assert "consistency (zk_zero)" in text and "90% bootstrap interval of the median" in text
+    assert "physics' floor (2 records" in text and "where the replays went" in text
 
 
 def test_median_interval_brackets_the_median_and_narrows_with_more_gaits():
