@@ -196,9 +196,7 @@ def consistency(
     return report
 
 
-def physics_floor(
-    commands: np.ndarray, body_ds: np.ndarray, runner, seed: int = 0, batch: int = 16
-) -> dict:
+def physics_floor(commands: np.ndarray, body_ds: np.ndarray, runner, seed: int = 0, batch: int = 16) -> dict:
     """The body R^2 physics allows: each record's commands (n, T, 8) replayed with ``ENSEMBLE_NOISE``
     relative noise (record i's noise seeded ``seed + i``), its 5 Hz body series scored against the
     record's own ``body_ds`` (n, 500, 6) as a reconstruction is. A model cannot beat this on a
@@ -207,7 +205,9 @@ def physics_floor(
     from snakeloco.sim.backend import simulate_bodies
 
     jobs = [
-        np.stack([perturbed_commands(c, 2, seed=seed + i)[1] for i, c in enumerate(commands[s : s + batch], s)])
+        np.stack(
+            [perturbed_commands(c, 2, seed=seed + i)[1] for i, c in enumerate(commands[s : s + batch], s)]
+        )
         for s in range(0, len(commands), batch)
     ]
     replayed, ran = np.zeros(body_ds.shape), np.zeros(len(commands), bool)

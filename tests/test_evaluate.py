@@ -102,7 +102,14 @@ def test_physics_floor_scores_noisy_replays_of_the_records(tiny_dataset):
     finally:
         runner.close()
     assert floor["floor_records"] + floor["floor_broken"] == len(tiny_dataset.commands)
-    assert set(floor["r2_body_floor_per_channel"]) == {"vertical", "forward", "sideways", "roll", "pitch", "yaw"}
+    assert set(floor["r2_body_floor_per_channel"]) == {
+        "vertical",
+        "forward",
+        "sideways",
+        "roll",
+        "pitch",
+        "yaw",
+    }
     # A replay with 0.1% command noise is close to its record but, on these chaotic multisines, not equal.
     assert 0.0 < floor["r2_body_floor"] < 1.0
     assert all(np.isfinite(v) for v in floor["r2_body_floor_per_channel"].values())
