@@ -166,6 +166,8 @@ def figures(
     plt.close(fig8)
     if report is not None:
         paths.append(consistency_figure(report_data, out / "fig9_consistency.png"))
+        if all("heading_deg" in g for c in report_data["consistency"].values() for g in c["gaits"]):
+            paths.append(diversity_figure(report_data, out / "fig10_diversity.png"))
     return paths
 
 
@@ -216,6 +218,58 @@ def consistency_figure(report: str | Path | dict, path: Path) -> Path:
     fig.suptitle(
         "Generated gaits (z_B from the prior): the model's statistics vs MuJoCo's; bars: ensemble std"
     )
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
+
+
+def diversity_figure(report: dict, path: Path) -> Path:
+    """Where the generated gaits' replays went: final positions in the start frame, final heading
+    (polar histogram) and speed, per z_k mode of an evaluate report (``sim.consistency.diversity``)."""
+    plt = _plt()
+    fig = plt.figure(figsize=(16, 4.8))
+    scatter = fig.add_subplot(1, 3, 1)
+    polar = fig.add_subplot(1, 3, 2, projection="polar")
+    speeds = fig.add_subplot(1, 3, 3)
+    bins = np.radians(np.arange(-180, 181, 15))
+    for (mode, c), colour in zip(report["consistency"].items(), ("tab:blue", "tab:orange"), strict=False):
+        gaits = c["gaits"]
+        if not gaits:
+            continue
+        heading = np.radians([g["heading_deg"] for g in gaits])
+        dist = np.array([g["displacement_m"] for g in gaits])
+        rolls = np.array([g["rolls"] for g in gaits], bool)
+        x, y = dist * np.cos(heading), dist * np.sin(heading)
+        scatter.scatter(x[~rolls], y[~rolls], s=8, color=colour, alpha=0.6, label=f"{mode}, not rolling")
+        scatter.scatter(
+            x[rolls], y[rolls], s=14, color=colour, marker="x", alpha=0.6, label=f"{mode}, rolling"
+        )
+        counts, _ = np.histogram(heading, bins=bins)
+        polar.bar(bins[:-1], counts, width=np.diff(bins), align="edge", alpha=0.5, color=colour, label=mode)
+        d = c["diversity"]
+        speeds.hist(
+            [g["speed_bl_s"] for g in gaits],
+            bins=30,
+            alpha=0.5,
+            color=colour,
+            label=f"{mode}: {100 * d['share_travel_ge_5m']:.0f}% travel >= 5 m, "
+            f"{100 * d['share_rolling']:.0f}% roll",
+        )
+    scatter.plot(0, 0, "k+", ms=12)
+    scatter.set_xlabel("forward (m)")
+    scatter.set_ylabel("sideways, left + (m)")
+    scatter.set_aspect("equal", adjustable="datalim")
+    scatter.set_title("final positions of the unperturbed replays (start frame)")
+    scatter.legend(fontsize=7)
+    polar.set_title("final heading (0: forward, 90: left)")
+    polar.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    speeds.axvline(0.15, color="k", ls="--", lw=1)
+    speeds.set_xlabel("speed over 100 s (body lengths/s)")
+    speeds.set_ylabel("gaits")
+    speeds.set_title("speed")
+    speeds.legend(fontsize=7)
+    fig.suptitle("Generated gaits (z_B from the prior): where MuJoCo took them")
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)

@@ -206,13 +206,16 @@ def test_figures_and_bench_commands(checkpoint, tiny_dataset_path, tmp_path, cap
         ]
     )
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
-    assert pngs == [
-        "fig5_fit.png",
-        "fig6_prior_sweep.png",
-        "fig7_zk_samples.png",
-        "fig8_joint_shapes.png",
-        "fig9_consistency.png",
-    ]
+    assert sorted(pngs) == sorted(
+        [
+            "fig5_fit.png",
+            "fig6_prior_sweep.png",
+            "fig7_zk_samples.png",
+            "fig8_joint_shapes.png",
+            "fig9_consistency.png",
+            "fig10_diversity.png",
+        ]
+    )
     assert all((tmp_path / p).read_bytes()[:4] == b"\x89PNG" for p in pngs)
     capsys.readouterr()
     main(["bench", "model", "--json", "--checkpoint", str(checkpoint), "--calls", "20"])
