@@ -57,6 +57,18 @@ class ModelConfig(BaseModel):
         "(needs body_sees_signals): the phase and size of a gait's vertical and pitch oscillation "
         "relative to its joints depend on how the body settled, which the signals alone do not say.",
     )
+    body_signals_see_shape: bool = Field(
+        False,
+        description="Feed an embedding of the gait's whole joint shape (broadcast over time) to the "
+        "joint-signal convolution (needs body_sees_signals): how the body answers its joints (the "
+        "harmonics and intermodulation of a gait's waves in the vertical and pitch channels) depends "
+        "on the whole gait, which a 12 s window of the signals does not show.",
+    )
+    body_signal_channels: int | None = Field(
+        None,
+        ge=1,
+        description="Width of the body decoder's joint-signal convolution (None: signal_channels).",
+    )
     encoder_sees_signals: bool = Field(
         False,
         description="Feed the gait's joint signals to the body encoder beside the body series, so that "

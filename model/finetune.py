@@ -205,6 +205,7 @@ def fit_path_decoder(
         net.dec_in,
         *([net.dec_film] if net.cfg.body_sees_stats else []),
         *([net.body_sig] if net.cfg.body_sees_signals else []),
+        *([net.body_gait] if net.cfg.body_sees_signals and net.cfg.body_signals_see_shape else []),
         net.decoder,
     ]
     best_epoch, _ = fit_best(

@@ -129,17 +129,24 @@ class HierarchicalVAE(nn.Module):
         if cfg.body_sees_signals:
             # A residual from the joint signals to the body, zero-initialised (training starts from
             # the z_B decoder); circular like the signals, which are periodic over the record.
+            c_body = cfg.body_signal_channels or c_sig
             body_sig: list[nn.Module] = []
             c_prev = 2 * cfg.n_joints + (cfg.z_b_dim if cfg.body_signals_see_latent else 0)
+            if cfg.body_signals_see_shape:
+                n_shape = cfg.n_joints * cfg.n_components * 2
+                self.body_gait = nn.Sequential(
+                    nn.Linear(n_shape, cfg.stats_hidden), nn.GELU(), nn.Linear(cfg.stats_hidden, c_body)
+                )
+                c_prev += c_body
             for d in cfg.signal_dilations:
                 body_sig += [
                     nn.Conv1d(
-                        c_prev, c_sig, cfg.kernel, padding=d * pad, dilation=d, padding_mode="circular"
+                        c_prev, c_body, cfg.kernel, padding=d * pad, dilation=d, padding_mode="circular"
                     ),
                     nn.GELU(),
                 ]
-                c_prev = c_sig
-            body_sig.append(nn.Conv1d(c_sig, cfg.body_channels, 1))
+                c_prev = c_body
+            body_sig.append(nn.Conv1d(c_body, cfg.body_channels, 1))
             nn.init.zeros_(body_sig[-1].weight)
             nn.init.zeros_(body_sig[-1].bias)
             self.body_sig = nn.Sequential(*body_sig)
@@ -271,9 +278,12 @@ class HierarchicalVAE(nn.Module):
             if shape is None:
                 raise ValueError("this body decoder sees the gait's joint signals: pass its shape")
             sig = self.joint_signals(shape)  # (B, 2K, T)
+            parts = [sig]
             if self.cfg.body_signals_see_latent:
-                sig = torch.cat([sig, z_b[:, :, None].expand(-1, -1, sig.shape[2])], dim=1)
-            x = x + self.body_sig(sig)
+                parts.append(z_b[:, :, None].expand(-1, -1, sig.shape[2]))
+            if self.cfg.body_signals_see_shape:
+                parts.append(self.body_gait(shape.flatten(1))[:, :, None].expand(-1, -1, sig.shape[2]))
+            x = x + self.body_sig(torch.cat(parts, dim=1))
         return x.transpose(1, 2)
 
     def predict_stats(self, shape: torch.Tensor) -> torch.Tensor:

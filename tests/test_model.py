@@ -323,6 +323,49 @@ def test_encoder_and_signal_decoder_that_see_each_other_take_the_shape_and_z_b(t
     assert np.isfinite(body_np).all() and body_np.shape == (2, 500, 6)
 
 
+def test_signal_decoder_that_sees_the_whole_shape(tiny_dataset_path, tmp_path):
+    """body_signals_see_shape: the gait's shape embedding reaches the signal convolution at every
+    time step (a change of one bin's coefficient moves every output step, also where the signals
+    are zeroed out), at the width asked; old configs load without it."""
+    cfg = SMALL.model_copy(
+        update={"body_sees_signals": True, "body_signals_see_shape": True, "body_signal_channels": 6}
+    )
+    old = {
+        k: v
+        for k, v in ModelConfig().model_dump().items()
+        if k not in ("body_signals_see_shape", "body_signal_channels")
+    }
+    assert ModelConfig.model_validate(old).body_signals_see_shape is False
+    torch.manual_seed(0)
+    net = _net(cfg)
+    assert net.body_sig[0].out_channels == 6
+    z_b, z_j, st = torch.randn(2, 3), torch.zeros(2, 8, 4), torch.zeros(2, 4)
+    shape = torch.randn(2, 8, 8, 2)
+    with torch.no_grad():
+        net.body_sig[-1].weight.normal_()
+        other = shape.clone()
+        other[:, 3, 5] += 1.0
+        moved = (net.decode_body(z_b, z_j, st, other) - net.decode_body(z_b, z_j, st, shape)).abs()
+        assert (moved.amax(dim=2) > 0).all()
+        # Without the embedding the same change moves the output less (only through the signals).
+        net.body_gait[-1].weight.zero_()
+        net.body_gait[-1].bias.zero_()
+        without = (net.decode_body(z_b, z_j, st, other) - net.decode_body(z_b, z_j, st, shape)).abs()
+        assert not torch.allclose(moved, without)
+    train(
+        tiny_dataset_path,
+        tmp_path,
+        TrainConfig(epochs=1, batch_size=2, val_fraction=0.25),
+        cfg,
+        log=None,
+        progress=False,
+    )
+    model = load_pretrained(tmp_path)
+    assert model.config.model.body_signals_see_shape
+    _, body_np = model.decode(np.zeros((2, 3)))
+    assert np.isfinite(body_np).all() and body_np.shape == (2, 500, 6)
+
+
 def test_a_barely_excited_bin_is_not_blown_up_by_the_shape_normalisation():
     rng = np.random.default_rng(0)
     shape = rng.normal(0.0, 0.2, (50, 8, 8, 2))
