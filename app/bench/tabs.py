@@ -33,6 +33,8 @@ from snakeloco.app.server import DesignerServer, tune_process
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
 BROWSER_NICE = 10
+LAYOUT_TIMEOUT_S = 120.0
+"""How long a page may take to lay out its controls before the rounds start."""
 VALUE_TIMEOUT_S = 30.0
 """How long a key press may take to reach the server before it counts as lost."""
 
@@ -87,6 +89,8 @@ def bench_tabs(
                 pages.append(page)
             for d in designers:
                 d.wait_idle(120)
+            for page in pages:  # laid out: on a busy machine a page can take tens of seconds
+                page.get_by_role("button", name="Export CSV").wait_for(timeout=LAYOUT_TIMEOUT_S * 1e3)
             if log:
                 log(f"{tabs} tabs open and animating; {rounds} rounds of one key press per tab")
             sliders = [page.get_by_role("slider").first for page in pages]
@@ -114,7 +118,7 @@ def bench_tabs(
                 try:
                     page.bring_to_front()
                     with page.expect_download(timeout=60_000) as info:
-                        page.get_by_role("button", name="Export CSV").click()
+                        page.get_by_role("button", name="Export CSV").click(timeout=60_000)
                     path = Path(tmp) / f"tab{i}.csv"
                     info.value.save_as(path)
                     exports.append(time.monotonic() - t0)
