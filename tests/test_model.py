@@ -255,6 +255,12 @@ def test_body_decoder_sees_the_gait_statistics_but_does_not_train_them():
     assert net.dec_film.weight.grad.abs().sum() > 0
 
 
+def _trained(data, out, cfg: ModelConfig):
+    """A checkpoint of ``cfg`` trained for one epoch on ``data``, loaded through the API."""
+    train(data, out, TrainConfig(epochs=1, batch_size=2, val_fraction=0.25), cfg, log=None, progress=False)
+    return load_pretrained(out)
+
+
 def test_body_decoder_that_sees_the_joint_signals_starts_as_the_z_b_decoder_and_learns_from_them(
     tiny_dataset_path, tmp_path
 ):
@@ -271,15 +277,7 @@ def test_body_decoder_that_sees_the_joint_signals_starts_as_the_z_b_decoder_and_
     with pytest.raises(ValueError, match="pass its shape"):
         net.decode_body(z_b, z_j, st)
     # Trained, saved, loaded and decoded through the API like any checkpoint.
-    train(
-        tiny_dataset_path,
-        tmp_path,
-        TrainConfig(epochs=1, batch_size=2, val_fraction=0.25),
-        SMALL.model_copy(update={"body_sees_signals": True}),
-        log=None,
-        progress=False,
-    )
-    model = load_pretrained(tmp_path)
+    model = _trained(tiny_dataset_path, tmp_path, SMALL.model_copy(update={"body_sees_signals": True}))
     assert model.config.model.body_sees_signals
     _, body_np = model.decode(np.zeros((2, 3)))
     assert np.isfinite(body_np).all() and body_np.shape == (2, 500, 6)
@@ -307,15 +305,7 @@ def test_encoder_and_signal_decoder_that_see_each_other_take_the_shape_and_z_b(t
         assert not torch.allclose(mu, net.encode_body(body, -shape)[0])
     with pytest.raises(ValueError, match="pass its shape"):
         net.encode_body(body)
-    train(
-        tiny_dataset_path,
-        tmp_path,
-        TrainConfig(epochs=1, batch_size=2, val_fraction=0.25),
-        cfg,
-        log=None,
-        progress=False,
-    )
-    model = load_pretrained(tmp_path)
+    model = _trained(tiny_dataset_path, tmp_path, cfg)
     data = np.load(tiny_dataset_path)
     z_b_np, _ = model.encode(data["shape"][:2], data["body_ds"][:2])
     assert np.allclose(model.encode_body(data["body_ds"][:2], data["shape"][:2])[0], z_b_np, atol=1e-5)
@@ -325,8 +315,8 @@ def test_encoder_and_signal_decoder_that_see_each_other_take_the_shape_and_z_b(t
 
 def test_signal_decoder_that_sees_the_whole_shape(tiny_dataset_path, tmp_path):
     """body_signals_see_shape: the gait's shape embedding reaches the signal convolution at every
-    time step (a change of one bin's coefficient moves every output step, also where the signals
-    are zeroed out), at the width asked; old configs load without it."""
+    time step (a change of one bin's coefficient moves every output step), at the width asked; old
+    configs load without it."""
     cfg = SMALL.model_copy(
         update={"body_sees_signals": True, "body_signals_see_shape": True, "body_signal_channels": 6}
     )
@@ -352,15 +342,7 @@ def test_signal_decoder_that_sees_the_whole_shape(tiny_dataset_path, tmp_path):
         net.body_gait[-1].bias.zero_()
         without = (net.decode_body(z_b, z_j, st, other) - net.decode_body(z_b, z_j, st, shape)).abs()
         assert not torch.allclose(moved, without)
-    train(
-        tiny_dataset_path,
-        tmp_path,
-        TrainConfig(epochs=1, batch_size=2, val_fraction=0.25),
-        cfg,
-        log=None,
-        progress=False,
-    )
-    model = load_pretrained(tmp_path)
+    model = _trained(tiny_dataset_path, tmp_path, cfg)
     assert model.config.model.body_signals_see_shape
     _, body_np = model.decode(np.zeros((2, 3)))
     assert np.isfinite(body_np).all() and body_np.shape == (2, 500, 6)
