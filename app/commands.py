@@ -241,6 +241,8 @@ class BenchTabs(Command):
     """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait (as in `snakeloco serve`)."""
+    browser_nice: Annotated[int, Field(ge=0, le=19)] = 0
+    """Nice of the browser's threads and its scheduling group. 0: as a person's browser runs beside the server on one machine (the server's physics then sits at +10/+15 inside its own group); `bench load` puts its load generators at +10 instead, to measure the server."""
 
 
 class BenchScale(Command):
