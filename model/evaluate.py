@@ -201,17 +201,17 @@ def physics_floor(commands: np.ndarray, body_ds: np.ndarray, runner, seed: int =
     relative noise (record i's noise seeded ``seed + i``), its 5 Hz body series scored against the
     record's own ``body_ds`` (n, 500, 6) as a reconstruction is. A model cannot beat this on a
     family whose paths physics does not repeat (the paper family's is about 0). Records whose noisy
-    replay broke are left out (``n_broken``)."""
+    replay broke are left out (``floor_broken``)."""
     from snakeloco.sim.backend import simulate_bodies
 
-    jobs = [
+    jobs = (  # a batch's noisy commands made only when the backend takes it: memory stays bounded
         np.stack(
             [perturbed_commands(c, 2, seed=seed + i)[1] for i, c in enumerate(commands[s : s + batch], s)]
         )
         for s in range(0, len(commands), batch)
-    ]
+    )
     replayed, ran = np.zeros(body_ds.shape), np.zeros(len(commands), bool)
-    for b, (body, failures) in runner.map(simulate_bodies, iter(jobs)):  # a backend may finish out of order
+    for b, (body, failures) in runner.map(simulate_bodies, jobs):  # a backend may finish out of order
         rows = slice(b * batch, b * batch + len(failures))
         replayed[rows], ran[rows] = body, [f is None for f in failures]
     target, replayed = body_ds[ran], replayed[ran]
