@@ -69,6 +69,24 @@ class ModelConfig(BaseModel):
         ge=1,
         description="Width of the body decoder's joint-signal convolution (None: signal_channels).",
     )
+    joint_latent_dropout: float = Field(
+        0.0,
+        ge=0.0,
+        lt=1.0,
+        description="Share of training records whose shape is decoded as the designer decodes it: "
+        "z_1..8 = 0 and each joint after the decoded ones (no teacher forcing); the MMD still sees "
+        "the posterior's z_k. It trains the designer's z_k = 0 decoding directly, so z_B must carry "
+        "the gait: without it the structured model kept the gait in z_1..8 and in the true shapes "
+        "the root GRU is fed, and decoded z_k = 0 shapes with R^2 -0.08 from the records' own z_B "
+        "(docs/model-notes.md).",
+    )
+    encoder_sees_shape: bool = Field(
+        False,
+        description="Add an embedding of the gait's joint shape to the body encoder's pooled "
+        "features, so that z_B can carry the gait itself (with joint_latent_dropout: the designer's "
+        "z_k = 0 decoding then draws the gait from z_B alone). For the structured family, whose "
+        "gaits are a few wave parameters.",
+    )
     encoder_sees_signals: bool = Field(
         False,
         description="Feed the gait's joint signals to the body encoder beside the body series, so that "

@@ -102,6 +102,14 @@ class HierarchicalVAE(nn.Module):
             nn.AvgPool1d(2),
         )
         self.enc_head = nn.Linear(c3, 2 * cfg.z_b_dim)
+        if cfg.encoder_sees_shape:
+            # The gait's whole joint shape, embedded and added to the pooled body features: z_B can
+            # then hold a structured gait's few parameters exactly, which a pooled convolution over
+            # the body and the signals reads out only roughly (docs/model-notes.md).
+            d_shape = cfg.n_joints * cfg.n_components * 2
+            self.enc_shape = nn.Sequential(
+                nn.Linear(d_shape, cfg.root_hidden), nn.GELU(), nn.Linear(cfg.root_hidden, c3)
+            )
         self.dec_steps = math.ceil(cfg.body_steps / 8)
         d_lat = cfg.z_b_dim + cfg.n_joints * cfg.z_j_dim
         self.dec_in = nn.Linear(d_lat, c3 * self.dec_steps)
@@ -242,16 +250,20 @@ class HierarchicalVAE(nn.Module):
     def encode_body(
         self, body: torch.Tensor, shape: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """body (B, T, C) and, when ``cfg.encoder_sees_signals``, the record's normalised joint shape
-        (B, K, L, 2) -> mu, logvar (B, Db)."""
+        """body (B, T, C) and, when ``cfg.encoder_sees_signals`` or ``cfg.encoder_sees_shape``, the
+        record's normalised joint shape (B, K, L, 2) -> mu, logvar (B, Db)."""
         x = body.transpose(1, 2)  # (B, C, T)
         parts = [x, self.positional.expand(x.shape[0], -1, -1)]  # (B, P, T)
         if self.cfg.encoder_sees_signals:
             if shape is None:
                 raise ValueError("this body encoder sees the gait's joint signals: pass its shape")
             parts.append(self.joint_signals(shape))
-        h = self.encoder(torch.cat(parts, dim=1))  # (B, c3, T/8)
-        mu, logvar = self.enc_head(h.mean(dim=2)).chunk(2, dim=1)  # global average pooling
+        h = self.encoder(torch.cat(parts, dim=1)).mean(dim=2)  # (B, c3): global average pooling
+        if self.cfg.encoder_sees_shape:
+            if shape is None:
+                raise ValueError("this body encoder sees the gait's joint shape: pass it")
+            h = h + self.enc_shape(shape.flatten(1))
+        mu, logvar = self.enc_head(h).chunk(2, dim=1)
         return mu, logvar.clamp(-12.0, 6.0)
 
     def decode_body(
@@ -377,10 +389,17 @@ class HierarchicalVAE(nn.Module):
         mu, logvar = self.encode_body(body, shape)
         z_b = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         joints = self.run_joints(z_b, shape, sample_posterior=sample)
+        shape_hat = joints["shape"]
+        if self.training and self.cfg.joint_latent_dropout > 0:
+            drop = torch.rand(shape.shape[0], device=shape.device) < self.cfg.joint_latent_dropout
+            if drop.any():  # decoded as the designer decodes: z_k = 0, each joint after the decoded ones
+                zeros = torch.zeros_like(joints["z_j"][drop])
+                shape_hat = shape_hat.clone()
+                shape_hat[drop] = self.run_joints(z_b[drop], z_j=zeros)["shape"]
         stats = self.predict_stats(shape)  # teacher forcing: the true shape
         body_hat = self.decode_body(z_b, joints["z_j"], stats.detach(), shape)
         return Output(
-            shape=joints["shape"],
+            shape=shape_hat,
             body=body_hat,
             z_b=z_b,
             z_b_mu=mu,

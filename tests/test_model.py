@@ -465,3 +465,34 @@ def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
         CheckpointError, match=r"missing config.json \(no such directory; shipped checkpoints: paper\)"
     ):
         load_pretrained("structured")
+
+
+def test_joint_latent_dropout_trains_the_designers_decoding_and_keeps_the_posteriors_for_the_mmd():
+    torch.manual_seed(0)
+    shape, body = torch.randn(6, 8, 8, 2), torch.randn(6, 500, 6)
+    net = _net(SMALL.model_copy(update={"joint_latent_dropout": 0.999}))  # all 6 dropped: p 0.994
+    net.train()
+    out = net(shape, body, sample=False)
+    assert out.z_j.abs().sum() > 0  # the MMD still sees the posterior's z_k
+    with torch.no_grad():  # decoded as generate() decodes: z_k = 0, no teacher forcing
+        designer = net.run_joints(out.z_b, z_j=torch.zeros_like(out.z_j))["shape"]
+        forced = net.run_joints(out.z_b, shape, sample_posterior=False)["shape"]
+    torch.testing.assert_close(out.shape, designer)
+    assert not torch.allclose(forced, designer)
+    net.eval()  # outside training the posterior's z_k and the true shapes are decoded
+    torch.testing.assert_close(net(shape, body, sample=False).shape, forced)
+
+
+def test_encoder_that_sees_the_shape_reads_it_exactly_not_through_the_signals():
+    torch.manual_seed(0)
+    net = _net(SMALL.model_copy(update={"encoder_sees_shape": True}))
+    shape, body = torch.randn(3, 8, 8, 2), torch.randn(3, 500, 6)
+    with torch.no_grad():
+        mu, _ = net.encode_body(body, shape)
+        moved = shape.clone()
+        moved[:, 3, 5] += 1.0  # one coefficient of one joint
+        assert (net.encode_body(body, moved)[0] - mu).abs().max() > 1e-4
+        plain = _net(SMALL)  # without the option the encoder reads the body alone
+        assert torch.equal(plain.encode_body(body, shape)[0], plain.encode_body(body, moved)[0])
+    with pytest.raises(ValueError, match="joint shape: pass it"):
+        net.encode_body(body)
