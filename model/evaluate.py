@@ -42,6 +42,7 @@ def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, bat
         z_j.append(b)
     z_b, z_j = np.concatenate(z_b), np.concatenate(z_j)
     s_hat, b_hat = model.decode(z_b, z_j)
+    s_zero, _ = model.decode(z_b)  # what a slider at the record's z_B draws (z_k = 0)
     n_l = shape.shape[2]
     shape_by_freq = shape.transpose(0, 1, 3, 2).reshape(-1, n_l)  # (N K 2, L)
     hat_by_freq = s_hat.transpose(0, 1, 3, 2).reshape(-1, n_l)
@@ -50,6 +51,10 @@ def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, bat
     return {
         "r2_shape": r2_overall(
             shape.reshape(len(shape), -1)[..., None], s_hat.reshape(len(shape), -1)[..., None]
+        ),
+        # The designer's decoding: does z_B alone carry the record's gait?
+        "r2_shape_zk_zero": r2_overall(
+            shape.reshape(len(shape), -1)[..., None], s_zero.reshape(len(shape), -1)[..., None]
         ),
         # A bin the data barely excite (a structured gait uses 1-3 of the 8) has ~1e-8 variance: its
         # R^2 says nothing, so it is reported as None ("not excited"), by the normalisation's rule.
@@ -285,6 +290,8 @@ def format_report(r: dict) -> str:
         )
         + "; per joint: "
         + ", ".join(f"{v:.3f}" for v in r["r2_shape_per_joint"]),
+        f"R^2 joint shape from z_B alone (z_k = 0, what the sliders draw at a record's z_B) "
+        f"{r['r2_shape_zk_zero']:.3f}",
         f"R^2 body {r['r2_body']:.3f}; per channel: "
         + ", ".join(f"{k} {v:.3f}" for k, v in r["r2_body_per_channel"].items()),
     ]

@@ -118,7 +118,7 @@ def test_physics_floor_scores_noisy_replays_of_the_records(tiny_dataset):
 def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
     report = evaluate(checkpoint, tiny_dataset_path, n_prior=2, ensemble=2, workers=2, floor_records=2)
     assert report["floor_records"] + report["floor_broken"] == 2 and "r2_body_floor" in report
-    for key in ("r2_shape", "r2_body", "mmd_zb", "mmd_zb_null95", "inter_intra_ratio"):
+    for key in ("r2_shape", "r2_shape_zk_zero", "r2_body", "mmd_zb", "mmd_zb_null95", "inter_intra_ratio"):
         assert np.isfinite(report[key])
     assert set(report["r2_body_per_channel"]) == {"vertical", "forward", "sideways", "roll", "pitch", "yaw"}
     for mode in ("zk_zero", "zk_sampled"):
@@ -131,6 +131,10 @@ def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
     text = format_report(report)
     assert "consistency (zk_zero)" in text and "90% bootstrap interval of the median" in text
     assert "physics' floor (2 records" in text and "where the replays went" in text
+    assert (
+        f"from z_B alone (z_k = 0, what the sliders draw at a record's z_B) {report['r2_shape_zk_zero']:.3f}"
+        in text
+    )
 
 
 def test_median_interval_brackets_the_median_and_narrows_with_more_gaits():
