@@ -44,18 +44,15 @@ def reconstruction(model: GaitModel, shape: np.ndarray, body_ds: np.ndarray, bat
     s_hat, b_hat = model.decode(z_b, z_j)
     s_zero, _ = model.decode(z_b)  # what a slider at the record's z_B draws (z_k = 0)
     n_l = shape.shape[2]
+    flat = shape.reshape(len(shape), -1)[..., None]  # (N, K L 2, 1): one pooled channel
     shape_by_freq = shape.transpose(0, 1, 3, 2).reshape(-1, n_l)  # (N K 2, L)
     hat_by_freq = s_hat.transpose(0, 1, 3, 2).reshape(-1, n_l)
     std = shape_by_freq.std(axis=0)
     excited_bins = std >= SHAPE_STD_FLOOR * std.max()
     return {
-        "r2_shape": r2_overall(
-            shape.reshape(len(shape), -1)[..., None], s_hat.reshape(len(shape), -1)[..., None]
-        ),
+        "r2_shape": r2_overall(flat, s_hat.reshape(flat.shape)),
         # The designer's decoding: does z_B alone carry the record's gait?
-        "r2_shape_zk_zero": r2_overall(
-            shape.reshape(len(shape), -1)[..., None], s_zero.reshape(len(shape), -1)[..., None]
-        ),
+        "r2_shape_zk_zero": r2_overall(flat, s_zero.reshape(flat.shape)),
         # A bin the data barely excite (a structured gait uses 1-3 of the 8) has ~1e-8 variance: its
         # R^2 says nothing, so it is reported as None ("not excited"), by the normalisation's rule.
         "r2_shape_per_freq": dict(
