@@ -243,6 +243,8 @@ class BenchTabs(Command):
     """Replays per gait (as in `snakeloco serve`)."""
     browser_nice: Annotated[int, Field(ge=0, le=19)] = 0
     """Nice of the browser's threads and its scheduling group. 0: as a person's browser runs beside the server on one machine (the server's physics then sits at +10/+15 inside its own group); `bench load` puts its load generators at +10 instead, to measure the server."""
+    rendering: Literal["page", "full", "light"] = "page"
+    """How the tabs draw: as each page chose ("Light rendering" ticks itself where WebGL renders in software, as in this headless Chromium), or every tab full (shadows, environment lighting, shaded grid), or every tab light."""
 
 
 class BenchScale(Command):

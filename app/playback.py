@@ -3,11 +3,13 @@ Play/Pause, a playback speed and a time scrubber."""
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import Callable
 
 from snakeloco.app.gui import Controls
+from snakeloco.app.scene import LIGHT_RENDERING
 from snakeloco.sim import RECORD
 
 FRAME_HZ = 20.0
@@ -38,6 +40,38 @@ PAUSE_WHEN_HIDDEN_JS = """
 """Sent to each page: while the tab is hidden (another browser tab in front, a minimised window)
 the page presses Pause, and Play again when it is shown, so a hidden tab receives no poses. A
 user's own Pause stays (the page only undoes the pause it made)."""
+
+SOFTWARE_RENDERING_JS = """
+(() => {
+  if (window.__snakelocoLightChecked) return;
+  window.__snakelocoLightChecked = true;
+  let renderer = "";
+  try {
+    const gl = document.createElement("canvas").getContext("webgl");
+    const info = gl && gl.getExtension("WEBGL_debug_renderer_info");
+    renderer = gl ? String(gl.getParameter(info ? info.UNMASKED_RENDERER_WEBGL : gl.RENDERER)) : "";
+    const lose = gl && gl.getExtension("WEBGL_lose_context");
+    if (lose) lose.loseContext();
+  } catch (e) { return; }
+  if (!/swiftshader|llvmpipe|softpipe|software/i.test(renderer)) return;
+  const label = __LABEL__;
+  const tryCheck = (left) => {
+    const box = Array.from(document.querySelectorAll("input[type=checkbox]")).find((input) => {
+      for (let node = input.parentElement; node; node = node.parentElement) {
+        if (node.textContent && node.textContent.trim() === label) return true;
+        if (node.querySelectorAll("input[type=checkbox]").length > 1) return false;
+      }
+      return false;
+    });
+    if (box) { if (!box.checked) box.click(); }
+    else if (left > 0) setTimeout(() => tryCheck(left - 1), 500);
+  };
+  tryCheck(120);
+})();
+""".replace("__LABEL__", json.dumps(LIGHT_RENDERING))
+"""Sent to each page: where the page's WebGL renders in software (SwiftShader, llvmpipe: a
+browser without a GPU, a remote desktop) it ticks "Light rendering" once, as soon as the control is
+laid out (tried every 0.5 s for a minute). The user can untick it; the page never ticks it again."""
 
 
 class Playback:

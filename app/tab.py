@@ -26,7 +26,7 @@ from snakeloco.app.design_panel import DesignPanel
 from snakeloco.app.gait_files import GaitFiles
 from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls
 from snakeloco.app.latent_moves import LatentMoves
-from snakeloco.app.playback import PAUSE_WHEN_HIDDEN_JS, Playback
+from snakeloco.app.playback import PAUSE_WHEN_HIDDEN_JS, SOFTWARE_RENDERING_JS, Playback
 from snakeloco.app.scene import END_SPREAD, TabScene
 from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
 from snakeloco.app.viser_patches import run_javascript
@@ -112,6 +112,7 @@ class DesignerClient(GaitFiles, LatentMoves):
             name=f"animate-{client.client_id}",
         )
         run_javascript(client, PAUSE_WHEN_HIDDEN_JS)
+        run_javascript(client, SOFTWARE_RENDERING_JS)
         self.request_decode()
 
     @property
@@ -142,6 +143,7 @@ class DesignerClient(GaitFiles, LatentMoves):
         c.scrubber.on_update(g(lambda event: self.playback.on_scrub(event)))
         for layer in c.layers.values():
             layer.on_update(g(lambda _e: self._apply_layers()))
+        c.light.on_update(g(lambda _e: self._on_light_changed()))
         c.export_button.on_click(g(lambda _e: self.export()))
         c.baseline.on_update(g(lambda _e: self.load_baseline(c.baseline.value)))
         c.import_button.on_upload(g(lambda _e: self._on_upload()))
@@ -258,6 +260,13 @@ class DesignerClient(GaitFiles, LatentMoves):
         with self._draw_lock, self.client.atomic():
             self.scene.apply_layers(simulated=self.simulated is not None)
         self._draw_snake()  # a snake whose layer was off was not posed meanwhile
+
+    def _on_light_changed(self) -> None:
+        """Light or full rendering; the shaded grid goes with it (off when light, back when full)."""
+        light = bool(self.controls.light.value)
+        with self._draw_lock, self.client.atomic():
+            self.scene.set_light(light)
+        self.controls.layers["Grid"].value = not light  # its own on_update applies the layers
 
     # --- the jobs: decode -> draw | replay -> draw -> ensemble -> draw ----------------------------
 

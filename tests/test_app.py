@@ -411,3 +411,28 @@ def test_follow_snake_keeps_the_camera_on_the_snake(server):
         np.testing.assert_allclose(camera.look_at, center, atol=1e-6)  # left where it was
     finally:
         client.close()
+
+
+def test_light_rendering_drops_shadows_environment_and_grid_and_full_brings_them_back(server):
+    client, d = connect_headless(server)
+    try:
+        calls = []
+        scene = d.client.scene
+        lights, environment = scene.configure_default_lights, scene.configure_environment_map
+        scene.configure_default_lights = lambda *a, **kw: (calls.append(("lights", a, kw)), lights(*a, **kw))
+        scene.configure_environment_map = lambda *a, **kw: (
+            calls.append(("environment", a, kw)),
+            environment(*a, **kw),
+        )
+        assert d.controls.light.value is False and d.scene.grid.visible
+        d.controls.light.value = True  # as the page's software-renderer check or a user ticks it
+        assert ("lights", (True,), {"cast_shadow": False}) in calls
+        assert ("environment", (None,), {}) in calls
+        assert d.controls.layers["Grid"].value is False and not d.scene.grid.visible
+        calls.clear()
+        d.controls.light.value = False
+        assert ("lights", (True,), {"cast_shadow": True}) in calls
+        assert ("environment", ("warehouse",), {}) in calls
+        assert d.controls.layers["Grid"].value is True and d.scene.grid.visible
+    finally:
+        client.close()

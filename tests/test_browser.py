@@ -29,6 +29,14 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
             assert wait_until(lambda: len(srv.clients) == 1), "the page never connected"
             d = next(iter(srv.clients.values()))
             assert d.wait_idle(90)
+            # This Chromium renders WebGL in software (SwiftShader): the page ticks Light rendering.
+            assert wait_until(lambda: d.controls.light.value is True, 30), "the page kept full rendering"
+            assert d.controls.layers["Grid"].value is False
+            box = page.get_by_role("checkbox", name="Light rendering")
+            box.uncheck()  # a user who wants shadows back gets them, and the page leaves it so
+            assert wait_until(lambda: d.controls.light.value is False and d.controls.layers["Grid"].value)
+            page.wait_for_timeout(1500)
+            assert d.controls.light.value is False and not box.is_checked()
             # Move the first z_B slider with the keyboard, as a person would.
             slider = page.get_by_role("slider").first
             slider.focus()

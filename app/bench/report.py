@@ -57,10 +57,17 @@ def tabs(cmd) -> dict:
     """Several rendering tabs in one Chromium (``bench/tabs.py``)."""
     from snakeloco.app.bench.tabs import bench_tabs
 
-    r = bench_tabs(cmd.tabs, cmd.rounds, cmd.checkpoint, cmd.ensemble, browser_nice=cmd.browser_nice)
+    r = bench_tabs(
+        cmd.tabs,
+        cmd.rounds,
+        cmd.checkpoint,
+        cmd.ensemble,
+        browser_nice=cmd.browser_nice,
+        rendering=cmd.rendering,
+    )
     print(
         f"{r['tabs']} tabs animating in one Chromium (nice {r['browser_nice']}) on {r['cpus']} CPUs, "
-        f"{r['rounds']} key presses each\n"
+        f"{r['rounds']} key presses each; light rendering {r['light_rendering']} ({r['rendering']})\n"
         "key press -> value at the server p50 / p95 per tab (ms): "
         + ", ".join(
             f"{a:.0f} / {b:.0f}"

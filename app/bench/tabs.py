@@ -41,6 +41,8 @@ from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
 LAYOUT_TIMEOUT_S = 120.0
 """How long a page may take to lay out its controls before the rounds start."""
+RENDERINGS = ("page", "full", "light")
+"""How the tabs draw: as each page chose, or all full, or all light (``bench_tabs``)."""
 VALUE_TIMEOUT_S = 30.0
 """How long a key press may take to reach the server before it counts as lost."""
 
@@ -66,8 +68,15 @@ def bench_tabs(
     ensemble: int = ENSEMBLE_SIZE,
     log=print,
     browser_nice: int = 0,
+    rendering: str = "page",
 ) -> dict:
-    """Open ``tabs`` rendering pages in one Chromium and time key presses and exports (module doc)."""
+    """Open ``tabs`` rendering pages in one Chromium and time key presses and exports (module doc).
+
+    ``rendering``: "page" leaves "Light rendering" as each page set it (on where WebGL renders in
+    software, as here), "full" or "light" sets every tab's once the pages are laid out.
+    """
+    if rendering not in RENDERINGS:
+        raise ValueError(f"rendering {rendering!r}: one of {RENDERINGS}")
     require_browser("bench tabs")
     from playwright.sync_api import TimeoutError as PlaywrightTimeout
     from playwright.sync_api import sync_playwright
@@ -79,6 +88,7 @@ def bench_tabs(
     press_server: list[list[float]] = [[] for _ in range(tabs)]
     press_call: list[list[float]] = [[] for _ in range(tabs)]
     lost = [0] * tabs
+    light: list[bool] = []
     exports: list[float] = []
     export_ok: list[bool] = []
     try:
@@ -98,8 +108,16 @@ def bench_tabs(
                 d.wait_idle(120)
             for page in pages:  # laid out: on a busy machine a page can take tens of seconds
                 page.get_by_role("button", name="Export CSV").wait_for(timeout=LAYOUT_TIMEOUT_S * 1e3)
+            if rendering != "page":
+                time.sleep(2.0)  # the pages' own choice first (made once, as soon as they are laid out)
+                for d in designers:
+                    d.controls.light.value = rendering == "light"
+            light = [bool(d.controls.light.value) for d in designers]
             if log:
-                log(f"{tabs} tabs open and animating; {rounds} rounds of one key press per tab")
+                log(
+                    f"{tabs} tabs open and animating (light rendering {light}); "
+                    f"{rounds} rounds of one key press per tab"
+                )
             sliders = [page.get_by_role("slider").first for page in pages]
             for r in range(rounds):
                 for i, (page, slider, d) in enumerate(zip(pages, sliders, designers, strict=True)):
@@ -146,6 +164,8 @@ def bench_tabs(
         "tabs": tabs,
         "rounds": rounds,
         "browser_nice": browser_nice,
+        "rendering": rendering,
+        "light_rendering": light,
         "cpus": len(os.sched_getaffinity(0)),
         "press_to_server_p50_ms": [_p(v, 50) for v in press_server],
         "press_to_server_p95_ms": [_p(v, 95) for v in press_server],
