@@ -31,7 +31,7 @@ from snakeloco.sim.excitation import RECORD, multisine, random_phases
 from snakeloco.sim.physics import Simulator, resolve_workers
 from snakeloco.sim.robot import N_JOINTS, load_model, mjcf_sha256
 from snakeloco.sim.spectra import joint_shape, shape_to_commands
-from snakeloco.sim.structured import draw_structured
+from snakeloco.sim.structured import draw_structured, perturbed_shapes
 from snakeloco.sim.writer import open_writer, read_progress, write_rows
 
 MEMORY_BUDGET = 512 * 2**20
@@ -158,6 +158,20 @@ def _spread(body: np.ndarray, failures: list[str | None]) -> tuple[float, str | 
     return ensemble_spread(body, RECORD.sample_rate)["final_spread"], None
 
 
+def _ensemble(cfg: GenerateConfig, index: int, attempt: int, commands: np.ndarray) -> np.ndarray:
+    """The commands (T, 8) of a structured draw and its ``members`` - 1 perturbed copies: command
+    noise, and where ``coefficient_noise`` is set, the joint shape's coefficients perturbed first."""
+    sc, seed = cfg.structured, _noise_seed(cfg.seed, index, attempt)
+    ensemble = perturbed_commands(commands.astype(np.float64), sc.members, seed=seed)
+    if sc.coefficient_noise > 0:
+        shape, _ = draw_structured(sc, cfg.seed, index, attempt)
+        shapes = perturbed_shapes(shape, sc.members, sc.coefficient_noise, np.random.default_rng([seed, 1]))
+        for m, noisy in enumerate(shapes[1:], start=1):  # the same command noise on the noisy shape
+            noisy_commands = shape_to_commands(noisy, cfg.excitation.freqs)
+            ensemble[m] = perturbed_commands(noisy_commands, sc.members, seed=seed)[m]
+    return ensemble
+
+
 def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray) -> _Chunk:
     """Draw, screen and measure structured-family records ``indices`` (``sim.structured``).
 
@@ -179,12 +193,7 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
             commands[j], chunk.phases[j], drawn[j] = draw_record(cfg, int(indices[j]), int(attempt[j]))
         draws += len(todo)
         ensembles = {
-            j: perturbed_commands(
-                commands[j].astype(np.float64),
-                sc.members,
-                seed=_noise_seed(cfg.seed, int(indices[j]), int(attempt[j])),
-            )
-            for j in todo
+            j: _ensemble(cfg, int(indices[j]), int(attempt[j]), commands[j]) for j in todo
         }  # (members, T, 8) each; the screen is its first screen_members
         rejected: dict[int, str] = {}
         screen = simulator.simulate(np.concatenate([ensembles[j][: sc.screen_members] for j in todo]))

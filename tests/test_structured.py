@@ -19,7 +19,7 @@ from snakeloco.sim import (
     load_dataset,
 )
 from snakeloco.sim.dataset import DatasetError
-from snakeloco.sim.structured import KINDS, StructuredConfig, draw_structured
+from snakeloco.sim.structured import KINDS, StructuredConfig, draw_structured, perturbed_shapes
 
 CFG = GenerateConfig(num_samples=3, seed=3, family="structured")
 
@@ -146,3 +146,28 @@ def test_a_screening_log_rebuilds_the_same_dataset_with_one_replay_per_record(tm
     with pytest.raises(DatasetError, match="not a generation progress file"):
         generate_dataset(CFG, tmp_path / "c.npz", workers=2, screened=tmp_path / "junk.json")
     assert not (tmp_path / "c.npz").exists()
+
+
+def test_coefficient_noise_perturbs_the_shape_of_each_screened_replay():
+    from snakeloco.sim.generate import _ensemble, draw_record
+
+    shape, _ = draw_structured(StructuredConfig(), 3, 0, 0)
+    copies = perturbed_shapes(shape, 4, 0.1, np.random.default_rng(0))
+    np.testing.assert_array_equal(copies[0], shape)
+    c = shape[..., 0] + 1j * shape[..., 1]
+    excited = np.abs(c) > 1e-9
+    for noisy in copies[1:]:
+        e = noisy[..., 0] + 1j * noisy[..., 1]
+        rel = np.abs(e[excited] / c[excited] - 1)
+        assert 0.02 < np.sqrt(np.mean(rel**2)) < 0.3  # ~10% per coefficient
+        np.testing.assert_array_equal(e[~excited], c[~excited])  # no bin is excited that was not
+    plain = GenerateConfig(num_samples=3, seed=3, family="structured")
+    noisy_cfg = plain.model_copy(update={"structured": StructuredConfig(coefficient_noise=0.1)})
+    commands = draw_record(plain, 0, 0)[0]
+    a, b = _ensemble(plain, 0, 0, commands), _ensemble(noisy_cfg, 0, 0, commands)
+    np.testing.assert_array_equal(a[0], b[0])  # the record itself is the draw, unperturbed
+    np.testing.assert_array_equal(b, _ensemble(noisy_cfg, 0, 0, commands))  # deterministic
+    for m in range(1, len(a)):
+        plain_dev = np.sqrt(np.mean((a[m] - a[0]) ** 2))
+        noisy_dev = np.sqrt(np.mean((b[m] - b[0]) ** 2))
+        assert noisy_dev > 20 * plain_dev  # 10% of the shape against 0.1% of the commands
