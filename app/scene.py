@@ -41,8 +41,9 @@ LAYERS = ("Snake", "Generated path", "Simulated path", "Ensemble fan", "Joint sh
 """The Layers checkboxes, in the order they are shown."""
 LIGHT_RENDERING = "Light rendering"
 """The Layers checkbox that draws the scene without its costly passes (``TabScene.set_light``)."""
-ENVIRONMENT_MAP = "warehouse"
-"""viser's default environment map, the one full rendering lights the scene with."""
+ENVIRONMENT_MAP = "city"
+"""The environment map viser's client lights an unconfigured scene with (its built-in default), which
+full rendering restores."""
 
 
 END_SPREAD = {"paper": 1.57}

@@ -432,7 +432,7 @@ def test_light_rendering_drops_shadows_environment_and_grid_and_full_brings_them
         calls.clear()
         d.controls.light.value = False
         assert ("lights", (True,), {"cast_shadow": True}) in calls
-        assert ("environment", ("warehouse",), {}) in calls
+        assert ("environment", ("city",), {}) in calls
         assert d.controls.layers["Grid"].value is True and d.scene.grid.visible
     finally:
         client.close()
