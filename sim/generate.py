@@ -166,9 +166,9 @@ def _ensemble(cfg: GenerateConfig, index: int, attempt: int, commands: np.ndarra
     if sc.coefficient_noise > 0:
         shape, _ = draw_structured(sc, cfg.seed, index, attempt)
         shapes = perturbed_shapes(shape, sc.members, sc.coefficient_noise, np.random.default_rng([seed, 1]))
+        factors = perturbed_commands(np.ones_like(ensemble[0]), sc.members, seed=seed)  # 1 + noise, once
         for m, noisy in enumerate(shapes[1:], start=1):  # the same command noise on the noisy shape
-            noisy_commands = shape_to_commands(noisy, cfg.excitation.freqs)
-            ensemble[m] = perturbed_commands(noisy_commands, sc.members, seed=seed)[m]
+            ensemble[m] = shape_to_commands(noisy, cfg.excitation.freqs) * factors[m]
     return ensemble
 
 
