@@ -10,7 +10,9 @@ from __future__ import annotations
 import os
 import threading
 from collections.abc import Iterator
-from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import mujoco
 import numpy as np
@@ -47,10 +49,18 @@ class StreamedReplay:
 
     samples: int
     joint_angles: np.ndarray  # (samples, 8) rad
-    body: np.ndarray  # (samples, 6)
     qpos: np.ndarray  # (samples, nq)
     failure: str | None  # why the simulation broke (then the stream ends), or None
     done: bool  # the whole record is in
+    pos: np.ndarray = field(repr=False)  # (samples, 3) world position of the body frame
+    quat: np.ndarray = field(repr=False)  # (samples, 4) its unit quaternion, wxyz
+
+    @cached_property
+    def body(self) -> np.ndarray:
+        """(samples, 6) body states, computed when first asked for: a consumer that draws the path
+        a few times a second does not pay for it at every chunk (the GIL other tabs wait on)."""
+        with np.errstate(invalid="ignore"):
+            return body_states(self.pos[None], self.quat[None])[0]
 
 
 STREAM_CHUNK = 100
@@ -109,36 +119,85 @@ class _FifoLock:
             self._cond.notify_all()
 
 
-def _start_pool(nthread: int, nice: int) -> mj_rollout.Rollout:
-    """A rollout thread pool whose native threads run ``nice`` lower than the caller.
+class RolloutThreads:
+    """``n`` Python threads, ``nice`` below their creator, that run MuJoCo rollouts one record each.
 
-    Threads inherit their creator's nice value, so the pool is created on a short-lived helper
-    thread that lowers its own priority first; the caller's priority is untouched (lowering needs
-    no privilege, raising it back would).
+    Why not ``mujoco.rollout.Rollout(nthread=n)``: its caller waits for the pool by spinning
+    (``std::this_thread::yield``) at the caller's own priority, so a server thread waiting for a
+    niced ensemble burnt a core at full priority for the whole batch (measured: the waiting thread
+    used 0.82 s of CPU in a 0.82 s rollout). Here each thread calls a pool-less rollout, which runs
+    on that thread with the GIL released, and the caller blocks on a future without using the CPU.
+    The threads take the GIL only to enter and leave a rollout. Rows are independent (each from its
+    own initial state and warm start), so the results do not depend on which thread ran them.
     """
-    if nice <= 0:
-        return mj_rollout.Rollout(nthread=nthread)
-    made: list = []
 
-    def make() -> None:
-        try:
+    def __init__(self, n: int, nice: int = 0, name: str = "rollout") -> None:
+        self.n = max(1, int(n))
+        self._local = threading.local()
+        self._executor = ThreadPoolExecutor(
+            self.n, thread_name_prefix=name, initializer=self._start_thread, initargs=(int(nice),)
+        )
+        started = threading.Barrier(self.n + 1)  # all threads now (an executor starts them lazily)
+        for _ in range(self.n):
+            self._executor.submit(started.wait)
+        started.wait()
+
+    @staticmethod
+    def _start_thread(nice: int) -> None:
+        if nice > 0:  # lowering needs no privilege; the creator's priority is untouched
             lower_thread_priority(nice)
-            made.append(mj_rollout.Rollout(nthread=nthread))
-        except BaseException as exc:  # handed to the caller below
-            made.append(exc)
 
-    helper = threading.Thread(target=make, name="rollout-pool-start")
-    helper.start()
-    helper.join()
-    if isinstance(made[0], BaseException):
-        raise made[0]
-    return made[0]
+    def _one(self, model: mujoco.MjModel, data: mujoco.MjData | None, **arrays) -> None:
+        local = self._local
+        if not hasattr(local, "runner"):
+            local.runner = mj_rollout.Rollout(nthread=0)  # no pool: runs on this thread
+            local.data = {}
+        if data is None:  # this thread's own MjData for the model (rollout sets its whole state)
+            data = local.data.get(id(model))
+            if data is None:
+                data = local.data[id(model)] = mujoco.MjData(model)
+        local.runner.rollout(model, data, **arrays)
+
+    def rollout(
+        self,
+        model: mujoco.MjModel,
+        initial: np.ndarray,
+        ctrl: np.ndarray,
+        warm: np.ndarray,
+        state: np.ndarray,
+        sensordata: np.ndarray,
+        data: mujoco.MjData | None = None,
+    ) -> None:
+        """Roll out rows ``initial`` (B, nstate), ``ctrl`` (B, nstep, nu) from ``warm`` (B, nv) into
+        ``state`` (B, nstep, nstate) and ``sensordata`` (B, nstep, nsensordata), one row per task;
+        ``data``: the MjData to use (one row only: a stream keeps its own). Blocks until all are in."""
+        if data is not None and len(ctrl) != 1:
+            raise ValueError("a given MjData serves one row at a time")
+        futures = [
+            self._executor.submit(
+                self._one,
+                model,
+                data,
+                initial_state=initial[i : i + 1],
+                control=ctrl[i : i + 1],
+                initial_warmstart=warm[i : i + 1],
+                state=state[i : i + 1],
+                sensordata=sensordata[i : i + 1],
+            )
+            for i in range(len(ctrl))
+        ]
+        for f in futures:
+            f.result()
+
+    def close(self) -> None:
+        """Finish the rollouts in progress and stop the threads."""
+        self._executor.shutdown(wait=True, cancel_futures=True)
 
 
-def replay_runner(nice: int) -> mj_rollout.Rollout:
-    """A one-thread rollout pool at ``nice`` below the caller, for ``Simulator.stream`` (close it
-    when done): a server runs its tabs' replays below its own threads and above its ensembles."""
-    return _start_pool(1, nice) if nice > 0 else mj_rollout.Rollout(nthread=1)
+def replay_runner(nice: int) -> RolloutThreads:
+    """One rollout thread at ``nice`` below the caller, for ``Simulator.stream`` (close it when
+    done): a server runs its tabs' replays below its own threads and above its ensembles."""
+    return RolloutThreads(1, nice, name="replay")
 
 
 def resolve_workers(workers: int | None) -> int:
@@ -171,10 +230,10 @@ class Simulator:
         # Records rolled out per call: a rollout keeps every physics step (~16 MB per record), so a
         # larger batch runs as consecutive calls of this many (2 per thread keeps both balanced).
         self.max_batch = max(1, int(max_batch or 2 * self.workers))
-        self._datas = [mujoco.MjData(self.model) for _ in range(self.workers)]
-        self._pool = None
+        self._data = mujoco.MjData(self.model)
+        self._pool = None  # one worker at the caller's priority: roll out on the calling thread
         if self.workers > 1 or nice > 0:
-            self._pool = _start_pool(self.workers, int(nice))
+            self._pool = RolloutThreads(self.workers, int(nice), name="physics")
         self._closed = False
         self._lock = _FifoLock()  # callers sharing one simulator roll out in the order they came
         dt = self.model.opt.timestep
@@ -205,12 +264,17 @@ class Simulator:
         # A zero warm start for every rollout, as mj_resetData leaves it: results then do not depend
         # on which thread ran the previous rollout.
         warm = np.zeros((batch, self.model.nv))
+        m, n_steps = self.model, ctrl.shape[1]
+        state = np.empty((batch, n_steps, mujoco.mj_stateSize(m, _STATE_SPEC)))
+        sens = np.empty((batch, n_steps, m.nsensordata))
         with self._lock:
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
             if self._pool is None:
-                return mj_rollout.rollout(self.model, self._datas[0], initial, ctrl, initial_warmstart=warm)
-            return self._pool.rollout(self.model, self._datas, initial, ctrl, initial_warmstart=warm)
+                mj_rollout.rollout(m, self._data, initial, ctrl, initial_warmstart=warm, state=state, sensordata=sens)
+            else:
+                self._pool.rollout(m, initial, ctrl, warm, state, sens)
+        return state, sens
 
     def close(self) -> None:
         """Stop the native thread pool, if there is one (then the Simulator cannot roll out)."""
@@ -269,18 +333,20 @@ class Simulator:
             failures.append(self._diagnose_one(state[b], sens[b], dt))
         return failures
 
-    def _diagnose_one(self, state: np.ndarray, sens: np.ndarray, dt: float) -> str | None:
+    def _diagnose_one(self, state: np.ndarray, sens: np.ndarray, dt: float, first: int = 0) -> str | None:
+        """Why a rollout's steps (``state``/``sens`` rows are steps ``first``, ``first`` + 1, ...)
+        broke the simulation, or None. A stream checks each chunk's new steps once (``first``)."""
         t0 = self.config.lead_in / self.excitation.sample_rate  # record time = sim time - t0
 
         def at(step: int) -> str:
-            t = step * dt - t0
+            t = (first + step) * dt - t0
             return f"t = {t:.2f} s" + (" (in the lead-in before the record)" if t < 0 else "")
 
         bad = ~np.isfinite(state).all(axis=1)
         if bad.any():
             return f"non-finite physics state at {at(int(np.argmax(bad)))}"
         time = state[:, 0]
-        expected = (np.arange(1, state.shape[0] + 1)) * dt
+        expected = (np.arange(first + 1, first + state.shape[0] + 1)) * dt
         off = np.abs(time - expected) > 0.5 * dt
         if off.any():
             return (
@@ -306,7 +372,7 @@ class Simulator:
         self,
         commands: np.ndarray,
         chunk_samples: int = STREAM_CHUNK,
-        runner: mj_rollout.Rollout | None = None,
+        runner: RolloutThreads | None = None,
     ) -> Iterator[StreamedReplay]:
         """Replay one record (T, 8) rad in chunks of ``chunk_samples`` record samples, yielding after
         each chunk everything simulated so far (the first chunk also holds the lead-in).
@@ -342,27 +408,31 @@ class Simulator:
         for end in bounds:
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
+            # Into the stream's own arrays: a chunk allocates nothing (freeing a fresh output array
+            # each chunk unmapped its pages, and every thread of the process paid for it).
+            out_state, out_sens = state[None, done:end], sens[None, done:end]
             if runner is None:
-                s, se = mj_rollout.rollout(m, data, initial, ctrl[:, done:end], initial_warmstart=warm)
+                mj_rollout.rollout(
+                    m, data, initial, ctrl[:, done:end], initial_warmstart=warm, state=out_state, sensordata=out_sens
+                )
             else:
-                s, se = runner.rollout(m, [data], initial, ctrl[:, done:end], initial_warmstart=warm)
+                runner.rollout(m, initial, ctrl[:, done:end], warm, out_state, out_sens, data=data)
             warm = data.qacc_warmstart[None].copy()
-            state[done:end], sens[done:end] = s[0], se[0]
-            initial, done = s[:, -1], end
-            failure = self._diagnose_one(state[:done], sens[:done], m.opt.timestep)
+            # The steps before passed their checks: only this chunk's are new (same verdict and
+            # message as checking the whole prefix, at a chunk's cost instead of the prefix's).
+            failure = self._diagnose_one(state[done:end], sens[done:end], m.opt.timestep, first=done)
+            initial, done = state[None, end - 1], end
             n = int(np.searchsorted(record, done))  # samples whose step has been simulated
             sampled = sens[record[:n]]
             quat = sampled[:, self._quat_cols]
-            quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True).clip(min=1e-12)
-            with np.errstate(invalid="ignore"):
-                body = body_states(sampled[None, :, self._pos_cols], quat[None])[0]
             yield StreamedReplay(
                 samples=n,
                 joint_angles=sampled[:, self._q_cols],
-                body=body,
                 qpos=state[record[:n] - 1, 1 : 1 + m.nq],
                 failure=failure,
                 done=done == n_steps,
+                pos=sampled[:, self._pos_cols],
+                quat=quat / np.linalg.norm(quat, axis=-1, keepdims=True).clip(min=1e-12),
             )
             if failure is not None:
                 return
