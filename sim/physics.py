@@ -271,7 +271,9 @@ class Simulator:
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
             if self._pool is None:
-                mj_rollout.rollout(m, self._data, initial, ctrl, initial_warmstart=warm, state=state, sensordata=sens)
+                mj_rollout.rollout(
+                    m, self._data, initial, ctrl, initial_warmstart=warm, state=state, sensordata=sens
+                )
             else:
                 self._pool.rollout(m, initial, ctrl, warm, state, sens)
         return state, sens
@@ -413,7 +415,13 @@ class Simulator:
             out_state, out_sens = state[None, done:end], sens[None, done:end]
             if runner is None:
                 mj_rollout.rollout(
-                    m, data, initial, ctrl[:, done:end], initial_warmstart=warm, state=out_state, sensordata=out_sens
+                    m,
+                    data,
+                    initial,
+                    ctrl[:, done:end],
+                    initial_warmstart=warm,
+                    state=out_state,
+                    sensordata=out_sens,
                 )
             else:
                 runner.rollout(m, initial, ctrl[:, done:end], warm, out_state, out_sens, data=data)
