@@ -15,6 +15,7 @@ from typing import Annotated, Literal
 import tyro
 from pydantic import BaseModel, ConfigDict, Field
 
+from snakeloco.app.bench.load_driver import DWELL_S
 from snakeloco.model.calibrate import CalibrateConfig
 from snakeloco.model.config import ModelConfig
 from snakeloco.model.design import DesignConfig, Target
@@ -226,6 +227,12 @@ class BenchLoad(Command):
     single_seconds: Annotated[float | None, Field(gt=0)] = None
     """Length of the single-client phase (default: --seconds), e.g. a short reference before a
     10-minute multi-client run that watches memory."""
+    dwell: Annotated[float, Field(ge=0)] = DWELL_S
+    """Seconds each page rests with the mouse up after a drag, looking at the gait it let go of (its
+    replay has that long to finish); 0: drag without rests, replays finish only when the drags end."""
+    browser_nice: Annotated[int, Field(ge=0, le=19)] = 10
+    """Nice of the load-generating browsers (and their scheduling group): 10 puts them level with the
+    server's replays; 15 below them, closer to browsers on other machines."""
 
 
 class BenchTabs(Command):

@@ -89,6 +89,7 @@ class GaitSession:
         physics_nice: int = 0,
         simulator: Simulator | None = None,
         replay_nice: int = 0,
+        drag_nice: int | None = None,
     ) -> None:
         self.model = model
         self.ensemble = ensemble
@@ -107,6 +108,9 @@ class GaitSession:
         # Streamed replays run on a native thread of the session's own, ``replay_nice`` below the
         # caller: below a server's own threads (decoding, drawing), above its ensembles.
         self._stream_runner = replay_runner(replay_nice)
+        # ``drag_nice``: where a replay's later chunks run while its gait may be one the user is
+        # dragging through (``replay_streamed``'s ``settled``); None: on the same thread.
+        self._drag_runner = replay_runner(drag_nice) if drag_nice is not None else self._stream_runner
 
     @property
     def simulator(self) -> Simulator:
@@ -118,6 +122,8 @@ class GaitSession:
         for simulator in self._owned:
             simulator.close()
         self._stream_runner.close()
+        if self._drag_runner is not self._stream_runner:
+            self._drag_runner.close()
 
     def decode(self, latents: Latents) -> DecodedGait:
         """Decode latents to a joint shape, a body path and resynthesised commands."""
@@ -154,18 +160,35 @@ class GaitSession:
         )
 
     def replay_streamed(
-        self, gait: DecodedGait, on_part: Callable[[StreamedReplay], bool]
+        self,
+        gait: DecodedGait,
+        on_part: Callable[[StreamedReplay], bool],
+        settled: Callable[[], bool] | None = None,
+        wanted: Callable[[], bool] | None = None,
     ) -> SimulatedGait | None:
         """``replay`` in chunks (``Simulator.stream``): ``on_part`` gets what is simulated so far after
         each chunk and returns whether to go on. Returns the same SimulatedGait as ``replay`` (bit for
-        bit), or None where ``on_part`` stopped it; raises SimulationError if physics breaks."""
+        bit), or None where ``on_part`` stopped it; raises SimulationError if physics breaks.
+
+        The first chunk (the first motion) runs on the replay thread; each later one there too where
+        ``settled()`` says the user has let go of this gait, else on the ``drag_nice`` thread, so
+        that the replay of a gait some tab has settled on comes before the chunks of gaits other
+        tabs are still dragging through (same results wherever a chunk runs). ``wanted``: polled
+        while a chunk runs; once False the replay ends without waiting for that chunk (None)."""
         t0 = time.perf_counter()
         part = None
-        for part in self._replayer.stream(gait.commands, runner=self._stream_runner):
+
+        def runner(k: int):
+            settle = settled is None or k == 0 or settled()
+            return self._stream_runner if settle else self._drag_runner
+
+        for part in self._replayer.stream(gait.commands, runner=runner, wanted=wanted):
             if part.failure is not None:
                 raise SimulationError(part.failure)
             if not on_part(part):
                 return None
+        if part is None or not part.done:
+            return None  # left mid-chunk: no longer wanted
         return self._simulated(part, t0)
 
     def run_ensemble(

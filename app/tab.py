@@ -39,6 +39,13 @@ REPLAY_NICE = 10
 threads (decoding and drawing for every tab come first), above every ensemble (``PHYSICS_NICE``),
 and equal among tabs. At +5, 4 tabs' replays held decoding to about half a core (bench load:
 decode stage p95 20-25 ms against 10 ms alone, decoded view worst / single p95 2.14)."""
+DRAG_REPLAY_NICE = 14
+"""Nice increment of the thread that runs a replay's chunks after the first while its gait is
+younger than ``SETTLED_S`` (the user may be dragging through it): below every tab's settled
+replays, above the ensembles. Speculative physics of a drag then takes what the settled replays
+leave."""
+SETTLED_S = 0.5
+"""A slider value the tab has held this long (no newer one) is one the user has let go of."""
 PHYSICS_NICE = 15
 """Nice increment of the native threads that run a tab's rollouts when the tab owns its simulators
 (a server shares one pool at this priority). Its Python threads stay at the server's priority, so a
@@ -76,6 +83,7 @@ class DesignerClient(GaitFiles, LatentMoves):
             physics_nice=PHYSICS_NICE,
             simulator=simulator,
             replay_nice=REPLAY_NICE,
+            drag_nice=DRAG_REPLAY_NICE,
         )
         self.decoded: DecodedGait | None = None
         self.simulated: SimulatedGait | None = None
@@ -322,7 +330,10 @@ class DesignerClient(GaitFiles, LatentMoves):
     def _simulate(self, decoded: DecodedGait, timing: Timing, is_current) -> SimulatedGait | None:
         try:
             sim = self.session.replay_streamed(
-                decoded, lambda part: self._draw_part(part, timing, is_current)
+                decoded,
+                lambda part: self._draw_part(part, timing, is_current),
+                settled=lambda: time.perf_counter() - timing.submitted >= SETTLED_S,
+                wanted=is_current,
             )
         except SimulationError as exc:
             timing.failed = str(exc)

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import os
 import threading
-from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor
+from concurrent.futures import wait as wait_futures
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -63,8 +64,14 @@ class StreamedReplay:
             return body_states(self.pos[None], self.quat[None])[0]
 
 
-STREAM_CHUNK = 100
-"""Record samples per chunk of a streamed replay: 5 s of record, ~60 ms of physics on one core."""
+STREAM_CHUNK = 50
+"""Record samples per chunk of a streamed replay: 2.5 s of record, ~17 ms of physics on one core
+(a superseded replay holds its thread at most that long)."""
+STREAM_POLL_S = 0.002
+"""How often a stream in flight asks whether it is still wanted (``Simulator.stream``'s ``wanted``)."""
+STREAM_FIRST = 20
+"""Record samples in a stream's first chunk, after the 3 s lead-in: ~27 ms of physics to the first
+pose (100 samples took ~55 ms)."""
 
 
 @dataclass(frozen=True)
@@ -167,10 +174,12 @@ class RolloutThreads:
         state: np.ndarray,
         sensordata: np.ndarray,
         data: mujoco.MjData | None = None,
-    ) -> None:
+        wait: bool = True,
+    ) -> list[Future]:
         """Roll out rows ``initial`` (B, nstate), ``ctrl`` (B, nstep, nu) from ``warm`` (B, nv) into
         ``state`` (B, nstep, nstate) and ``sensordata`` (B, nstep, nsensordata), one row per task;
-        ``data``: the MjData to use (one row only: a stream keeps its own). Blocks until all are in."""
+        ``data``: the MjData to use (one row only: a stream keeps its own). Blocks until all are in,
+        unless not ``wait``: then returns the rows' futures at once."""
         if data is not None and len(ctrl) != 1:
             raise ValueError("a given MjData serves one row at a time")
         futures = [
@@ -186,8 +195,10 @@ class RolloutThreads:
             )
             for i in range(len(ctrl))
         ]
-        for f in futures:
-            f.result()
+        if wait:
+            for f in futures:
+                f.result()
+        return futures
 
     def close(self) -> None:
         """Finish the rollouts in progress and stop the threads."""
@@ -374,10 +385,12 @@ class Simulator:
         self,
         commands: np.ndarray,
         chunk_samples: int = STREAM_CHUNK,
-        runner: RolloutThreads | None = None,
+        first_samples: int = STREAM_FIRST,
+        wanted: Callable[[], bool] | None = None,
+        runner: RolloutThreads | Callable[[int], RolloutThreads | None] | None = None,
     ) -> Iterator[StreamedReplay]:
         """Replay one record (T, 8) rad in chunks of ``chunk_samples`` record samples, yielding after
-        each chunk everything simulated so far (the first chunk also holds the lead-in).
+        each chunk everything simulated so far (the first chunk is the lead-in and ``first_samples``).
 
         The physics state and the solver's warm start carry over from chunk to chunk, so the arrays
         are bit-identical to ``replay``'s (prefixes of them until the last part). The chunks run on
@@ -388,7 +401,10 @@ class Simulator:
         iterating (a superseded replay) stops the physics at that chunk boundary. A chunk that
         breaks the simulation ends the stream with its ``failure`` set. ``runner``: a one-thread
         pool (``replay_runner``) to run the chunks on at its own priority instead of the calling
-        thread's (same results).
+        thread's (same results), or a function of the chunk's index (0 first) that picks one per
+        chunk (None: the calling thread). ``wanted``: polled while a runner's chunk is in flight; once
+        it says False the stream ends at once (the chunk finishes on its thread, unread), so a newer
+        gait's replay need not wait for the old one's chunk.
         """
         commands = np.asarray(commands, dtype=np.float64)
         n_t = self.excitation.n_samples
@@ -402,18 +418,18 @@ class Simulator:
         sens = np.empty((n_steps, m.nsensordata))
         record = self.config.lead_in * self.substeps + self.substeps * np.arange(n_t)
         bounds = [
-            *range(record[0] + chunk_samples * self.substeps, n_steps, chunk_samples * self.substeps),
+            *range(record[0] + first_samples * self.substeps, n_steps, chunk_samples * self.substeps),
             n_steps,
         ]
         initial, warm, done = self.initial_state[None], np.zeros((1, m.nv)), 0
         data = mujoco.MjData(m)
-        for end in bounds:
+        for k, end in enumerate(bounds):
+            chunk_runner = runner(k) if callable(runner) else runner
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
-            # Into the stream's own arrays: a chunk allocates nothing (freeing a fresh output array
-            # each chunk unmapped its pages, and every thread of the process paid for it).
+            # Into the stream's own arrays: a chunk allocates nothing.
             out_state, out_sens = state[None, done:end], sens[None, done:end]
-            if runner is None:
+            if chunk_runner is None:
                 mj_rollout.rollout(
                     m,
                     data,
@@ -424,7 +440,14 @@ class Simulator:
                     sensordata=out_sens,
                 )
             else:
-                runner.rollout(m, initial, ctrl[:, done:end], warm, out_state, out_sens, data=data)
+                (chunk,) = chunk_runner.rollout(
+                    m, initial, ctrl[:, done:end], warm, out_state, out_sens, data=data, wait=False
+                )
+                while wanted is not None and not chunk.done():
+                    if not wanted():
+                        return  # the chunk's arrays and MjData are this stream's alone: left to it
+                    wait_futures([chunk], timeout=STREAM_POLL_S, return_when=FIRST_COMPLETED)
+                chunk.result()
             warm = data.qacc_warmstart[None].copy()
             # The steps before passed their checks: only this chunk's are new (same verdict and
             # message as checking the whole prefix, at a chunk's cost instead of the prefix's).

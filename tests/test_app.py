@@ -297,17 +297,19 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
 
 
 def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server):
+    from snakeloco.sim.physics import STREAM_CHUNK, STREAM_FIRST
+
     client, d = connect_headless(server)
     try:
         gate = threading.Event()
         replay = d.session.replay_streamed
         replayed, parts = [], []
 
-        def gated_replay(gait, on_part):  # the real (streamed) replay, held until the test releases it
+        def gated_replay(gait, on_part, **kw):  # the real (streamed) replay, held until the test releases it
             gate.wait(60)
             replayed.append(gait.latents.z_b[0])
             return replay(
-                gait, lambda part: parts.append((gait.latents.z_b[0], part.samples)) or on_part(part)
+                gait, lambda part: parts.append((gait.latents.z_b[0], part.samples)) or on_part(part), **kw
             )
 
         d.session.replay_streamed = gated_replay
@@ -325,8 +327,10 @@ def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server
         # The held (stale) replay stopped at its first chunk and was never drawn; the newest one was,
         # streamed chunk by chunk to the whole record.
         assert replayed == [1.0, 1.6]
-        assert [n for z, n in parts if z == 1.0] == [100]
-        assert [n for z, n in parts if z == 1.6] == list(range(100, 2001, 100))
+        first_n, chunk = STREAM_FIRST, STREAM_CHUNK
+        # (it is left while its first chunk runs, or at the latest when that chunk is in)
+        assert [n for z, n in parts if z == 1.0] in ([], [first_n])
+        assert [n for z, n in parts if z == 1.6] == [*range(first_n, 2000, chunk), 2000]
         assert not np.isfinite(first.replayed) and np.isfinite(d.timings[-1].ensembled)
         np.testing.assert_allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::4, 1])
         assert d.decoded.latents.z_b[0] == 1.6
@@ -390,6 +394,27 @@ def test_the_ensemble_comes_in_batches_equal_to_one_rollout_and_stops_when_left(
             gait, session.replay(gait), seed=7, keep_going=lambda b: calls.append(1) and False
         )
         assert left is None and len(calls) == 1  # a superseded ensemble stops after its first batch
+    finally:
+        session.close()
+
+
+def test_a_replay_the_user_is_still_dragging_through_runs_below_settled_ones(checkpoint):
+    from snakeloco.app.session import GaitSession, Latents
+    from snakeloco.model import load_pretrained
+
+    session = GaitSession(load_pretrained(checkpoint), ensemble=2, workers=1, replay_nice=2, drag_nice=6)
+    try:
+        gait = session.decode(Latents(z_b=(0.5, -0.5, 0.0)))
+        whole = session.replay(gait)
+        ran = []
+        for runner, name in ((session._stream_runner, "replay"), (session._drag_runner, "drag")):
+            rollout = runner.rollout
+            runner.rollout = lambda *a, _r=rollout, _n=name, **k: ran.append(_n) or _r(*a, **k)
+        settled = iter([False, False, True] + [True] * 100)  # held after its third chunk
+        sim = session.replay_streamed(gait, lambda part: True, settled=lambda: next(settled))
+        # The first motion on the replay thread, then the drag thread until the value is held.
+        assert ran[:4] == ["replay", "drag", "drag", "replay"] and set(ran[4:]) == {"replay"}
+        np.testing.assert_array_equal(sim.body, whole.body)  # wherever a chunk ran, the same replay
     finally:
         session.close()
 

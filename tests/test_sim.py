@@ -322,13 +322,14 @@ def test_servo_lag_compensation_brings_the_measured_shape_to_the_target(tiny_dat
 
 def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_left():
     from snakeloco.sim.gaits import PRESETS
+    from snakeloco.sim.physics import STREAM_FIRST, replay_runner
 
     simulator = Simulator(workers=1)
     commands = PRESETS["sidewind"].gait.commands()
     whole = simulator.replay(commands)
-    parts = list(simulator.stream(commands, chunk_samples=300))
-    assert [p.samples for p in parts] == [300, 600, 900, 1200, 1500, 1800, 2000]
-    assert [p.done for p in parts] == [False] * 6 + [True] and all(p.failure is None for p in parts)
+    parts = list(simulator.stream(commands, chunk_samples=300, first_samples=100))
+    assert [p.samples for p in parts] == [100, 400, 700, 1000, 1300, 1600, 1900, 2000]
+    assert [p.done for p in parts] == [False] * 7 + [True] and all(p.failure is None for p in parts)
     for p in parts:  # every part is a prefix of the un-chunked replay, to the bit
         np.testing.assert_array_equal(p.joint_angles, whole.joint_angles[: p.samples])
         np.testing.assert_array_equal(p.body, whole.body[: p.samples])
@@ -344,6 +345,18 @@ def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_le
     finally:
         sim_physics.mj_rollout.rollout = rollout
     assert len(calls) == 1
+    # On a runner, a stream no longer wanted ends while its chunk is still in flight.
+    runner, parts = replay_runner(0), []
+    try:
+        for part in simulator.stream(commands, chunk_samples=500, runner=runner, wanted=lambda: not parts):
+            parts.append(part)
+        assert [p.samples for p in parts] == [STREAM_FIRST]
+        every = list(
+            simulator.stream(commands, chunk_samples=500, runner=lambda k: runner, wanted=lambda: True)
+        )
+        np.testing.assert_array_equal(every[-1].body, whole.body)  # a runner per chunk: the same replay
+    finally:
+        runner.close()
     # A gait that breaks the physics ends its stream with the reason, as replay raises it.
     strict = Simulator(workers=1, config=SimConfig(max_com_height=0.03))
     last = list(strict.stream(commands, chunk_samples=300))[-1]

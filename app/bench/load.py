@@ -32,12 +32,13 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from snakeloco.app.bench import load_driver
-from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until  # noqa: F401 (the browser tests' too)
+from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, DWELL_S, wait_until  # noqa: F401 (the browser tests' too)
 from snakeloco.app.bench.processes import (
     BrowserNice,
     RssSampler,
@@ -52,6 +53,21 @@ from snakeloco.app.tab import DesignerClient
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
 BROWSER_NICE = 10
+"""Nice of the load generators (each driver, its Chromium and their scheduling group): below the
+server's own threads, level with its replays (+10), above its ensembles (+15)."""
+
+
+@dataclass(frozen=True)
+class Pages:
+    """How the simulated users' pages run: drawing or not, on which CPUs, resting how long after
+    each drag, at what nice."""
+
+    render: bool
+    cpus: list[int] | None
+    dwell: float
+    nice: int
+
+
 CATCH_UP_S = 120.0
 """How long a page may take, after the drags end, to show the final sliders and deliver an export."""
 
@@ -95,13 +111,15 @@ class _Browser:
     """One user: a Chromium page driven from a process of its own (``load_driver``), so that
     every page drags at its own pace, as users' browsers on their own machines do."""
 
-    def __init__(self, url: str, render: bool, cpus: list[int] | None) -> None:
+    def __init__(self, url: str, pages: Pages) -> None:
         import multiprocessing
 
         ctx = multiprocessing.get_context("spawn")  # no fork of a process with server threads
         self._conn, child = ctx.Pipe()
         self._process = ctx.Process(
-            target=load_driver.main, args=(child, url, render, BROWSER_NICE, cpus), name="bench-load-browser"
+            target=load_driver.main,
+            args=(child, url, pages.render, pages.nice, pages.cpus),
+            name="bench-load-browser",
         )
         self._process.start()
         child.close()
@@ -223,10 +241,10 @@ def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: i
     return problems
 
 
-def _phase(server: DesignerServer, n: int, seconds: float, rng, tmp: Path, log, render: bool, cpus) -> dict:
+def _phase(server: DesignerServer, n: int, seconds: float, rng, tmp: Path, log, pages: Pages) -> dict:
     browsers: list[_Browser] = []
     try:
-        return _drive(browsers, server, n, seconds, rng, tmp, log, render, cpus)
+        return _drive(browsers, server, n, seconds, rng, tmp, log, pages)
     finally:
         for browser in browsers:
             try:
@@ -238,12 +256,12 @@ def _phase(server: DesignerServer, n: int, seconds: float, rng, tmp: Path, log, 
 
 
 def _drive(
-    browsers: list, server: DesignerServer, n: int, seconds: float, rng, tmp, log, render, cpus
+    browsers: list, server: DesignerServer, n: int, seconds: float, rng, tmp, log, pages: Pages
 ) -> dict:
     designers = []
     for _ in range(n):
         before = set(server.clients)
-        browsers.append(_Browser(f"http://127.0.0.1:{server.port}", render, cpus))
+        browsers.append(_Browser(f"http://127.0.0.1:{server.port}", pages))
         browsers[-1].call("open", timeout=180)
         if not wait_until(lambda b=before: set(server.clients) - b, 90):
             raise RuntimeError("a browser page never connected to the designer")
@@ -257,7 +275,7 @@ def _drive(
     start = time.perf_counter()
     t_start = time.monotonic()
     for browser, seed in zip(browsers, seeds, strict=True):
-        browser.send("drag", seconds, n_sliders, [seed])
+        browser.send("drag", seconds, n_sliders, [seed], pages.dwell)
     moves = [browser.receive("drag", timeout=seconds + 600)[0] for browser in browsers]
     t_end = time.monotonic()
     settled = _wait_quiet(designers)  # slider messages a starved page sends late
@@ -294,7 +312,8 @@ def _drive(
         )
         if log:
             log(
-                f"  client {i + 1}/{n}: {len(ts)} updates, decoded p95 {clients[-1]['decoded_p95_ms']:.1f} ms"
+                f"  client {i + 1}/{n}: {len(ts)} updates, {rep.size} replays finished, "
+                f"decoded p95 {clients[-1]['decoded_p95_ms']:.1f} ms"
             )
     return {
         "clients": clients,
@@ -317,6 +336,8 @@ def bench_load(
     render: bool = False,
     pin_cpus: bool = False,
     single_seconds: float | None = None,
+    dwell: float = DWELL_S,
+    browser_nice: int = BROWSER_NICE,
 ) -> dict:
     """Run the single-client and ``clients``-client phases and summarise them (see module docstring)."""
     import tempfile
@@ -329,7 +350,8 @@ def bench_load(
     tune_process()  # as `snakeloco serve` runs it
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
     rss = RssSampler()
-    browser_nice = BrowserNice(BROWSER_NICE)
+    browser_group = BrowserNice(browser_nice)
+    pages = Pages(render, split[1] if split else None, dwell, browser_nice)
     rng = np.random.default_rng(seed)
     phases = {}
     try:
@@ -338,12 +360,10 @@ def bench_load(
                 length = single_seconds if n == 1 and single_seconds else seconds
                 if log:
                     log(f"{n} client(s) dragging sliders for {length:g} s")
-                phases[n] = _phase(
-                    server, n, length, rng, Path(tmp), log, render, split[1] if split else None
-                )
+                phases[n] = _phase(server, n, length, rng, Path(tmp), log, pages)
     finally:
         rss.stop()
-        browser_nice.stop()
+        browser_group.stop()
         server.stop()
         if all_cpus:
             pin_process(all_cpus)
@@ -362,6 +382,8 @@ def bench_load(
         "clients": clients,
         "seconds": seconds,
         "rendered": render,
+        "dwell_s": dwell,
+        "browser_nice": browser_nice,
         "server_cpus": split[0] if split else None,
         "browser_cpus": split[1] if split else None,
         "single_decoded_p50_ms": single["decoded_p50_ms"],
@@ -387,6 +409,9 @@ def bench_load(
         },
         "p95_ratio": float(np.nanmax(p95s) / single["decoded_p95_ms"]),
         "updates": [c["updates"] for c in multi["clients"]],
+        # Replays that finished before a newer slider value superseded them (their latencies above).
+        "replays_drawn": [c["replays_drawn"] for c in multi["clients"]],
+        "single_replays_drawn": single["replays_drawn"],
         "mouse_moves": [c["mouse_moves"] for c in multi["clients"]],
         "slowest_move_s": [c["slowest_move_s"] for c in multi["clients"]],
         "page_stalls": [c["stalls"] for c in multi["clients"]],

@@ -43,6 +43,10 @@ LOAD_ARGS = [
 ]
 POINTER_HZ = 60.0
 """Most pointer moves per second per page, as a 60 Hz display delivers them during a drag."""
+DWELL_S = 3.0
+"""Seconds a page rests with the mouse up after each drag (``--dwell``): a person looks at the
+gait they let go of. Without rests (0) a replay finishes only when the drags stop (1-4 a page in
+60 s), and the replay-ready figures are a handful of samples."""
 VIEWPORT = {"width": 960, "height": 600}
 """Each page's size: software WebGL's cost grows with the pixels, and the browsers are only load."""
 
@@ -60,8 +64,10 @@ def wait_until(predicate, timeout: float = 60.0) -> bool:
 class _Dragger:
     """One page's mouse, dragging a random z_B slider thumb to random targets in small steps."""
 
-    def __init__(self, page, n_sliders: int, rng: np.random.Generator) -> None:
+    def __init__(self, page, n_sliders: int, rng: np.random.Generator, dwell: float = 0.0) -> None:
         self.page = page
+        self.dwell = dwell  # seconds with the mouse up after each drag, looking at the replay
+        self._rest_until = 0.0
         self.n_sliders = n_sliders
         self.rng = rng
         self.moves = 0
@@ -72,9 +78,17 @@ class _Dragger:
         self._x = self._y = 0.0
         self._target = 0.0
 
-    def step(self) -> None:
+    def step(self) -> bool:
+        """One pointer move of the current drag (True), or a rest (False)."""
         mouse = self.page.mouse
+        if self._steps_left == 0 and self.dwell > 0 and self._rest_until == 0.0 and self.moves:
+            mouse.up()  # a drag ends: the released value's replay gets ``dwell`` seconds to finish
+            self._rest_until = time.perf_counter() + self.dwell
+            return False
+        if time.perf_counter() < self._rest_until:
+            return False
         if self._steps_left == 0:
+            self._rest_until = 0.0
             mouse.up()
             from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
@@ -84,9 +98,9 @@ class _Dragger:
                 track = thumb.locator("xpath=..").bounding_box()
             except PlaywrightTimeout:
                 self.stalls += 1
-                return
+                return False
             if box is None or track is None:
-                return
+                return False
             self._x, self._y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
             self._lo, self._hi = track["x"] + 2, track["x"] + track["width"] - 2
             mouse.move(self._x, self._y)
@@ -98,6 +112,7 @@ class _Dragger:
         mouse.move(self._x, self._y)
         self._steps_left -= 1
         self.moves += 1
+        return True
 
     def release(self) -> None:
         self.page.mouse.up()
@@ -156,17 +171,20 @@ class _Driver:
         self.browsers.append(browser)
         return browser
 
-    def drag(self, seconds: float, n_sliders: int, seeds: list[int]) -> list[dict]:
-        """Every page drags sliders for ``seconds``; then every mouse is released."""
+    def drag(self, seconds: float, n_sliders: int, seeds: list[int], dwell: float = 0.0) -> list[dict]:
+        """Every page drags sliders for ``seconds``, resting ``dwell`` seconds after each drag; then
+        every mouse is released."""
         draggers = [
-            _Dragger(p, n_sliders, np.random.default_rng(s)) for p, s in zip(self.pages, seeds, strict=True)
+            _Dragger(p, n_sliders, np.random.default_rng(s), dwell)
+            for p, s in zip(self.pages, seeds, strict=True)
         ]
         start = time.perf_counter()
         while time.perf_counter() - start < seconds:
             round_start = time.perf_counter()
             for dr in draggers:
                 t0 = time.perf_counter()
-                dr.step()
+                if not dr.step():
+                    continue
                 dr.step_s.append(time.perf_counter() - t0)
                 dr.slowest_step_s = max(dr.slowest_step_s, dr.step_s[-1])
             time.sleep(max(0.0, 1.0 / POINTER_HZ - (time.perf_counter() - round_start)))

@@ -96,6 +96,8 @@ def load(cmd) -> dict:
         render=cmd.render,
         pin_cpus=cmd.pin_cpus,
         single_seconds=cmd.single_seconds,
+        dwell=cmd.dwell,
+        browser_nice=cmd.browser_nice,
     )
     where = (
         f"server on CPUs {r['server_cpus']}, browsers on CPUs {r['browser_cpus']}"
@@ -119,7 +121,10 @@ def load(cmd) -> dict:
         + f" ms (worst / single {r['first_motion_p95_ratio']:.2f}, worst / best {r['first_motion_worst_best']:.2f})\n"
         f"replay ready p95: 1 client {r['single_replay_p95_ms']:.0f} ms, each of {r['clients']} "
         + ", ".join(f"{v:.0f}" for v in r["multi_replay_p95_ms"])
-        + f" ms (worst / single {r['replay_p95_ratio']:.2f}, worst / best {r['replay_worst_best']:.2f})\n"
+        + f" ms (worst / single {r['replay_p95_ratio']:.2f}, worst / best {r['replay_worst_best']:.2f}; "
+        f"replays finished: 1 client {r['single_replays_drawn']}, each of {r['clients']} "
+        + ", ".join(str(v) for v in r["replays_drawn"])
+        + f"; {r['dwell_s']:g} s rest after each drag; browsers at nice +{r['browser_nice']})\n"
         f"browser side, a page taking a pointer move p95: 1 client {r['single_move_p95_ms']:.0f} ms, each of "
         f"{r['clients']} " + ", ".join(f"{v:.0f}" for v in r["multi_move_p95_ms"]) + " ms\n"
         f"updates per client {r['updates']}; server exceptions {r['server_exceptions']}, "
