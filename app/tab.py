@@ -35,10 +35,10 @@ from snakeloco.sim import BODY_DOWNSAMPLE, SimulationError, Simulator
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
 REPLAY_NICE = 10
-"""Nice increment of the native thread that runs a tab's streamed replay: below the server's own
-threads (decoding and drawing for every tab come first), above every ensemble (``PHYSICS_NICE``),
-and equal among tabs. At +5, 4 tabs' replays held decoding to about half a core (bench load:
-decode stage p95 20-25 ms against 10 ms alone, decoded view worst / single p95 2.14)."""
+"""Nice increment of the thread that runs a tab's streamed replay: below the server's own threads
+(decoding and drawing for every tab come first), above every ensemble (``PHYSICS_NICE``), and equal
+among tabs. At +5 (bench load, 4 clients, 2026-12-03): decoded view worst / single p95 2.05, replay
+ready 3.64, against 1.39-2.18 and 3.46-3.75 at +10: no gain for the replays, less room for decoding."""
 DRAG_REPLAY_NICE = 14
 """Nice increment of the thread that runs a replay's chunks after the first while its gait is
 younger than ``SETTLED_S`` (the user may be dragging through it): below every tab's settled
@@ -47,9 +47,9 @@ leave."""
 SETTLED_S = 0.5
 """A slider value the tab has held this long (no newer one) is one the user has let go of."""
 PHYSICS_NICE = 15
-"""Nice increment of the native threads that run a tab's rollouts when the tab owns its simulators
-(a server shares one pool at this priority). Its Python threads stay at the server's priority, so a
-niced thread never holds the GIL that slider decoding waits for."""
+"""Nice increment of the threads that run a tab's ensemble rollouts (a server shares one set of them
+at this priority; ``sim.physics.RolloutThreads``). They hold the GIL only to enter and leave a
+rollout."""
 
 
 STREAM_PATH_PERIOD_S = 0.25

@@ -217,13 +217,14 @@ def resolve_workers(workers: int | None) -> int:
 
 
 class Simulator:
-    """Batched open-loop rollouts of the snake on ``workers`` native threads (``mujoco.rollout``).
+    """Batched open-loop rollouts of the snake on ``workers`` threads (``RolloutThreads``: MuJoCo's
+    rollout with the GIL released).
 
-    ``nice`` > 0 runs the rollouts on a pool of native threads at that much lower CPU priority
-    (Linux), leaving the calling Python thread's own priority alone: an interactive server keeps
-    physics out of the way of slider decoding without the priority inversion of a niced thread
-    that holds the GIL. One Simulator is not for concurrent use from several Python threads; make
-    one per thread.
+    ``nice`` > 0 runs the rollouts on threads at that much lower CPU priority (Linux), leaving the
+    calling thread's own priority alone: an interactive server keeps physics out of the way of
+    slider decoding. Those threads hold the GIL only to enter and leave a rollout (the wrapper's
+    argument checks), never during the physics. One Simulator is not for concurrent use from
+    several Python threads; make one per thread.
     """
 
     def __init__(
@@ -290,7 +291,7 @@ class Simulator:
         return state, sens
 
     def close(self) -> None:
-        """Stop the native thread pool, if there is one (then the Simulator cannot roll out)."""
+        """Stop the rollout threads, if there are any (then the Simulator cannot roll out)."""
         with self._lock:
             self._closed = True
             if self._pool is not None:
