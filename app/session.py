@@ -105,7 +105,7 @@ class GaitSession:
                 Simulator(workers, nice=physics_nice),
             ]
         self._replayer, self._ensembler = self._owned or (simulator, simulator)
-        # Streamed replays run on a native thread of the session's own, ``replay_nice`` below the
+        # Streamed replays run on a rollout thread of the session's own (GIL released), ``replay_nice`` below the
         # caller: below a server's own threads (decoding, drawing), above its ensembles.
         self._stream_runner = replay_runner(replay_nice)
         # ``drag_nice``: where a replay's later chunks run while its gait may be one the user is
