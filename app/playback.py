@@ -25,21 +25,39 @@ PAUSE_WHEN_HIDDEN_JS = """
   const button = (label) =>
     Array.from(document.querySelectorAll("button")).find((b) => b.textContent.trim() === label);
   let pausedByHiding = false;
+  let pausedByUser = false;
+  // The user's own Play/Pause clicks (trusted events; this script's clicks are not), seen before
+  // the server's new label arrives: a Pause still shown a moment after the user pressed it must
+  // not be pressed again by hiding the tab (that would toggle the animation back on).
+  document.addEventListener("click", (event) => {
+    if (!event.isTrusted) return;
+    const b = event.target.closest && event.target.closest("button");
+    const label = b ? b.textContent.trim() : "";
+    if (label === "Pause") pausedByUser = true;
+    else if (label === "Play") pausedByUser = false;
+  }, true);
   document.addEventListener("visibilitychange", () => {
     if (document.hidden) {
       const pause = button("Pause");
-      if (pause) { pause.click(); pausedByHiding = true; }
+      if (pause && !pausedByUser && !pausedByHiding) { pause.click(); pausedByHiding = true; }
     } else if (pausedByHiding) {
       pausedByHiding = false;
-      const play = button("Play");
-      if (play) play.click();
+      // The Play label may still be on its way from the server: look for it for up to 3 s.
+      const resume = (left) => {
+        if (document.hidden || pausedByUser) return;
+        const play = button("Play");
+        if (play) play.click();
+        else if (left > 0) setTimeout(() => resume(left - 1), 100);
+      };
+      resume(30);
     }
   });
 })();
 """
 """Sent to each page: while the tab is hidden (another browser tab in front, a minimised window)
 the page presses Pause, and Play again when it is shown, so a hidden tab receives no poses. A
-user's own Pause stays (the page only undoes the pause it made)."""
+user's own Pause stays (the page only undoes the pause it made, and never presses Pause after the
+user did, even while the button still shows the old label)."""
 
 SOFTWARE_RENDERING_JS = """
 (() => {

@@ -5,6 +5,8 @@ Skipped with a reason where chromium or Playwright is missing; CI installs both 
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -91,7 +93,7 @@ def _set_hidden(page, hidden: bool) -> None:
     )
 
 
-def test_a_hidden_tab_pauses_its_animation_and_resumes_when_shown(checkpoint):
+def test_a_hidden_tab_pauses_its_animation_and_resumes_when_shown(checkpoint, monkeypatch):
     sync_api = pytest.importorskip("playwright.sync_api")
     srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
     try:
@@ -118,6 +120,35 @@ def test_a_hidden_tab_pauses_its_animation_and_resumes_when_shown(checkpoint):
             _set_hidden(page, False)
             page.wait_for_timeout(1000)
             assert not d.playback.playing
+            # ... even when the tab is hidden before the button's new label has come back from the
+            # server (a busy server or a slow network: here the label is sent 0.8 s late).
+            page.get_by_role("button", name="Play").click()
+            assert wait_until(lambda: d.playback.playing, 30)
+            page.wait_for_timeout(300)
+            playback = d.playback
+
+            def toggle_with_late_label():
+                playback.playing = not playback.playing
+                label = "Pause" if playback.playing else "Play"
+                threading.Timer(0.8, setattr, (playback.controls.play_button, "label", label)).start()
+
+            monkeypatch.setattr(playback, "toggle", toggle_with_late_label)
+            page.get_by_role("button", name="Pause").click()
+            assert wait_until(lambda: not d.playback.playing, 30)
+            _set_hidden(page, True)
+            page.wait_for_timeout(300)
+            _set_hidden(page, False)
+            page.wait_for_timeout(2000)
+            assert not d.playback.playing
+            # A tab shown again before the hiding's Pause label arrived still resumes.
+            page.get_by_role("button", name="Play").click()
+            assert wait_until(lambda: d.playback.playing, 30)
+            page.get_by_role("button", name="Pause").wait_for(timeout=30000)
+            _set_hidden(page, True)
+            assert wait_until(lambda: not d.playback.playing, 30)
+            _set_hidden(page, False)
+            assert wait_until(lambda: d.playback.playing, 30), "showing the tab did not resume it"
+            page.wait_for_timeout(1000)  # the last late label is sent
             browser.close()
     finally:
         srv.stop()
