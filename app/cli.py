@@ -113,8 +113,13 @@ def run_generate(cmd: Generate) -> Path:
     """Generate the dataset with a progress bar; returns the written path. Ctrl-C says what was kept."""
 
     from snakeloco.sim import generate_dataset
+    from snakeloco.sim.structured import STRUCTURED_PRESETS
 
     cfg = cmd.config
+    if cmd.structured_preset != "mixed":
+        if cfg.family != "structured":
+            raise OptionError(f"--structured-preset {cmd.structured_preset} needs --family structured")
+        cfg = cfg.model_copy(update={"structured": STRUCTURED_PRESETS[cmd.structured_preset]})
     t0 = time.perf_counter()
     progress, bar = _progress_bar(cfg.num_samples, "generate", unit="sample")
     try:

@@ -24,6 +24,7 @@ from snakeloco.sim import GenerateConfig
 from snakeloco.sim.backend import BackendConfig
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
+from snakeloco.sim.structured import STRUCTURED_PRESETS
 
 Flat = tyro.conf.OmitArgPrefixes
 """A nested config whose fields are flags of their own (``--epochs``, not ``--train.epochs``)."""
@@ -56,6 +57,9 @@ class Generate(Command):
     screened: Path | None = None
     """progress.json of an earlier run of the same options (or the shipped copy, data/screening/): its
     records are rebuilt with one replay each instead of being screened again. Does not change the result."""
+    structured_preset: Literal[tuple(STRUCTURED_PRESETS)] = "mixed"  # type: ignore[valid-type]
+    """With --family structured: which structured family (snakeloco.sim.STRUCTURED_PRESETS): mixed (every
+    kind of wave) or undulate (undulation with steering that survives 10% shape errors; the design figures')."""
 
 
 class Train(Command):
@@ -281,7 +285,9 @@ class BenchDesign(Command):
     targets: Annotated[int, Field(ge=1)] = 50
     """Targets (every other one also asks for the record's heading change)."""
     candidates: Annotated[int, Field(ge=1)] = 4
-    """Candidates verified per design (x4 replays each: the baseline's budget too)."""
+    """Candidates verified per design round (x4 replays each)."""
+    rounds: Annotated[int, Field(ge=1)] = DesignConfig().rounds
+    """Rounds of search and verification per design (the baseline gets as many replays as the design used)."""
     seed: Seed = 1
     """Seed of the target choice, the searches and the baseline's draws."""
     workers: Workers = None

@@ -96,7 +96,13 @@ class GenerateConfig(BaseModel):
         out, exactly as datasets written before the structured family hold it, so their meta hash
         (which a checkpoint records) is unchanged."""
         paper = self.family == "paper"
-        return self.model_dump(mode="json", exclude={"family", "structured"} if paper else None)
+        meta = self.model_dump(mode="json", exclude={"family", "structured"} if paper else None)
+        if not paper:  # undulation ranges at their defaults are left out the same way (older files)
+            default = StructuredConfig()
+            for name in ("undulate_amplitude", "undulate_wavenumber"):
+                if getattr(self.structured, name) == getattr(default, name):
+                    meta["structured"].pop(name)
+        return meta
 
 
 ZARR_MISSING = "zarr stores need the scale extra: pip install 'snakeloco[scale]'"

@@ -19,7 +19,13 @@ from snakeloco.sim import (
     load_dataset,
 )
 from snakeloco.sim.dataset import DatasetError
-from snakeloco.sim.structured import KINDS, StructuredConfig, draw_structured, perturbed_shapes
+from snakeloco.sim.structured import (
+    KINDS,
+    STRUCTURED_PRESETS,
+    StructuredConfig,
+    draw_structured,
+    perturbed_shapes,
+)
 
 CFG = GenerateConfig(num_samples=3, seed=3, family="structured")
 
@@ -171,3 +177,42 @@ def test_coefficient_noise_perturbs_the_shape_of_each_screened_replay():
         plain_dev = np.sqrt(np.mean((a[m] - a[0]) ** 2))
         noisy_dev = np.sqrt(np.mean((b[m] - b[0]) ** 2))
         assert noisy_dev > 20 * plain_dev  # 10% of the shape against 0.1% of the commands
+
+
+def test_the_undulate_preset_draws_only_undulation_in_its_ranges_and_old_metas_keep_their_hash():
+    sc = STRUCTURED_PRESETS["undulate"]
+    signs, steered = set(), 0
+    for index in range(40):
+        shape, drawn = draw_structured(sc, 0, index, 0)
+        wave = drawn["wave"]
+        assert drawn["kind"] == "undulate" and "second_wave" not in drawn and wave["frequency"] == 0.52
+        assert 0.5 <= wave["a_yaw"] <= 0.9 and 0.4 <= abs(wave["nu_yaw"]) <= 1.0 and wave["a_pitch"] == 0
+        assert np.all(shape[0::2] == 0)  # the pitch joints stay still
+        signs.add(np.sign(wave["nu_yaw"]))
+        steered += "steering" in drawn
+    assert signs == {-1.0, 1.0} and 10 <= steered <= 30  # forward and backward; steering in about half
+    # A config at the default ranges is stored as before the ranges existed (its meta hash unchanged);
+    # another range is stored, so a dataset says which family it holds.
+    mixed = GenerateConfig(num_samples=4, family="structured").to_meta()["structured"]
+    assert "undulate_amplitude" not in mixed and "undulate_wavenumber" not in mixed
+    narrow = GenerateConfig(num_samples=4, family="structured", structured=sc).to_meta()["structured"]
+    assert narrow["undulate_amplitude"] == [0.5, 0.9] and narrow["undulate_wavenumber"] == [0.4, 1.0]
+
+
+def test_the_structured_preset_flag_needs_the_structured_family(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(
+            [
+                "generate",
+                "--structured-preset",
+                "undulate",
+                "--num-samples",
+                "2",
+                "--out",
+                str(tmp_path / "d.npz"),
+            ]
+        )
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["snakeloco: error: --structured-preset undulate needs --family structured"]
+    assert not list(tmp_path.iterdir())
