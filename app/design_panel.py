@@ -115,11 +115,12 @@ class DesignPanel:
             return
         stopped = lambda: not self._current(version)  # noqa: E731
 
-        def verifying() -> None:
+        def verifying(rnd: int) -> None:
             if not stopped():
-                n = self.config.candidates
+                n, rounds = self.config.candidates, self.config.rounds
+                what = "Replaying" if rnd == 1 else "Corrected for what physics did: replaying"
                 self.controls.status.content = (
-                    f"Verifying {n} candidates in MuJoCo ({n * self.config.ensemble} replays) ..."
+                    f"{what} {n} candidates in MuJoCo (round {rnd} of at most {rounds}) ..."
                 )
 
         runner = LocalBackend.on(self.tab.session.simulator)
@@ -142,8 +143,9 @@ class DesignPanel:
             )
         with self.tab.client.atomic():
             self.controls.status.content = (
-                f"{verdict} (tolerance {result.tolerance_m:.2f} m; search {result.search_s:.1f} s, "
-                f"physics {result.physics_s:.1f} s). Spread: where physics itself scatters the end."
+                f"{verdict} (tolerance {result.tolerance_m:.2f} m; {result.rounds} rounds, search "
+                f"{result.search_s:.1f} s, physics {result.physics_s:.1f} s for {result.replays} replays). "
+                "Spread: where physics itself scatters the end."
             )
             self.controls.candidate.options = (NO_CANDIDATE, *labels)
             self.controls.candidate.value = NO_CANDIDATE

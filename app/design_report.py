@@ -42,6 +42,8 @@ def write_design(cmd) -> dict:
         "checkpoint": str(model.path),
         "search_s": result.search_s,
         "physics_s": result.physics_s,
+        "replays": result.replays,
+        "rounds": result.rounds,
         "seconds": time.perf_counter() - t0,
     }
     (cmd.out / "report.json").write_text(jsonlib.dumps(report, indent=1))
@@ -54,7 +56,8 @@ def write_design(cmd) -> dict:
         print(
             f"{verdict} {where} ({best.error_m:.2f} m from the target, tolerance {result.tolerance_m:.2f} m; "
             f"ensemble spread {best.spread_m:.2f} m); {len(candidates)} candidates in {cmd.out} "
-            f"(search {result.search_s:.1f} s, physics {result.physics_s:.1f} s)"
+            f"({result.rounds} rounds; search {result.search_s:.1f} s, physics {result.physics_s:.1f} s for "
+            f"{result.replays} replays)"
         )
     if cmd.json:
         print(jsonlib.dumps(report))

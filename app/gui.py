@@ -21,6 +21,11 @@ NO_BASELINE = "none"
 """The Baseline dropdown's entry for "no library gait"."""
 PATH_PLOTS = {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}
 """Generated-vs-simulated plots: title -> body channel (``sim.BODY_CHANNELS``)."""
+COMMAND_PLOT_STEP = 2
+"""The commands plot shows every 2nd sample (10 Hz): above twice the highest excited frequency
+(3 Hz), so no wave is lost, in a plot a few hundred pixels wide; half the bytes of every decoded
+gait's largest message (9 series of float64, which viser sends whatever dtype it is given)."""
+COMMAND_PLOT_TIMES = RECORD.times[::COMMAND_PLOT_STEP]
 
 
 def help_text() -> str:
@@ -96,8 +101,8 @@ class Controls:
             self.plots[name].data = (BODY_TIMES, gen, sim)
 
     def show_commands(self, commands: np.ndarray) -> None:
-        """Joint commands (2000, 8) rad in the commands plot."""
-        self.plots["commands"].data = (RECORD.times, *commands.T)
+        """Joint commands (2000, 8) rad in the commands plot, every ``COMMAND_PLOT_STEP``-th sample."""
+        self.plots["commands"].data = (COMMAND_PLOT_TIMES, *commands[::COMMAND_PLOT_STEP].T)
 
 
 def build_sliders(gui: viser.GuiApi, folder, z_b_dim: int):
@@ -121,8 +126,9 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int, families: tuple[str, ...], f
             "Gait family",
             families,
             initial_value=family,
-            hint="The checkpoint this tab designs with: structured (gaits physics can predict) or paper "
-            "(the paper's random-phase gaits: only their statistics can be promised)",
+            hint="The checkpoint this tab designs with: structured (undulation with steering that physics "
+            "can predict; Design for target lands its gaits in MuJoCo) or paper (the paper's random-phase "
+            "gaits: only their statistics can be promised)",
         )
     zb_folder = gui.add_folder("Body latent z_B")
     sliders, reset_button, random_button = build_sliders(gui, zb_folder, z_b_dim)
@@ -179,7 +185,7 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int, families: tuple[str, ...], f
                 aspect=2.0,
             )
         plots["commands"] = gui.add_uplot(
-            data=(RECORD.times, *[np.zeros(RECORD.n_samples)] * N_JOINTS),
+            data=(COMMAND_PLOT_TIMES, *[np.zeros(len(COMMAND_PLOT_TIMES))] * N_JOINTS),
             series=(
                 uplot.Series(label="t (s)"),
                 *[

@@ -41,6 +41,8 @@ class GaitModel:
         self._stats_mean, self._stats_std = norm["stats_mean"], norm["stats_std"]  # (4,)
         g = config.servo_response
         self._servo_response = None if g is None else np.asarray(g, dtype=np.float64)  # (8, L, 2)
+        support = config.shape_support
+        self._support = None if support is None else np.asarray(support, bool)[..., None]  # (8, L, 1)
         self._lock = threading.Lock()
         self._traced: dict[str, torch.jit.ScriptModule | None] = {}  # one-z_B graphs, made on first use
 
@@ -122,10 +124,12 @@ class GaitModel:
         return stats_dict(v * self._stats_std + self._stats_mean)
 
     def _phys(self, shape: torch.Tensor, body: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-        return (
-            shape.numpy().astype(np.float64) * self._shape_std + self._shape_mean,
-            body.numpy().astype(np.float64) * self._body_std + self._body_mean,
-        )
+        """Decoded network outputs in physical units; joint-shape coefficients outside the family's
+        support (``CheckpointConfig.shape_support``) are zero, as in every training record."""
+        shape_p = shape.numpy().astype(np.float64) * self._shape_std + self._shape_mean
+        if self._support is not None:
+            shape_p = np.where(self._support, shape_p, 0.0)
+        return shape_p, body.numpy().astype(np.float64) * self._body_std + self._body_mean
 
     # --- API -------------------------------------------------------------------------------------
 

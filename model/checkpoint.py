@@ -31,7 +31,12 @@ CONFIG = "config.json"
 PRETRAINED_DIR = Path(__file__).with_name("pretrained")
 """The shipped checkpoint of the paper family, trained on its 4096-record dataset (docs/model.md: how
 to reproduce it)."""
-SHIPPED: dict[str, Path] = {"paper": PRETRAINED_DIR}
+STRUCTURED_DIR = Path(__file__).with_name("pretrained_structured")
+"""The shipped checkpoint of the structured family: its undulation preset (``snakeloco generate
+--structured-preset undulate``), 512 records, the family whose decoded gaits inverse design lands in
+MuJoCo (docs/design.md; docs/model.md: how to reproduce it, and why it is not the 4096-record mixed
+family the design contract asks for)."""
+SHIPPED: dict[str, Path] = {"paper": PRETRAINED_DIR, "structured": STRUCTURED_DIR}
 """Shipped checkpoints by gait family: ``--checkpoint NAME`` and ``load_pretrained(NAME)`` take these
 names as well as a directory."""
 DEFAULT_FAMILY = "paper"
@@ -126,6 +131,12 @@ class CheckpointConfig(BaseModel):
         description="(8, L, 2) mean measured/commanded complex gain of each joint at each frequency in "
         "the training data; decoded shapes (measured angles) are divided by it to get commands.",
     )
+    shape_support: list[list[bool]] | None = Field(
+        None,
+        description="(8, L) which joint-frequency coefficients the training data excites (RMS amplitude "
+        "above SUPPORT_FRACTION of the largest); a decoded coefficient outside it is set to zero, so a "
+        "decoded gait keeps still what its family keeps still. None (older checkpoints): all of them.",
+    )
     mjcf_sha256: str
     train: dict = Field(default_factory=dict, description="The resolved training config.")
     summary: TrainSummary = TrainSummary()
@@ -139,6 +150,12 @@ class CheckpointConfig(BaseModel):
             raise ValueError("shape_mean is not (L, 2)")
         if len(self.normalization.body_mean) != self.model.body_channels:
             raise ValueError("body_mean does not match body_channels")
+        if self.shape_support is not None:
+            support = np.asarray(self.shape_support)
+            if support.shape != (self.model.n_joints, n_l) or not support.any():
+                raise ValueError(
+                    f"shape_support must be ({self.model.n_joints}, {n_l}) with a coefficient in it"
+                )
         if self.servo_response is not None:
             g = np.asarray(self.servo_response, dtype=np.float64)
             if g.shape != (self.model.n_joints, n_l, 2) or not np.isfinite(g).all():

@@ -5,11 +5,14 @@ metres), optionally a heading change (degrees) and a bound on the net roll (rad)
 CMA-ES (the ``cma`` library) over z_B, z_k = 0, minimises the distance of the decoded path's end from
 the target plus ``prior_weight`` x the negative log prior (so the search stays where the model was
 trained), from several starts at once (the best of a screen of prior draws, each population decoded
-in one batch). The best distinct optima are replayed as small ensembles (``sim.backend``: here or on
-Ray) and MuJoCo decides: candidates are ranked again by the distance of their own replay's end from
-the target, each reported beside its ensemble spread, so where physics cannot promise the end
-("the paper family") it says so. ``met`` is true only if the best simulated end is within the
-tolerance (and the heading and roll bounds, where asked).
+in one batch). The best distinct optima are replayed (``sim.backend``: here or on Ray) and MuJoCo
+decides: candidates are ranked again by the distance of their own replay's end from the target.
+Then physics corrects the model: each of the best verified candidates is searched again near its
+z_B for the target moved by its own miss (replay end minus decoded end), for up to ``rounds``
+rounds, so a model that errs locally by a steady offset still lands its gait. The reported
+candidates are then replayed with command noise, each reported beside that ensemble's spread, so
+where physics cannot promise the end ("the paper family") it says so. ``met`` is true only if the best simulated end is within the tolerance (and the
+heading and roll bounds, where asked).
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ FORWARD, SIDEWAYS, ROLL, YAW = 1, 2, 3, 5  # body channels (sim.BODY_CHANNELS)
 OUTSIDE_COST = 10.0
 """Metres of error per unit of z_B radius beyond the prior's bulk (``DesignConfig.prior_margin``)."""
 VERIFY_ENSEMBLE = 4
-"""Replays per verified candidate: its own and 3 with 1e-3 relative command noise."""
+"""Replays per reported candidate: its own and 3 with 1e-3 relative command noise."""
 
 
 class Target(BaseModel):
@@ -84,7 +87,22 @@ class DesignConfig(BaseModel):
     roll_weight: float = Field(
         2.0, ge=0, description="Metres of error one radian of roll over the bound costs."
     )
-    ensemble: int = Field(VERIFY_ENSEMBLE, ge=2, description="Replays per verified candidate.")
+    ensemble: int = Field(
+        VERIFY_ENSEMBLE,
+        ge=2,
+        description="Replays per reported candidate: its own (each round replays only that) and "
+        "ensemble - 1 with 1e-3 relative command noise, run once the rounds are done.",
+    )
+    rounds: int = Field(
+        6,
+        ge=1,
+        description="Rounds of search and verification. After the first, each of the best verified "
+        "candidates is searched again near its z_B for the target moved by what physics did otherwise "
+        "than its decoded path (its replay's end minus the decoded end), and the new candidates are "
+        "verified. Stops at the first round that meets the target.",
+    )
+    refine_sigma: float = Field(0.2, gt=0, description="CMA-ES initial step of a refinement (prior units).")
+    refine_generations: int = Field(20, ge=1, description="CMA-ES generations of a refinement.")
 
     @model_validator(mode="after")
     def _enough_starts(self) -> DesignConfig:
@@ -136,6 +154,7 @@ class Candidate:
     broken: str | None = None
     error_m: float = float("inf")
     heading_error: float | None = None
+    round: int = 1  # the round of the search that proposed it
 
     def report(self) -> dict:
         ends = {"predicted": self.predicted, "simulated": self.simulated}
@@ -152,6 +171,7 @@ class Candidate:
             "heading_error_deg": self.heading_error,
             "ensemble_spread_m": float(self.spread_m),
             "broken": self.broken,
+            "round": self.round,
         }
 
 
@@ -163,7 +183,69 @@ class DesignResult:
     met: bool
     search_s: float
     physics_s: float
+    replays: int = 0  # MuJoCo replays run (candidates verified x ensemble)
+    rounds: int = 0  # rounds of search and verification run
     extra: dict = field(default_factory=dict)
+
+
+def _evolve(
+    model: GaitModel,
+    starts: list[np.ndarray],
+    targets: list[Target],
+    cfg: DesignConfig,
+    sigma: float,
+    generations: int,
+    seed: int,
+    cancelled: Callable[[], bool] | None,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """One CMA-ES run per start, run k minimising ``objective`` for ``targets[k]``; every generation
+    decodes all runs' populations in one batch. Returns each run's (z seen (n, Db), cost (n,))."""
+    import cma
+
+    runs = [
+        cma.CMAEvolutionStrategy(s, sigma, {"popsize": cfg.population, "seed": seed + 1 + k, "verbose": -9})
+        for k, s in enumerate(starts)
+    ]
+    seen: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in runs]
+    for _ in range(generations):
+        if cancelled is not None and cancelled():
+            break
+        live = [k for k, r in enumerate(runs) if not r.stop()]
+        if not live:
+            break
+        asked = {k: np.asarray(runs[k].ask()) for k in live}
+        z = np.concatenate([asked[k] for k in live])
+        _, body = model.decode(z)
+        ends = path_end(body)
+        for j, k in enumerate(live):
+            part = slice(j * cfg.population, (j + 1) * cfg.population)
+            cost = objective(ends[part], z[part], targets[k], cfg)
+            runs[k].tell(list(asked[k]), cost.tolist())
+            seen[k].append((z[part], cost))
+    return [
+        (np.concatenate([z for z, _ in run]), np.concatenate([c for _, c in run]))
+        if run
+        else (np.zeros((0, model.z_b_dim)), np.zeros(0))
+        for run in seen
+    ]
+
+
+def _candidates(model: GaitModel, z: np.ndarray, cost: np.ndarray, n: int, rnd: int) -> list[Candidate]:
+    """The ``n`` best distinct (> 0.1 apart) of latents ``z`` by ``cost``, decoded."""
+    chosen: list[int] = []
+    for i in np.argsort(cost):
+        if all(np.linalg.norm(z[i] - z[j]) > 0.1 for j in chosen):
+            chosen.append(int(i))
+        if len(chosen) == n:
+            break
+    if not chosen:
+        return []
+    shape, body = model.decode(z[chosen])
+    ends = path_end(body)
+    return [
+        Candidate(z_b=z[i], predicted=ends[k], cost=float(cost[i]), shape=shape[k], round=rnd)
+        for k, i in enumerate(chosen)
+    ]
 
 
 def search(
@@ -171,11 +253,8 @@ def search(
 ) -> list[Candidate]:
     """CMA-ES over z_B from ``cfg.starts`` starts; the ``cfg.candidates`` best distinct optima by
     predicted cost. ``cancelled`` is polled every generation (True: stop and return what there is)."""
-    import cma
-
     rng = np.random.default_rng(cfg.seed)
-    dim = model.z_b_dim
-    screen = rng.standard_normal((cfg.screen, dim))
+    screen = rng.standard_normal((cfg.screen, model.z_b_dim))
     _, body = model.decode(screen)
     cost = objective(path_end(body), screen, target, cfg)
     starts: list[np.ndarray] = []
@@ -184,50 +263,67 @@ def search(
             starts.append(screen[i])
         if len(starts) == cfg.starts:
             break
-    runs = [
-        cma.CMAEvolutionStrategy(
-            s, cfg.sigma0, {"popsize": cfg.population, "seed": cfg.seed + 1 + k, "verbose": -9}
-        )
-        for k, s in enumerate(starts)
-    ]
-    seen_z, seen_cost = [screen], [cost]
-    for _ in range(cfg.generations):
-        if cancelled is not None and cancelled():
-            break
-        live = [r for r in runs if not r.stop()]
-        if not live:
-            break
-        asked = [np.asarray(r.ask()) for r in live]
-        z = np.concatenate(asked)
-        _, body = model.decode(z)  # every run's population in one batch
-        c = objective(path_end(body), z, target, cfg)
-        seen_z.append(z)
-        seen_cost.append(c)
-        for k, r in enumerate(live):
-            part = slice(k * cfg.population, (k + 1) * cfg.population)
-            r.tell(list(asked[k]), c[part].tolist())
-    z_all, c_all = np.concatenate(seen_z), np.concatenate(seen_cost)
-    chosen: list[int] = []
-    for i in np.argsort(c_all):
-        if all(np.linalg.norm(z_all[i] - z_all[j]) > 0.1 for j in chosen):
-            chosen.append(int(i))
-        if len(chosen) == cfg.candidates:
-            break
-    z_best = z_all[chosen]
-    shape, body = model.decode(z_best)
-    ends = path_end(body)
-    return [
-        Candidate(z_b=z_best[k], predicted=ends[k], cost=float(c_all[i]), shape=shape[k])
-        for k, i in enumerate(chosen)
-    ]
+    runs = _evolve(
+        model, starts, [target] * len(starts), cfg, cfg.sigma0, cfg.generations, cfg.seed, cancelled
+    )
+    z_all = np.concatenate([screen, *[z for z, _ in runs]])
+    c_all = np.concatenate([cost, *[c for _, c in runs]])
+    return _candidates(model, z_all, c_all, cfg.candidates, 1)
+
+
+def corrected(target: Target, c: Candidate) -> Target:
+    """``target`` moved by what physics did otherwise than ``c``'s decoded path (replay end minus
+    decoded end; heading too where asked): the target to search for near ``c`` so that the replay,
+    if the model errs there as it did at ``c``, ends on the real one."""
+    assert c.simulated is not None
+    miss = c.simulated - c.predicted
+    return target.model_copy(
+        update={
+            "forward": target.forward - float(miss[0]),
+            "sideways": target.sideways - float(miss[1]),
+            "heading": None if target.heading is None else target.heading - float(miss[2]),
+        }
+    )
+
+
+def refine(
+    model: GaitModel,
+    parents: list[Candidate],
+    target: Target,
+    cfg: DesignConfig,
+    rnd: int,
+    cancelled: Callable[[], bool] | None = None,
+) -> list[Candidate]:
+    """One new candidate per verified parent: the best of a short CMA-ES run from the parent's z_B
+    towards ``corrected(target, parent)`` (the decoded end's error still measured against that
+    corrected target, the candidate's ``cost``)."""
+    goals = [corrected(target, p) for p in parents]
+    seed = cfg.seed + 1000 * rnd
+    runs = _evolve(
+        model, [p.z_b for p in parents], goals, cfg, cfg.refine_sigma, cfg.refine_generations, seed, cancelled
+    )
+    out: list[Candidate] = []
+    for (z, cost), parent in zip(runs, parents, strict=True):
+        if len(z) == 0:
+            continue
+        fresh = [i for i in np.argsort(cost) if np.linalg.norm(z[i] - parent.z_b) > 1e-6]
+        if fresh:
+            out += _candidates(model, z[fresh[:1]], cost[fresh[:1]], 1, rnd)
+    return out
 
 
 def verify(
-    model: GaitModel, candidates: list[Candidate], target: Target, cfg: DesignConfig, backend
+    model: GaitModel,
+    candidates: list[Candidate],
+    target: Target,
+    cfg: DesignConfig,
+    backend,
+    members: int | None = None,
 ) -> list[Candidate]:
-    """Replay each candidate as an ensemble of ``cfg.ensemble``; rank by its own replay's error."""
+    """Replay each candidate as an ensemble of ``members`` (default ``cfg.ensemble``; 1: its own
+    replay alone, the spread left for ``measure_spread``); rank by its own replay's error."""
     shapes = np.stack([c.shape for c in candidates])
-    bodies, ok = replay_shapes(model, shapes, backend, cfg.ensemble, seed=cfg.seed)
+    bodies, ok = replay_shapes(model, shapes, backend, members or cfg.ensemble, seed=cfg.seed)
     for c, body, fine in zip(candidates, bodies.astype(np.float64), ok, strict=True):
         if not fine[0]:
             c.broken = "its replay broke the simulation"
@@ -239,6 +335,25 @@ def verify(
             c.heading_error = float(abs(ends[0, 2] - target.heading))
         offsets = ends[1:, :2] - ends[0, :2]
         c.spread_m = float(np.sqrt((offsets**2).sum(axis=1).mean())) if len(offsets) else float("nan")
+    return rank(candidates, target, cfg)
+
+
+def measure_spread(model: GaitModel, candidates: list[Candidate], cfg: DesignConfig, backend) -> int:
+    """The ``cfg.ensemble - 1`` noisy copies of each verified candidate (own replay already run):
+    their ends' RMS distance from its own end, ``spread_m``. Returns the number of replays run."""
+    todo = [c for c in candidates if c.simulated is not None]
+    if not todo or cfg.ensemble < 2:
+        return 0
+    shapes = np.stack([c.shape for c in todo])
+    bodies, ok = replay_shapes(model, shapes, backend, cfg.ensemble, seed=cfg.seed, own=False)
+    for c, body, fine in zip(todo, bodies.astype(np.float64), ok, strict=True):
+        offsets = path_end(body[fine])[:, :2] - c.simulated[:2]
+        c.spread_m = float(np.sqrt((offsets**2).sum(axis=1).mean())) if len(offsets) else float("nan")
+    return len(todo) * (cfg.ensemble - 1)
+
+
+def rank(candidates: list[Candidate], target: Target, cfg: DesignConfig) -> list[Candidate]:
+    """Verified candidates best first: by ``simulated_cost``, broken ones last."""
     return sorted(candidates, key=lambda c: (c.broken is not None, simulated_cost(c, target, cfg)))
 
 
@@ -271,27 +386,54 @@ def design(
     runner=None,
     workers: int | None = None,
     cancelled: Callable[[], bool] | None = None,
-    on_verify: Callable[[], None] | None = None,
+    on_verify: Callable[[int], None] | None = None,
 ) -> DesignResult:
-    """Search, then verify in MuJoCo (on ``runner``, an open backend, or one opened from ``backend``).
-    ``cancelled`` is polled between search generations (True: stop; the result is then not meant to be
-    used); ``on_verify`` is called when the search is done and the replays start."""
+    """Search, verify in MuJoCo (on ``runner``, an open backend, or one opened from ``backend``), and
+    refine the best verified candidates for what physics did, for up to ``cfg.rounds`` rounds.
+    ``cancelled`` is polled between search generations (True: stop; the result is then not meant to
+    be used); ``on_verify(round)`` is called when a round's replays start."""
     cfg = cfg or DesignConfig()
-    t0 = time.perf_counter()
-    candidates = search(model, target, cfg, cancelled)
-    search_s = time.perf_counter() - t0
-    if cancelled is not None and cancelled():
-        return DesignResult(target, cfg.tolerance_for(target), candidates, False, search_s, 0.0)
-    if on_verify is not None:
-        on_verify()
-    t0 = time.perf_counter()
+    search_s = physics_s = 0.0
     own = runner is None
-    runner = runner or open_backend(backend, workers)
+    verified: list[Candidate] = []
+    best: list[Candidate] = []
+    first: Candidate | None = None
+    replays = rounds = 0
     try:
-        candidates = verify(model, candidates, target, cfg, runner)
+        for rnd in range(1, cfg.rounds + 1):
+            t0 = time.perf_counter()
+            if rnd == 1:
+                proposed = search(model, target, cfg, cancelled)
+            else:
+                parents = [c for c in verified if c.simulated is not None][: cfg.candidates]
+                if not parents:
+                    break
+                proposed = refine(model, parents, target, cfg, rnd, cancelled)
+            search_s += time.perf_counter() - t0
+            if (cancelled is not None and cancelled()) or not proposed:
+                break
+            if on_verify is not None:
+                on_verify(rnd)
+            t0 = time.perf_counter()
+            runner = runner or open_backend(backend, workers)
+            verified = rank(verified + verify(model, proposed, target, cfg, runner, members=1), target, cfg)
+            physics_s += time.perf_counter() - t0
+            replays += len(proposed)
+            rounds = rnd
+            if rnd == 1 and verified:
+                first = verified[0]  # what the model alone proposed best, for comparison
+            if meets(verified[0], target, cfg):
+                break
+        best = verified[: cfg.candidates]
+        if best and not (cancelled is not None and cancelled()):
+            t0 = time.perf_counter()  # physics' own scatter beside each reported error
+            replays += measure_spread(model, best, cfg, runner)
+            physics_s += time.perf_counter() - t0
     finally:
-        if own:
+        if own and runner is not None:
             runner.close()
-    physics_s = time.perf_counter() - t0
-    met = bool(candidates) and meets(candidates[0], target, cfg)
-    return DesignResult(target, cfg.tolerance_for(target), candidates, met, search_s, physics_s)
+    met = bool(best) and meets(best[0], target, cfg)
+    extra = {"first_round_best": first}
+    return DesignResult(
+        target, cfg.tolerance_for(target), best, met, search_s, physics_s, replays, rounds, extra
+    )

@@ -34,24 +34,30 @@ def replay_shapes(
     ensemble: int = 1,
     seed: int = 0,
     progress: Callable[[int], None] | None = None,
+    own: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Replay decoded joint shapes (n, 8, L, 2) rad, each as an ensemble of ``ensemble`` replays.
 
     Gait i's perturbed members use noise seeded with ``seed + i``; member 0 is the unperturbed
-    replay. ``backend`` is where they run (``sim.backend.open_backend``: this machine's cores or Ray;
-    the caller closes it); the commands of a few gaits are made at a time, so memory stays bounded.
-    ``progress`` is called with the number of gaits finished after each batch.
+    replay (left out with ``own=False``, for a gait whose own replay ran already: the members that
+    remain are the same noisy copies). ``backend`` is where they run (``sim.backend.open_backend``:
+    this machine's cores or Ray; the caller closes it); the commands of a few gaits are made at a
+    time, so memory stays bounded. ``progress`` is called with the number of gaits finished after
+    each batch.
 
     Returns:
-        bodies (n, ensemble, 500, 6) float32, the body series at the model's 5 Hz (zeros where a
-        replay broke), and ok (n, ensemble) bool, which replays ran cleanly.
+        bodies (n, K, 500, 6) float32, the body series at the model's 5 Hz (zeros where a replay
+        broke), and ok (n, K) bool, which replays ran cleanly; K = ``ensemble`` (``- 1`` without
+        the own replay).
     """
     n, cfg = len(shapes), model.config.model
-    bodies = np.zeros((n, ensemble, cfg.body_steps, cfg.body_channels), np.float32)
-    ok = np.zeros((n, ensemble), bool)
+    first = 0 if own else 1
+    members = ensemble - first
+    bodies = np.zeros((n, members, cfg.body_steps, cfg.body_channels), np.float32)
+    ok = np.zeros((n, members), bool)
     # Enough gaits per job to keep a backend's threads busy (or a Ray task worth its overhead);
     # records are independent, so the batching changes nothing in the results.
-    per_batch = max(1, backend.replays_per_job // ensemble)
+    per_batch = max(1, backend.replays_per_job // max(members, 1))
     batches = [np.arange(start, min(n, start + per_batch)) for start in range(0, n, per_batch)]
 
     def jobs():
@@ -60,17 +66,19 @@ def replay_shapes(
             if ensemble > 1:
                 commands = np.concatenate(
                     [
-                        perturbed_commands(c, ensemble, seed=seed + int(i))
+                        perturbed_commands(c, ensemble, seed=seed + int(i))[first:]
                         for c, i in zip(commands, idx, strict=True)
                     ]
                 )  # (b K, T, 8)
             yield commands
 
+    if members == 0:
+        return bodies, ok
     for b, (body, failures) in backend.map(simulate_bodies, jobs()):
         idx = batches[b]
-        ran = np.array([f is None for f in failures]).reshape(len(idx), ensemble)
+        ran = np.array([f is None for f in failures]).reshape(len(idx), members)
         ok[idx] = ran
-        bodies[idx] = np.where(ran[..., None, None], body.reshape(len(idx), ensemble, *bodies.shape[2:]), 0.0)
+        bodies[idx] = np.where(ran[..., None, None], body.reshape(len(idx), members, *bodies.shape[2:]), 0.0)
         if progress is not None:
             progress(len(idx))
     return bodies, ok

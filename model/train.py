@@ -95,6 +95,19 @@ def cyclic_lr(epoch: float, cfg: TrainConfig) -> float:
     return cfg.lr_min + (peak - cfg.lr_min) * tri
 
 
+SUPPORT_FRACTION = 0.01
+"""A joint-frequency coefficient is in a family's support if its RMS amplitude over the training
+records is above this fraction of the largest one's. Every coefficient of the paper's multisines is;
+the structured families leave the frequencies they never draw (and the undulation family its pitch
+joints) below 0.5% of it (docs/model.md)."""
+
+
+def shape_support(shapes: np.ndarray) -> np.ndarray:
+    """Joint shapes (N, 8, L, 2) rad -> (8, L) bool: the coefficients the records excite."""
+    rms = np.sqrt((np.asarray(shapes, np.float64) ** 2).sum(-1).mean(0))
+    return rms > SUPPORT_FRACTION * rms.max()
+
+
 def make_scheduler(
     opt: torch.optim.Optimizer, steps_per_epoch: int, cfg: TrainConfig
 ) -> torch.optim.lr_scheduler.LambdaLR:
@@ -217,6 +230,7 @@ def train(
         servo_response=servo_response(
             ds.rows("commands", train_idx), ds.rows("joint_angles", train_idx)
         ).tolist(),
+        shape_support=shape_support(shape_np[train_idx]).tolist(),
         mjcf_sha256=mjcf_sha256(),
         train=cfg.model_dump(mode="json")
         | {"data": str(data), "n_train": len(train_idx), "n_val": len(val_idx)},

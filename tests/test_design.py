@@ -11,8 +11,19 @@ import pytest
 
 from snakeloco.app.cli import main
 from snakeloco.app.gait_csv import read_gait_csv
+from snakeloco.model import design as design_module
 from snakeloco.model import load_pretrained
-from snakeloco.model.design import Candidate, DesignConfig, Target, meets, path_end, search, verify
+from snakeloco.model.design import (
+    Candidate,
+    DesignConfig,
+    Target,
+    corrected,
+    design,
+    meets,
+    path_end,
+    search,
+    verify,
+)
 from snakeloco.sim import replay
 from snakeloco.sim.backend import open_backend
 from snakeloco.sim.dataset import BODY_DOWNSAMPLE
@@ -32,6 +43,59 @@ def test_the_search_reaches_an_end_the_decoder_can_draw(checkpoint):
     assert np.hypot(best.predicted[0] - target.forward, best.predicted[1] - target.sideways) < 0.01
     np.testing.assert_allclose(path_end(model.decode(best.z_b[None])[1])[0], best.predicted, atol=1e-5)
     assert search(model, target, QUICK)[0].z_b.tolist() == best.z_b.tolist()  # seeded: reproducible
+
+
+def test_refinement_corrects_a_steady_model_error(checkpoint, monkeypatch):
+    """Physics here is the decoded end plus a fixed offset (the model's local error). The model's
+    own proposals then miss by the offset; the refinement, searching for the target moved by each
+    candidate's miss, lands on it in its second round."""
+    model = load_pretrained(checkpoint)
+    offset = np.array([0.002, -0.003, 0.2, 0.0])  # forward, sideways (m), heading (deg), roll
+    verified_batches = []
+
+    def offset_physics(model, candidates, target, cfg, backend, members=None):
+        assert members == 1  # each round replays the candidates once; the noisy copies come last
+        verified_batches.append(len(candidates))
+        for c in candidates:
+            c.simulated = c.predicted + offset
+            c.error_m = float(np.hypot(*(c.simulated[:2] - (target.forward, target.sideways))))
+            c.heading_error = None if target.heading is None else float(abs(c.simulated[2] - target.heading))
+            c.spread_m = 0.0
+        return design_module.rank(candidates, target, cfg)
+
+    monkeypatch.setattr(design_module, "verify", offset_physics)
+    spread_of = []
+
+    def no_scatter(model, candidates, cfg, backend):
+        spread_of.append(len(candidates))
+        return len(candidates) * (cfg.ensemble - 1)
+
+    monkeypatch.setattr(design_module, "measure_spread", no_scatter)
+    z = np.random.default_rng(5).standard_normal((1, model.z_b_dim))
+    end = path_end(model.decode(z)[1])[0]  # a place this model's decoded paths do reach
+    target = Target(forward=float(end[0]), sideways=float(end[1]), heading=float(end[2]))
+    # The tiny model's decoded ends span millimetres: no prior term, tolerances to match.
+    cfg = QUICK.model_copy(update={"tolerance": 0.001, "heading_tolerance": 0.1, "prior_weight": 0.0})
+
+    alone = design(model, target, cfg.model_copy(update={"rounds": 1}), runner=object())
+    assert not alone.met and alone.rounds == 1 and alone.replays == cfg.candidates * cfg.ensemble
+    assert spread_of == [cfg.candidates]  # the reported ones get their noisy copies
+    assert alone.candidates[0].error_m > 0.003  # about |offset|: the model's own miss
+
+    verified_batches.clear()
+    fixed = design(model, target, cfg.model_copy(update={"rounds": 4}), runner=object())
+    best = fixed.candidates[0]
+    assert fixed.met and fixed.rounds == 2 and best.round == 2  # met in round 2: no third round
+    assert best.error_m < 0.001 and best.heading_error < 0.1
+    assert verified_batches == [cfg.candidates, cfg.candidates]
+    assert fixed.replays == 2 * cfg.candidates + cfg.candidates * (cfg.ensemble - 1)
+    assert len(fixed.candidates) == cfg.candidates  # the best of both rounds, best first
+    assert fixed.extra["first_round_best"].round == 1
+    assert fixed.extra["first_round_best"].error_m == pytest.approx(alone.candidates[0].error_m)
+    moved = corrected(target, alone.candidates[0])
+    assert (moved.forward, moved.sideways, moved.heading) == pytest.approx(
+        (target.forward - 0.002, target.sideways + 0.003, target.heading - 0.2)
+    )
 
 
 def test_verification_replays_a_known_gait_and_met_means_within_tolerance(checkpoint):
@@ -188,14 +252,20 @@ def test_bench_design_compares_with_the_same_physics_budget(checkpoint, tiny_dat
             "2",
             "--candidates",
             "1",
+            "--rounds",
+            "2",
             "--workers",
             "2",
             "--json",
         ]
     )
     r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert r["targets"] == 2 and r["physics_budget_replays"] == 4
-    for name in ("design", "baseline"):
+    # Per target: 1 candidate replayed in each of up to 2 rounds, then its 3 noisy copies; the
+    # baseline replays as many prior draws.
+    assert r["targets"] == 2 and r["rounds"] == 2 and all(b in (4, 5) for b in r["physics_budget_replays"])
+    for name in ("design", "design_first_round", "baseline"):
         assert r[name]["error_rel_median"] >= 0 and r[name]["heading_error_deg_median"] is not None
+        assert 0 <= r[name]["met_share"] <= 1
+    assert r["design"]["error_rel_median"] <= r["design_first_round"]["error_rel_median"]
     assert r["seconds_p95"] >= r["seconds_p50"] > 0
     assert r["unreachable"]["met"] is False and r["unreachable"]["error_m"] > 50

@@ -23,7 +23,7 @@ from snakeloco.model import (
 )
 from snakeloco.model.checkpoint import CheckpointConfig, Normalization
 from snakeloco.model.metrics import mmd_null_quantile, mmd_numpy, r2_per_channel
-from snakeloco.model.train import init_signal_source, make_scheduler
+from snakeloco.model.train import init_signal_source, make_scheduler, shape_support
 from snakeloco.sim import shape_to_commands
 from snakeloco.sim.excitation import RECORD
 
@@ -449,11 +449,16 @@ def test_single_z_decode_runs_traced_and_matches_eager_exactly(checkpoint):
 
 def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
     from snakeloco.app.cli import main
-    from snakeloco.model.checkpoint import PRETRAINED_DIR, SHIPPED
+    from snakeloco.model.checkpoint import PRETRAINED_DIR, SHIPPED, STRUCTURED_DIR
 
-    assert SHIPPED["paper"] == PRETRAINED_DIR
+    assert SHIPPED == {"paper": PRETRAINED_DIR, "structured": STRUCTURED_DIR}
     by_name, default = load_pretrained("paper"), load_pretrained()
     assert by_name.path == default.path == PRETRAINED_DIR and by_name.config == default.config
+    structured = load_pretrained("structured")
+    assert structured.family == "structured" and structured.robot_warning() is None
+    # The undulation family: only the yaw joints' steering (0.05 Hz) and wave (0.52 Hz) coefficients.
+    support = np.asarray(structured.config.shape_support)
+    assert support.sum() == 8 and support[1::2, 0].all() and support[1::2, 4].all()
     main(["bench", "model", "--checkpoint", "paper", "--calls", "3", "--json"])
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["decode_p50_ms"] > 0
     # A directory of that name here is what the user means; a name that is neither says what is shipped.
@@ -462,9 +467,10 @@ def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
     with pytest.raises(CheckpointError, match=r"checkpoint paper: missing config\.json$"):
         load_pretrained("paper")
     with pytest.raises(
-        CheckpointError, match=r"missing config.json \(no such directory; shipped checkpoints: paper\)"
+        CheckpointError,
+        match=r"missing config.json \(no such directory; shipped checkpoints: paper, structured\)",
     ):
-        load_pretrained("structured")
+        load_pretrained("undulate")
 
 
 def test_joint_latent_dropout_trains_the_designers_decoding_and_keeps_the_posteriors_for_the_mmd():
@@ -496,3 +502,30 @@ def test_encoder_that_sees_the_shape_reads_it_exactly_not_through_the_signals():
         assert torch.equal(plain.encode_body(body, shape)[0], plain.encode_body(body, moved)[0])
     with pytest.raises(ValueError, match="joint shape: pass it"):
         net.encode_body(body)
+
+
+def test_shape_support_keeps_the_coefficients_the_records_excite():
+    shapes = np.zeros((6, 8, 8, 2))
+    shapes[:, 1::2, 4, 0] = 0.7  # the yaw joints at one frequency
+    shapes[:3, 1::2, 0, 1] = 0.2  # steering in half the records
+    shapes[:, 0::2, 4, 0] = 1e-3  # the pitch joints barely move: below 1% of the largest
+    support = shape_support(shapes)
+    assert support.shape == (8, 8) and support.sum() == 8
+    assert support[1::2, 4].all() and support[1::2, 0].all() and not support[0::2].any()
+
+
+def test_decoded_coefficients_outside_the_support_are_zero(checkpoint, tmp_path):
+    cfg = json.loads((checkpoint / "config.json").read_text())
+    assert np.asarray(cfg["shape_support"]).all()  # the paper's multisines excite every coefficient
+    still = _copy(checkpoint, tmp_path / "still")
+    support = np.ones((8, SMALL.n_components), bool)
+    support[0::2] = False  # a family that keeps its pitch joints still
+    (still / "config.json").write_text(json.dumps(cfg | {"shape_support": support.tolist()}))
+    z = np.random.default_rng(0).standard_normal((5, SMALL.z_b_dim))
+    free, _ = load_pretrained(checkpoint).decode(z)
+    kept, _ = load_pretrained(still).decode(z)
+    assert np.abs(free[:, 0::2]).max() > 1e-3 and np.all(kept[:, 0::2] == 0)
+    np.testing.assert_array_equal(kept[:, 1::2], free[:, 1::2])
+    (still / "config.json").write_text(json.dumps(cfg | {"shape_support": support[:4].tolist()}))
+    with pytest.raises(CheckpointError, match="shape_support must be"):
+        load_checkpoint(still)

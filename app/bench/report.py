@@ -166,10 +166,12 @@ def scale(cmd) -> dict:
 
 def design(cmd) -> dict:
     """Inverse design against the same physics budget spent on prior draws (``bench/design.py``)."""
+    import numpy as np
+
     from snakeloco.app.bench.design import bench_design
 
-    r = bench_design(cmd.checkpoint, cmd.data, cmd.targets, cmd.seed, cmd.candidates, cmd.workers)
-    for name in ("design", "baseline"):
+    r = bench_design(cmd.checkpoint, cmd.data, cmd.targets, cmd.seed, cmd.candidates, cmd.workers, cmd.rounds)
+    for name in ("design", "design_first_round", "baseline"):
         f = r[name]
         heading = (
             f", heading error median {f['heading_error_deg_median']:.1f} deg, p90 {f['heading_error_deg_p90']:.1f} deg"
@@ -177,7 +179,8 @@ def design(cmd) -> dict:
             else ""
         )
         print(
-            f"{name:8s}: end error / target distance median {f['error_rel_median']:.3f}, p90 {f['error_rel_p90']:.3f}"
+            f"{name:18s}: end error / target distance median {f['error_rel_median']:.3f}, p90 {f['error_rel_p90']:.3f}, "
+            f"met {f['met_share']:.0%}"
             f"{heading}"
             + (
                 f"; ensemble spread median {f['spread_m_median']:.2f} m"
@@ -187,8 +190,8 @@ def design(cmd) -> dict:
         )
     u = r["unreachable"]
     print(
-        f"{r['targets']} targets, {r['physics_budget_replays']} replays each; met {r['design']['met_share']:.0%}; "
-        f"time to an answer p50 {r['seconds_p50']:.1f} s, p95 {r['seconds_p95']:.1f} s (search "
+        f"{r['targets']} targets, {np.median(r['physics_budget_replays']):.0f} replays each (median, the "
+        f"baseline's too); time to an answer p50 {r['seconds_p50']:.1f} s, p95 {r['seconds_p95']:.1f} s (search "
         f"{r['search_s_median']:.1f} s + physics {r['physics_s_median']:.1f} s, medians); a {u['target_m']:.0f} m "
         f"target: met {u['met']}, closest reached {u['closest_reached_m']} ({u['error_m']:.1f} m off)"
     )
