@@ -93,6 +93,17 @@ def _set_hidden(page, hidden: bool) -> None:
     )
 
 
+def _pause_then_hide_and_show(page, d, settle_ms: int) -> None:
+    """The user presses Pause, the tab goes to the background for 0.3 s and comes back: still paused."""
+    page.get_by_role("button", name="Pause").click()
+    assert wait_until(lambda: not d.playback.playing, 30)
+    _set_hidden(page, True)
+    page.wait_for_timeout(300)
+    _set_hidden(page, False)
+    page.wait_for_timeout(settle_ms)
+    assert not d.playback.playing, "hiding and showing the tab undid the user's pause"
+
+
 def test_a_hidden_tab_pauses_its_animation_and_resumes_when_shown(checkpoint, monkeypatch):
     sync_api = pytest.importorskip("playwright.sync_api")
     srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
@@ -113,13 +124,7 @@ def test_a_hidden_tab_pauses_its_animation_and_resumes_when_shown(checkpoint, mo
             _set_hidden(page, False)
             assert wait_until(lambda: d.playback.playing, 30), "showing the tab did not resume it"
             # A user's own pause survives hiding and showing the tab.
-            page.get_by_role("button", name="Pause").click()
-            assert wait_until(lambda: not d.playback.playing, 30)
-            _set_hidden(page, True)
-            page.wait_for_timeout(300)
-            _set_hidden(page, False)
-            page.wait_for_timeout(1000)
-            assert not d.playback.playing
+            _pause_then_hide_and_show(page, d, settle_ms=1000)
             # ... even when the tab is hidden before the button's new label has come back from the
             # server (a busy server or a slow network: here the label is sent 0.8 s late).
             page.get_by_role("button", name="Play").click()
@@ -133,13 +138,7 @@ def test_a_hidden_tab_pauses_its_animation_and_resumes_when_shown(checkpoint, mo
                 threading.Timer(0.8, setattr, (playback.controls.play_button, "label", label)).start()
 
             monkeypatch.setattr(playback, "toggle", toggle_with_late_label)
-            page.get_by_role("button", name="Pause").click()
-            assert wait_until(lambda: not d.playback.playing, 30)
-            _set_hidden(page, True)
-            page.wait_for_timeout(300)
-            _set_hidden(page, False)
-            page.wait_for_timeout(2000)
-            assert not d.playback.playing
+            _pause_then_hide_and_show(page, d, settle_ms=2000)
             # A tab shown again before the hiding's Pause label arrived still resumes.
             page.get_by_role("button", name="Play").click()
             assert wait_until(lambda: d.playback.playing, 30)

@@ -118,7 +118,8 @@ def bench_design(
         "rounds": cfg.rounds,
         "physics_budget_replays": budgets,
         "design": _figures(designed, goals, cfg),
-        "design_first_round": _figures(first, goals, cfg),
+        # (only the reported candidates get noisy copies: a first round's best has no spread of its own)
+        "design_first_round": _figures(first, goals, cfg) | {"spread_m_median": None},
         "baseline": _figures(baseline, goals, cfg),
         "seconds_p50": float(np.percentile(seconds, 50)),
         "seconds_p95": float(np.percentile(seconds, 95)),
