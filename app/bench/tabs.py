@@ -93,6 +93,7 @@ def bench_tabs(
     light: list[bool] = []
     exports: list[float] = []
     export_ok: list[bool] = []
+    export_errors: list[str | None] = []
     try:
         with sync_playwright() as p, tempfile.TemporaryDirectory() as tmp:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
@@ -142,6 +143,10 @@ def bench_tabs(
                     log(f"  round {r + 1}/{rounds}")
             for i, (page, d) in enumerate(zip(pages, designers, strict=True)):
                 t0 = time.monotonic()
+                # The tab's current gait: the one drawn, or the slider's newer value still being
+                # decoded (a starved tab's last key press can reach the server late); either is
+                # its own, and what Export CSV writes is the drawn one.
+                own = {d.sliders[0].value, *([d.decoded.latents.z_b[0]] if d.decoded else [])}
                 try:
                     page.bring_to_front()
                     with page.expect_download(timeout=60_000) as info:
@@ -150,12 +155,21 @@ def bench_tabs(
                     info.value.save_as(path)
                     exports.append(time.monotonic() - t0)
                     read_gait_csv(path.read_bytes())  # a whole, valid gait file, of this tab's gait
-                    export_ok.append(f"# z_B: [{d.sliders[0].value:.4f}" in path.read_text())
+                    own |= {d.sliders[0].value, *([d.decoded.latents.z_b[0]] if d.decoded else [])}
+                    text = path.read_text()
+                    export_ok.append(any(f"# z_B: [{v:.4f}" in text for v in own))
+                    export_errors.append(
+                        None
+                        if export_ok[-1]
+                        else "the file is not of the tab's current gait (z_B 1 of none of "
+                        f"{sorted(own)}): {next((ln for ln in text.splitlines() if 'z_B' in ln), 'no z_B line')}"
+                    )
                 except Exception as exc:  # a timeout or a bad file: reported, not raised
                     exports.append(time.monotonic() - t0)
                     export_ok.append(False)
-                    if log:
-                        log(f"  tab {i + 1}: export failed: {type(exc).__name__}: {exc}")
+                    export_errors.append(f"{type(exc).__name__}: {exc}")
+                if log and export_errors[-1]:
+                    log(f"  tab {i + 1}: export failed: {export_errors[-1]}")
             browser.close()
     finally:
         nice.stop()
@@ -176,5 +190,6 @@ def bench_tabs(
         "lost_presses": lost,
         "export_s": exports,
         "export_ok": export_ok,
+        "export_errors": export_errors,
         "server_exceptions": len(server.errors),
     }
