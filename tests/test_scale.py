@@ -172,14 +172,26 @@ def test_without_the_scale_extra_the_local_path_works_and_the_rest_says_what_to_
     assert [p.name for p in tmp_path.iterdir()] == ["plain.npz"]
 
 
+N_CTRL_C = 128
+
+
 @needs_ray
 @pytest.mark.slow
 def test_ctrl_c_stops_the_ray_it_started_and_leaves_only_a_resumable_run(tmp_path, tiny_dataset):
     out = tmp_path / "c.zarr"
     before = raylets()
-    # 32 records (TINY's 4 first): long enough on Ray (~10 s) that the interrupt lands mid-run; with
-    # TINY's 4 the run sometimes ended before a busy task was seen (CI, 2026-12-03).
-    cmd = [sys.executable, "-m", "snakeloco.app.cli", "generate", "--num-samples", "32", "--seed", "11"]
+    # 128 records (TINY's 4 first): long enough on Ray (~15 s) that the interrupt lands mid-run; 4
+    # and then 32 records (3 s) sometimes ended before the interrupt did (CI, 2026-12-03).
+    cmd = [
+        sys.executable,
+        "-m",
+        "snakeloco.app.cli",
+        "generate",
+        "--num-samples",
+        str(N_CTRL_C),
+        "--seed",
+        "11",
+    ]
     proc = subprocess.Popen(
         [*cmd, "--out", str(out), "--backend", "ray", "--workers", "2"],
         stderr=subprocess.PIPE,
@@ -205,7 +217,9 @@ def test_ctrl_c_stops_the_ray_it_started_and_leaves_only_a_resumable_run(tmp_pat
     assert not raylets() - before, "the Ray instance it started is still running"
     assert [p.name for p in tmp_path.iterdir() if p.name != "c.zarr.partial"] == []
     # What it kept (if a chunk had finished) resumes to the same records, here on the local backend.
-    resumed = load_dataset(generate_dataset(TINY.model_copy(update={"num_samples": 32}), out, workers=2))
+    resumed = load_dataset(
+        generate_dataset(TINY.model_copy(update={"num_samples": N_CTRL_C}), out, workers=2)
+    )
     for key in KEYS:
         head = getattr(resumed, key) if key == "freqs" else getattr(resumed, key)[:4]
         np.testing.assert_array_equal(head, getattr(tiny_dataset, key), err_msg=key)
