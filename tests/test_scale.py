@@ -179,7 +179,7 @@ N_CTRL_C = 128
 @pytest.mark.slow
 def test_ctrl_c_stops_the_ray_it_started_and_leaves_only_a_resumable_run(tmp_path, tiny_dataset):
     out = tmp_path / "c.zarr"
-    before = raylets()
+    before, busy_before = raylets(), set(task_processes())  # an earlier test's workers may linger
     # 128 records (TINY's 4 first): long enough on Ray (~15 s) that the interrupt lands mid-run; 4
     # and then 32 records (3 s) sometimes ended before the interrupt did (CI, 2026-12-03).
     cmd = [
@@ -203,8 +203,8 @@ def test_ctrl_c_stops_the_ray_it_started_and_leaves_only_a_resumable_run(tmp_pat
     while not (progress.exists() or raylets() - before) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert raylets() - before, "the command started no Ray"
-    while not task_processes() and time.monotonic() < deadline:
-        time.sleep(0.05)  # mid-run: a task is simulating
+    while not set(task_processes()) - busy_before and time.monotonic() < deadline:
+        time.sleep(0.05)  # mid-run: a task of this run is simulating
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
