@@ -197,6 +197,9 @@ def test_ctrl_c_stops_the_ray_it_started_and_leaves_only_a_resumable_run(tmp_pat
         stderr=subprocess.PIPE,
         text=True,
         cwd=tmp_path,
+        # Ctrl-C as a terminal delivers it: a test run started in the background (`cmd &` in a
+        # script) inherits SIGINT ignored, and a Python started so never raises KeyboardInterrupt.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     progress = out.with_name("c.zarr.partial") / "progress.json"
     deadline = time.monotonic() + 120
