@@ -11,8 +11,8 @@ Then physics corrects the model: each of the best verified candidates is searche
 z_B for the target moved by its own miss (replay end minus decoded end), for up to ``rounds``
 rounds, so a model that errs locally by a steady offset still lands its gait. The reported
 candidates are then replayed with command noise, each reported beside that ensemble's spread, so
-where physics cannot promise the end ("the paper family") it says so. ``met`` is true only if the best simulated end is within the tolerance (and the
-heading and roll bounds, where asked).
+where physics cannot promise the end ("the paper family") it says so. ``met`` is true only if the
+best simulated end is within the tolerance (and the heading and roll bounds, where asked).
 """
 
 from __future__ import annotations
@@ -183,7 +183,7 @@ class DesignResult:
     met: bool
     search_s: float
     physics_s: float
-    replays: int = 0  # MuJoCo replays run (candidates verified x ensemble)
+    replays: int = 0  # MuJoCo replays run: each round's candidates once, the reported ones' noisy copies
     rounds: int = 0  # rounds of search and verification run
     extra: dict = field(default_factory=dict)
 
@@ -333,8 +333,7 @@ def verify(
         c.error_m = float(math.hypot(ends[0, 0] - target.forward, ends[0, 1] - target.sideways))
         if target.heading is not None:
             c.heading_error = float(abs(ends[0, 2] - target.heading))
-        offsets = ends[1:, :2] - ends[0, :2]
-        c.spread_m = float(np.sqrt((offsets**2).sum(axis=1).mean())) if len(offsets) else float("nan")
+        c.spread_m = _spread(ends[1:], ends[0])
     return rank(candidates, target, cfg)
 
 
@@ -342,14 +341,19 @@ def measure_spread(model: GaitModel, candidates: list[Candidate], cfg: DesignCon
     """The ``cfg.ensemble - 1`` noisy copies of each verified candidate (own replay already run):
     their ends' RMS distance from its own end, ``spread_m``. Returns the number of replays run."""
     todo = [c for c in candidates if c.simulated is not None]
-    if not todo or cfg.ensemble < 2:
+    if not todo:
         return 0
     shapes = np.stack([c.shape for c in todo])
     bodies, ok = replay_shapes(model, shapes, backend, cfg.ensemble, seed=cfg.seed, own=False)
     for c, body, fine in zip(todo, bodies.astype(np.float64), ok, strict=True):
-        offsets = path_end(body[fine])[:, :2] - c.simulated[:2]
-        c.spread_m = float(np.sqrt((offsets**2).sum(axis=1).mean())) if len(offsets) else float("nan")
+        c.spread_m = _spread(path_end(body[fine]), c.simulated)
     return len(todo) * (cfg.ensemble - 1)
+
+
+def _spread(noisy: np.ndarray, own: np.ndarray) -> float:
+    """RMS distance (m) of the noisy replays' ends (k, 4) from the own replay's end (NaN: none ran)."""
+    offsets = noisy[:, :2] - own[:2]
+    return float(np.sqrt((offsets**2).sum(axis=1).mean())) if len(offsets) else float("nan")
 
 
 def rank(candidates: list[Candidate], target: Target, cfg: DesignConfig) -> list[Candidate]:
