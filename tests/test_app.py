@@ -13,7 +13,7 @@ import pytest
 from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
 from snakeloco.app.panel import spread_text
 from snakeloco.app.server import DesignerServer
-from snakeloco.app.session import LatestWorker
+from snakeloco.app.session import Latents, LatestWorker
 from snakeloco.sim import replay
 
 from helpers import connect_headless
@@ -288,10 +288,25 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
         )
         assert "Resample z_k" not in d.controls.panel.content  # z_k = 0: no sampling to blame
         assert d.timings[-1].failed and server.errors == []
+        # The load benchmark's check: a refused replay shown as such is not a stale draw ...
+        from snakeloco.app.bench.load import replay_problems
+
+        assert replay_problems(d) == []
+        shown = d.controls.panel.content
+        d.controls.panel.content = "something else"
+        assert "does not say so" in replay_problems(d)[0]
+        d.controls.panel.content = shown
+        mode = d.controls.zk_mode.value
         d.controls.zk_mode.value = "sampled"  # a sampled gait that breaks gets told what to try
         time.sleep(0.2)
         assert d.wait_idle(60)
         assert "Replay failed" in d.controls.panel.content and "Resample z_k" in d.controls.panel.content
+        d.session.decode, d.controls.zk_mode.value = decode, mode  # ... a replay drawn is the current gait's
+        d.sliders[0].value = 0.5
+        time.sleep(0.2)
+        assert d.wait_idle(60) and d.simulated is not None and replay_problems(d) == []
+        d.simulated = d.session.replay(d.session.decode(Latents(z_b=(0.0,) * d.model.z_b_dim)))
+        assert replay_problems(d) == ["drawn simulated path is not the final replay"]
     finally:
         client.close()
 

@@ -47,6 +47,7 @@ from snakeloco.app.bench.processes import (
     slope_mb_per_min,
     split_cpus,
 )
+from snakeloco.app import panel
 from snakeloco.app.gait_csv import read_gait_csv
 from snakeloco.app.server import DesignerServer, tune_process
 from snakeloco.app.tab import DesignerClient
@@ -198,6 +199,21 @@ def _stale_checks(
     return problems
 
 
+def replay_problems(d: DesignerClient) -> list[str]:
+    """Whether a settled tab shows the replay of its current gait: its simulated path, or, where
+    physics refused the gait (thrown, diverged), the panel saying so for that gait."""
+    if d.simulated is not None:
+        if np.allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::4, 1], atol=1e-12):
+            return []
+        return ["drawn simulated path is not the final replay"]
+    last = d.timings[-1] if d.timings else None
+    if last is None or last.failed is None or last.version != d._version:
+        return ["no replay drawn for the final sliders"]
+    if d.controls.panel.content != panel.failed_text(d.decoded, last.failed):
+        return [f"the final replay failed ({last.failed}) but the panel does not say so"]
+    return []
+
+
 def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: int) -> list[str]:
     """Everything this tab shows or exports must match its final slider values; returns mismatches."""
     problems = []
@@ -217,13 +233,7 @@ def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: i
     commands = d.model.commands(shape[0])
     if not np.allclose(d.controls.plots["forward (m)"].data[1], body[0, :, 1], atol=1e-9):
         problems.append("drawn generated path is not the decode of the final sliders")
-    if d.simulated is None:
-        failed = d.timings[-1].failed if d.timings else None
-        problems.append(
-            "no replay drawn for the final sliders" + (f" (replay failed: {failed})" if failed else "")
-        )
-    elif not np.allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::4, 1], atol=1e-12):
-        problems.append("drawn simulated path is not the final replay")
+    problems += replay_problems(d)
     path = tmp / f"client{index}.csv"
     if not browser.call("export", 0, str(path), CATCH_UP_S, timeout=CATCH_UP_S + 60):
         problems.append(f"the exported CSV did not arrive in the browser within {CATCH_UP_S:g} s")
