@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from snakeloco.app import panel
 from snakeloco.app.bench import load_driver
 from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, DWELL_S, wait_until  # noqa: F401 (the browser tests' too)
 from snakeloco.app.bench.processes import (
@@ -47,7 +48,6 @@ from snakeloco.app.bench.processes import (
     slope_mb_per_min,
     split_cpus,
 )
-from snakeloco.app import panel
 from snakeloco.app.gait_csv import read_gait_csv
 from snakeloco.app.server import DesignerServer, tune_process
 from snakeloco.app.tab import DesignerClient
