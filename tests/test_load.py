@@ -59,6 +59,8 @@ def test_bench_load_two_tabs(checkpoint, capsys):
         ]
     ).all()
     assert r["first_motion_worst_best"] >= 1 and r["replay_worst_best"] >= 1
+    for cores in (r["single_cores"], r["multi_cores"]):  # who used the CPUs during the drags
+        assert 0 < cores["server"] <= r["cpus"] + 0.1 and 0 < cores["browsers"] <= r["cpus"] + 0.1, cores
     if r["server_cpus"] is not None:  # the server's and the browsers' CPUs were kept apart
         assert not set(r["server_cpus"]) & set(r["browser_cpus"])
     if cpus is not None:

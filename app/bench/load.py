@@ -42,6 +42,7 @@ from snakeloco.app.bench import load_driver
 from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, DWELL_S, wait_until  # noqa: F401 (the browser tests' too)
 from snakeloco.app.bench.processes import (
     BrowserNice,
+    CpuSplit,
     RssSampler,
     pin_process,
     rss_mb,
@@ -284,9 +285,11 @@ def _drive(
     seeds = [int(rng.integers(2**32)) for _ in designers]
     start = time.perf_counter()
     t_start = time.monotonic()
+    cpu = CpuSplit()
     for browser, seed in zip(browsers, seeds, strict=True):
         browser.send("drag", seconds, n_sliders, [seed], pages.dwell)
     moves = [browser.receive("drag", timeout=seconds + 600)[0] for browser in browsers]
+    cores = cpu.stop()
     t_end = time.monotonic()
     settled = _wait_quiet(designers)  # slider messages a starved page sends late
     rss_idle_after = rss_mb()  # the same tabs, idle again after the drags
@@ -333,6 +336,7 @@ def _drive(
         "t_end": t_end,
         "rss_idle_before_mb": rss_idle_before,
         "rss_idle_after_mb": rss_idle_after,
+        "cores": cores,
     }
 
 
@@ -426,6 +430,10 @@ def bench_load(
         "slowest_move_s": [c["slowest_move_s"] for c in multi["clients"]],
         "page_stalls": [c["stalls"] for c in multi["clients"]],
         # Browser side: how long a page took to take a pointer move (dispatch -> handled).
+        # Cores used over the drags (of ``cpus``): the server's process and the browsers'.
+        "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "single_cores": phases[1]["cores"],
+        "multi_cores": multi["cores"],
         "single_move_p95_ms": single["move_p95_ms"],
         "multi_move_p95_ms": [c["move_p95_ms"] for c in multi["clients"]],
         "server_exceptions": len(phases[1]["server_exceptions"]) + len(multi["server_exceptions"]),

@@ -61,6 +61,32 @@ def descendants(root: int) -> list[int]:
     return sorted(found)
 
 
+def cpu_seconds(pid: int | str = "self") -> float:
+    """User plus system CPU time of a process so far (s), from /proc; NaN where unknown."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return float("nan")
+
+
+class CpuSplit:
+    """Cores this process (the server) and the processes it started (the browsers) used between
+    construction and ``stop()``: what the load figures owe to the server and what to the browsers
+    where both share the CPUs."""
+
+    def __init__(self) -> None:
+        self._t0, self._me = time.monotonic(), cpu_seconds()
+        self._them = {pid: cpu_seconds(pid) for pid in descendants(os.getpid())}
+
+    def stop(self) -> dict[str, float]:
+        wall = time.monotonic() - self._t0
+        them = {pid: cpu_seconds(pid) for pid in descendants(os.getpid())}
+        # A process started since counts from 0; one that ended meanwhile is missed (none should).
+        used = sum(t - self._them.get(pid, 0.0) for pid, t in them.items() if t == t)
+        return {"server": (cpu_seconds() - self._me) / wall, "browsers": used / wall}
+
+
 def autogroup(pid: int | str) -> tuple[str, int] | None:
     """(name, nice) of a process's scheduler autogroup, or None where the kernel has none."""
     try:
