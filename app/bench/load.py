@@ -16,7 +16,9 @@ one call: one client alone, then ``clients`` at once, each for ``seconds``. Repo
 - server memory: resident set size sampled every 0.5 s (start, end, peak, and the slope of a
   least-squares line over the multi-client phase and over its second half, MB/min), and with the
   tabs connected and idle just before and just after the drags: what load leaves behind, without
-  the replays in flight (each holds its physics steps for a moment) that make the samples jump.
+  the replays in flight (each holds its physics steps for a moment) that make the samples jump;
+- cores used over each phase's drags by this process (the server) and by the browsers it started:
+  where both share the CPUs, how much of the figures is the browsers'.
 
 In use the browsers sit on other machines; here they share this one. So the process driving them
 (and with it Playwright and every Chromium it starts) runs at nice +10, and every browser thread is
