@@ -404,8 +404,9 @@ class Simulator:
         pool (``replay_runner``) to run the chunks on at its own priority instead of the calling
         thread's (same results), or a function of the chunk's index (0 first) that picks one per
         chunk (None: the calling thread). ``wanted``: polled while a runner's chunk is in flight; once
-        it says False the stream ends at once (the chunk finishes on its thread, unread), so a newer
-        gait's replay need not wait for the old one's chunk.
+        it says False the stream ends at once (a chunk still queued behind the runner's other work is
+        cancelled, a running one finishes on its thread, unread), so a newer gait's replay need not
+        wait for the old one's chunk.
         """
         commands = np.asarray(commands, dtype=np.float64)
         n_t = self.excitation.n_samples
@@ -446,7 +447,10 @@ class Simulator:
                 )
                 while wanted is not None and not chunk.done():
                     if not wanted():
-                        return  # the chunk's arrays and MjData are this stream's alone: left to it
+                        # Still queued (the runner busy with another chunk): it never runs. Else it
+                        # finishes on its thread, unread (its arrays and MjData are this stream's).
+                        chunk.cancel()
+                        return
                     wait_futures([chunk], timeout=STREAM_POLL_S, return_when=FIRST_COMPLETED)
                 chunk.result()
             warm = data.qacc_warmstart[None].copy()

@@ -355,6 +355,17 @@ def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_le
             simulator.stream(commands, chunk_samples=500, runner=lambda k: runner, wanted=lambda: True)
         )
         np.testing.assert_array_equal(every[-1].body, whole.body)  # a runner per chunk: the same replay
+        # A chunk still queued behind the runner's other work (the chunk a left replay left running)
+        # never runs once its stream is left: superseded gaits do not pile up physics in the queue.
+        busy, ran = threading.Event(), []
+        one = runner._one
+        runner._one = lambda *a, **k: ran.append(1) or one(*a, **k)
+        runner._executor.submit(busy.wait, 30)
+        left = iter([True, False])
+        assert list(simulator.stream(commands, runner=runner, wanted=lambda: next(left, False))) == []
+        busy.set()
+        runner._executor.submit(lambda: None).result(timeout=30)  # the runner has done all it will
+        assert ran == []
     finally:
         runner.close()
     # A gait that breaks the physics ends its stream with the reason, as replay raises it.
