@@ -197,17 +197,21 @@ class GaitSession:
         sim: SimulatedGait,
         seed: int = 0,
         keep_going: Callable[[np.ndarray], bool] | None = None,
+        wanted: Callable[[], bool] | None = None,
     ) -> SimulatedGait | None:
         """Replay K-1 perturbed copies over all cores, a batch (one per thread) at a time, and score
         the gait. ``keep_going`` gets the ensemble's clean bodies so far (member 0 the replay) after
-        each batch and returns whether to go on: None is returned where it stopped. The members are
-        those of one batched rollout, bit for bit."""
+        each batch and returns whether to go on: None is returned where it stopped. ``wanted``: asked
+        when a batch gets its turn on a shared simulator (False: stop, None). The members are those
+        of one batched rollout, bit for bit."""
         t0 = time.perf_counter()
         members = perturbed_commands(gait.commands, self.ensemble, seed=seed)[1:]
         step = self._ensembler.workers
         bodies, failures = [sim.body[None]], []
         for i in range(0, len(members), step):
-            result = self._ensembler.simulate(members[i : i + step])
+            result = self._ensembler.simulate(members[i : i + step], wanted)
+            if result is None:
+                return None
             failures += result.failures
             bodies.append(result.body[[j for j, f in enumerate(result.failures) if f is None]])
             if keep_going is not None and not keep_going(np.concatenate(bodies)):

@@ -362,9 +362,11 @@ class DesignerClient(GaitFiles, LatentMoves):
             return
         timing = self._timing(version)
         is_current = lambda: self.is_current(version)  # noqa: E731
-        sim = self.session.run_ensemble(decoded, sim, version, lambda b: self._draw_members(b, is_current))
+        sim = self.session.run_ensemble(
+            decoded, sim, version, lambda b: self._draw_members(b, is_current), wanted=is_current
+        )
         if sim is None:
-            return  # superseded between batches
+            return  # superseded between batches, or while a batch waited for other tabs' batches
         timing.ensemble_ms = sim.ensemble_ms
         with self._draw_lock:
             if is_current():

@@ -265,11 +265,14 @@ class Simulator:
         self._vel_cols = adr[sensor["com_vel"]] + np.arange(3)
         assert self.model.site(BODY_SITE).id >= 0
 
-    def rollout(self, ctrl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def rollout(
+        self, ctrl: np.ndarray, wanted: Callable[[], bool] | None = None
+    ) -> tuple[np.ndarray, np.ndarray] | None:
         """Raw rollouts from the resting state: ctrl (B, n_steps, 8) -> (state, sensordata).
 
         state is (B, n_steps, nstate) after each step; sensordata (B, n_steps, nsensordata) is
         measured at the start of each step (about 16 MB per record: callers keep only samples).
+        ``wanted``: asked when the batch gets its turn; False: nothing is rolled out (None).
         """
         batch = ctrl.shape[0]
         initial = np.broadcast_to(self.initial_state, (batch, self.initial_state.size))
@@ -282,6 +285,8 @@ class Simulator:
         with self._lock:
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
+            if wanted is not None and not wanted():
+                return None  # left while it waited for the callers before it
             if self._pool is None:
                 mj_rollout.rollout(
                     m, self._data, initial, ctrl, initial_warmstart=warm, state=state, sensordata=sens
@@ -297,11 +302,14 @@ class Simulator:
             if self._pool is not None:
                 self._pool.close()
 
-    def simulate(self, commands: np.ndarray) -> BatchResult:
+    def simulate(self, commands: np.ndarray, wanted: Callable[[], bool] | None = None) -> BatchResult | None:
         """Simulate a batch of records under the command rule and measure them.
 
         Args:
             commands: (B, T, 8) rad.
+            wanted: asked each time a part of the batch gets its turn (callers sharing the
+                simulator roll out first come, first served); False: the rest is not simulated
+                and None is returned (a batch whose gait was left while it waited in line).
 
         Returns:
             BatchResult with (B, T, 8) joint angles and (B, T, 6) body states; a failed row's
@@ -313,9 +321,11 @@ class Simulator:
         expected = (self.excitation.n_samples, N_JOINTS)
         if commands.ndim != 3 or commands.shape[1:] != expected:
             raise ValueError(f"expected (B, {expected[0]}, {expected[1]}) commands, got {commands.shape}")
-        parts = [
-            self._simulate(commands[i : i + self.max_batch]) for i in range(0, len(commands), self.max_batch)
-        ]
+        parts = []
+        for i in range(0, len(commands), self.max_batch):
+            parts.append(self._simulate(commands[i : i + self.max_batch], wanted))
+            if parts[-1] is None:
+                return None
         if len(parts) == 1:
             return parts[0]
         return BatchResult(
@@ -325,10 +335,13 @@ class Simulator:
             qpos=np.concatenate([r.qpos for r in parts]),
         )
 
-    def _simulate(self, commands: np.ndarray) -> BatchResult:
+    def _simulate(self, commands: np.ndarray, wanted: Callable[[], bool] | None = None) -> BatchResult | None:
         expected = (self.excitation.n_samples, N_JOINTS)
         ctrl = expand_commands(commands, self.substeps, self.config)
-        state, sens = self.rollout(ctrl)
+        rolled = self.rollout(ctrl, wanted)
+        if rolled is None:
+            return None
+        state, sens = rolled
         failures = self._diagnose(state, sens)
         record = self.config.lead_in * self.substeps + self.substeps * np.arange(expected[0])
         sampled = sens[:, record]  # (B, T, nsensordata), measured at the start of step `record`

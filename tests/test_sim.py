@@ -238,6 +238,31 @@ def test_callers_sharing_a_simulator_roll_out_in_the_order_they_came():
     assert order == [0, 1, 2, 3, 4]
 
 
+def test_a_batch_left_while_it_waits_for_its_turn_is_not_simulated(tiny_dataset):
+    simulator = Simulator(workers=1)  # rolls out on the caller's thread: every rollout is counted
+    commands = tiny_dataset.commands[:1].astype(np.float64)
+    calls, rollout = [], sim_physics.mj_rollout.rollout
+    sim_physics.mj_rollout.rollout = lambda *a, **k: calls.append(1) or rollout(*a, **k)
+    still_wanted, results = [True], []
+    try:
+        with simulator._lock:  # another caller's batch is rolling out
+            t = threading.Thread(
+                target=lambda: results.append(simulator.simulate(commands, lambda: still_wanted[0]))
+            )
+            t.start()
+            deadline = time.monotonic() + 10
+            while simulator._lock._next_ticket < 2 and time.monotonic() < deadline:  # it waits in line
+                time.sleep(0.001)
+            still_wanted[0] = False  # its gait is left meanwhile
+        t.join(30)
+        assert results == [None] and calls == []
+        kept = simulator.simulate(commands, lambda: True)
+        np.testing.assert_array_equal(kept.body[0].astype(np.float32), tiny_dataset.body[0])
+        assert calls == [1]
+    finally:
+        sim_physics.mj_rollout.rollout = rollout
+
+
 def test_replay_rejects_bad_commands():
     with pytest.raises(ValueError, match="NaN"):
         replay(np.full((2000, 8), np.nan))
