@@ -54,6 +54,7 @@ from snakeloco.app.bench.processes import (
 from snakeloco.app.gait_csv import read_gait_csv
 from snakeloco.app.server import DesignerServer, tune_process
 from snakeloco.app.tab import DesignerClient
+from snakeloco.sim import BODY_DOWNSAMPLE
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
 BROWSER_NICE = 10
@@ -206,11 +207,12 @@ def replay_problems(d: DesignerClient) -> list[str]:
     """Whether a settled tab shows the replay of its current gait: its simulated path, or, where
     physics refused the gait (thrown, diverged), the panel saying so for that gait."""
     if d.simulated is not None:
-        if np.allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::4, 1], atol=1e-12):
+        drawn = d.controls.plots["forward (m)"].data[2]
+        if np.allclose(drawn, d.simulated.body[::BODY_DOWNSAMPLE, 1], atol=1e-12):
             return []
         return ["drawn simulated path is not the final replay"]
     last = d.timings[-1] if d.timings else None
-    if last is None or last.failed is None or last.version != d._version:
+    if last is None or last.failed is None or not d.is_current(last.version):
         return ["no replay drawn for the final sliders"]
     if d.controls.panel.content != panel.failed_text(d.decoded, last.failed):
         return [f"the final replay failed ({last.failed}) but the panel does not say so"]

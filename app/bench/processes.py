@@ -83,7 +83,7 @@ class CpuSplit:
         wall = time.monotonic() - self._t0
         them = {pid: cpu_seconds(pid) for pid in descendants(os.getpid())}
         # A process started since counts from 0; one that ended meanwhile is missed (none should).
-        used = sum(t - self._them.get(pid, 0.0) for pid, t in them.items() if t == t)
+        used = sum(t - self._them.get(pid, 0.0) for pid, t in them.items() if np.isfinite(t))
         return {"server": (cpu_seconds() - self._me) / wall, "browsers": used / wall}
 
 

@@ -143,10 +143,14 @@ def bench_tabs(
                     log(f"  round {r + 1}/{rounds}")
             for i, (page, d) in enumerate(zip(pages, designers, strict=True)):
                 t0 = time.monotonic()
+
                 # The tab's current gait: the one drawn, or the slider's newer value still being
                 # decoded (a starved tab's last key press can reach the server late); either is
                 # its own, and what Export CSV writes is the drawn one.
-                own = {d.sliders[0].value, *([d.decoded.latents.z_b[0]] if d.decoded else [])}
+                def current(d=d) -> set[float]:
+                    return {d.sliders[0].value, *([d.decoded.latents.z_b[0]] if d.decoded else [])}
+
+                own = current()
                 try:
                     page.bring_to_front()
                     with page.expect_download(timeout=60_000) as info:
@@ -155,7 +159,7 @@ def bench_tabs(
                     info.value.save_as(path)
                     exports.append(time.monotonic() - t0)
                     read_gait_csv(path.read_bytes())  # a whole, valid gait file, of this tab's gait
-                    own |= {d.sliders[0].value, *([d.decoded.latents.z_b[0]] if d.decoded else [])}
+                    own |= current()
                     text = path.read_text()
                     export_ok.append(any(f"# z_B: [{v:.4f}" in text for v in own))
                     export_errors.append(
