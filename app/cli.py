@@ -207,6 +207,7 @@ def run_evaluate(cmd: Evaluate) -> dict:
             cmd.replays,
             backend=cmd.backend,
             floor_records=cmd.floor_records,
+            positions=cmd.positions,
         )
     finally:
         if bar[0] is not None:
@@ -226,8 +227,29 @@ def run_evaluate(cmd: Evaluate) -> dict:
 
 
 def run_calibrate(cmd: Calibrate) -> dict:
-    """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save."""
+    """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save;
+    with --sampler, fit the slider density and the member path head (``model.sampler``)."""
     from snakeloco.model.calibrate import calibrate
+
+    if cmd.sampler:
+        from snakeloco.model.sampler import fit_sampler
+
+        sc = cmd.sampler_config
+        progress, bar = _progress_bar(0 if sc.density_only else 2 * sc.samples, "replay sampler members")
+        try:
+            return fit_sampler(
+                cmd.checkpoint,
+                cmd.data,
+                cmd.out,
+                sc,
+                workers=cmd.workers,
+                backend=cmd.backend,
+                progress=progress,
+                gaits_path=cmd.gaits,
+            )
+        finally:
+            if bar[0] is not None:
+                bar[0].close()
 
     progress, bar = _progress_bar(cmd.config.gait_count, "replay prior gaits")
     try:

@@ -19,6 +19,7 @@ from snakeloco.app.bench.load_driver import DWELL_S
 from snakeloco.model.calibrate import CalibrateConfig
 from snakeloco.model.config import ModelConfig
 from snakeloco.model.design import DesignConfig, Target
+from snakeloco.model.sampler import SamplerConfig
 from snakeloco.model.train import PRESETS, TrainConfig
 from snakeloco.sim import GenerateConfig
 from snakeloco.sim.backend import BackendConfig
@@ -84,7 +85,9 @@ class Evaluate(Command):
     checkpoint: Path | None = None
     """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     prior_samples: Annotated[int, Field(ge=0)] = 256
-    """z_B drawn from the prior for the consistency check (0 skips it)."""
+    """z_B drawn for the consistency check (0 skips it)."""
+    positions: Literal["sampler", "prior"] = "sampler"
+    """Where those z_B come from: the checkpoint's sampler (its density over the training posteriors, where the sliders and Random put them) or the N(0, I) prior (what sliders dragged to their edges reach)."""
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per generated gait: the commands plus ensemble-1 copies with 1e-3 relative noise."""
     seed: Seed = 0
@@ -103,7 +106,7 @@ class Evaluate(Command):
 
 
 class Calibrate(Command):
-    """Fine-tune the statistics head and the body decoder on replays of the model's own prior gaits (model/calibrate.py)."""
+    """Fine-tune the statistics head and the body decoder on replays of the model's own prior gaits (model/calibrate.py); with --sampler, fit the slider density and, for the structured family, the member path head instead (model/sampler.py)."""
 
     data: Path
     """The dataset .npz the checkpoint was trained on (its training split is mixed in)."""
@@ -117,6 +120,9 @@ class Calibrate(Command):
     backend: Annotated[BackendConfig, Flat] = BackendConfig()
     gaits: Path | None = None
     """Replayed calibration gaits (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same draw), else written there after replaying."""
+    sampler: bool = False
+    """Fit the slider density over the training posteriors and (structured family) the member path head on replays of the sampler's members, instead of the statistics calibration."""
+    sampler_config: Annotated[SamplerConfig, tyro.conf.arg(name="sampler")] = SamplerConfig()
 
 
 class Design(Command):

@@ -11,6 +11,7 @@ is replayed exactly as written under the command rule of ``sim.physics``.
 from __future__ import annotations
 
 import io
+import json
 import math
 
 import numpy as np
@@ -30,6 +31,11 @@ MAX_BYTES = 2 * 2**20
 
 EXPORT_FIGURES = ("final_spread", *(f"{k}_err" for k in PREDICTABLE), "xy_r2")
 """Consistency figures an exported CSV records in its comments."""
+
+
+MEMBER_KEY = "member"
+"""The comment that carries a structured-family gait's parameters (JSON of ``sim.members.Member``):
+``Member.model_validate_json`` of it re-synthesises the file's commands to the bit."""
 
 
 class GaitCSVError(ValueError):
@@ -175,6 +181,9 @@ def gait_comments(
         comments["source"] = gait.source
         if encoded_z is not None:
             comments["z_B (encoded)"] = "[" + ", ".join(f"{v:.4f}" for v in encoded_z) + "]"
+    if getattr(gait, "member", None) is not None:
+        comments["gait"] = gait.member.describe()
+        comments[MEMBER_KEY] = json.dumps(gait.member.params(), separators=(",", ":"))
     comments["checkpoint sha256"] = checkpoint_sha256
     if sim is not None and sim.figures:
         f = sim.figures
@@ -197,3 +206,24 @@ def library_gait_csv(name: str) -> str:
         f"net yaw {m.net_yaw:.2f} rad, ensemble spread {m.spread:.3f}",
     }
     return write_gait_csv(preset.gait.commands(), comments)
+
+
+def read_member(text: str):
+    """The ``sim.members.Member`` a gait CSV's ``# member:`` comment names, or None without one.
+
+    Raises:
+        GaitCSVError: the comment is not a valid member's parameters.
+    """
+    from pydantic import ValidationError
+
+    from snakeloco.sim.members import Member
+
+    for line in text.splitlines():
+        if line.startswith(f"# {MEMBER_KEY}: "):
+            try:
+                return Member.model_validate_json(line[len(MEMBER_KEY) + 4 :])
+            except ValidationError as exc:
+                raise GaitCSVError(
+                    f"the '# {MEMBER_KEY}:' comment is not a gait's parameters: {exc}"
+                ) from None
+    return None

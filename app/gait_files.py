@@ -21,7 +21,8 @@ class GaitFiles:
         """The current gait as CSV text (what "Export CSV" downloads)."""
         if self.decoded is None:
             raise RuntimeError("no gait yet")
-        comments = gait_comments(self.decoded, self.simulated, self.model.hash, self._programmatic_z)
+        encoded = self._shown_z if self._programmatic_z is not None else None
+        comments = gait_comments(self.decoded, self.simulated, self.model.hash, encoded)
         return write_gait_csv(self.decoded.commands, comments)
 
     def export(self) -> None:
@@ -80,7 +81,8 @@ class GaitFiles:
             self._draw_decoded(gait)
             self._draw_simulated(gait, sim, ensemble=False)
             with self._z_lock:
-                self._programmatic_z = self._write_sliders(z_b)
+                self._programmatic_z = self._write_z(z_b)
+                self._shown_z = tuple(float(v) for v in z_b)
             timing.replayed = time.perf_counter()
         sim = self.session.run_ensemble(gait, sim, seed=timing.version)
         with self._draw_lock:

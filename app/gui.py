@@ -16,7 +16,7 @@ from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 HELP_PATH = Path(__file__).resolve().parent / "help.md"
 """The Help panel's text; package data, so a non-editable install shows it too."""
 SLIDER_RANGE = 3.0
-"""Sliders span +/- 3 prior standard deviations of z_B ~ N(0, I)."""
+"""Sliders span +/- 3 standard deviations: of z_B ~ N(0, I), or along a density component's axes."""
 NO_BASELINE = "none"
 """The Baseline dropdown's entry for "no library gait"."""
 PATH_PLOTS = {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}
@@ -72,6 +72,7 @@ class Controls:
 
     family: viser.GuiDropdownHandle
     zb_folder: viser.GuiFolderHandle
+    component: viser.GuiDropdownHandle | None
     sliders: list[viser.GuiSliderHandle]
     reset_button: viser.GuiButtonHandle
     random_button: viser.GuiButtonHandle
@@ -105,21 +106,60 @@ class Controls:
         self.plots["commands"].data = (COMMAND_PLOT_TIMES, *commands[::COMMAND_PLOT_STEP].T)
 
 
-def build_sliders(gui: viser.GuiApi, folder, z_b_dim: int):
-    """The z_B sliders (one per dimension of the model) and the Reset and Random buttons, in ``folder``."""
+def build_sliders(gui: viser.GuiApi, folder, z_b_dim: int, components: list[str] | None = None):
+    """In ``folder``: the Gait cluster dropdown (where the model has a density: ``components`` names
+    its components), one slider per z_B dimension, and the Reset and Random buttons.
+
+    With a density the sliders move within the chosen cluster: slider i is the position along the
+    cluster's i-th principal axis (largest spread first) in its standard deviations, so the whole
+    slider range stays where the training records are. Without one, slider i is z_B dimension i."""
     with folder:
-        sliders = [
-            gui.add_slider(
-                f"z_B {i + 1}", -SLIDER_RANGE, SLIDER_RANGE, 0.01, 0.0, hint=f"Body latent dimension {i + 1}"
+        component = None
+        if components:
+            component = gui.add_dropdown(
+                "Gait cluster",
+                tuple(components),
+                initial_value=components[0],
+                hint="A cluster of the training records in z_B, named by where its mean gait goes; the "
+                "sliders move within it",
             )
-            for i in range(z_b_dim)
-        ]
-        reset_button = gui.add_button("Reset z_B", hint="All z_B to 0 (the prior mean)")
-        random_button = gui.add_button("Random z_B", hint="Draw z_B from its N(0, I) prior")
-    return sliders, reset_button, random_button
+            sliders = [
+                gui.add_slider(
+                    f"z_B {i + 1}",
+                    -SLIDER_RANGE,
+                    SLIDER_RANGE,
+                    0.01,
+                    0.0,
+                    hint=f"Along the cluster's axis {i + 1} (largest spread first), in its standard deviations",
+                )
+                for i in range(z_b_dim)
+            ]
+            reset_button = gui.add_button("Reset z_B", hint="To the cluster's centre")
+            random_button = gui.add_button("Random z_B", hint="Draw z_B where the training records are")
+        else:
+            sliders = [
+                gui.add_slider(
+                    f"z_B {i + 1}",
+                    -SLIDER_RANGE,
+                    SLIDER_RANGE,
+                    0.01,
+                    0.0,
+                    hint=f"Body latent dimension {i + 1}",
+                )
+                for i in range(z_b_dim)
+            ]
+            reset_button = gui.add_button("Reset z_B", hint="All z_B to 0 (the prior mean)")
+            random_button = gui.add_button("Random z_B", hint="Draw z_B from its N(0, I) prior")
+    return component, sliders, reset_button, random_button
 
 
-def build_controls(gui: viser.GuiApi, z_b_dim: int, families: tuple[str, ...], family: str) -> Controls:
+def build_controls(
+    gui: viser.GuiApi,
+    z_b_dim: int,
+    families: tuple[str, ...],
+    family: str,
+    components: list[str] | None = None,
+) -> Controls:
     """Add every folder and control of a tab to ``gui``."""
     with gui.add_folder("Model"):
         family_dropdown = gui.add_dropdown(
@@ -131,7 +171,7 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int, families: tuple[str, ...], f
             "gaits: only their statistics can be promised)",
         )
     zb_folder = gui.add_folder("Body latent z_B")
-    sliders, reset_button, random_button = build_sliders(gui, zb_folder, z_b_dim)
+    component, sliders, reset_button, random_button = build_sliders(gui, zb_folder, z_b_dim, components)
     with gui.add_folder("Joint latents z_k"):
         zk_mode = gui.add_dropdown("z_k mode", ("zero", "sampled"), initial_value="zero")
         zk_seed = gui.add_number("z_k seed", 0, min=0, step=1)
@@ -204,6 +244,7 @@ def build_controls(gui: viser.GuiApi, z_b_dim: int, families: tuple[str, ...], f
     return Controls(
         family=family_dropdown,
         zb_folder=zb_folder,
+        component=component,
         sliders=sliders,
         reset_button=reset_button,
         random_button=random_button,

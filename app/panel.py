@@ -37,17 +37,42 @@ def spread_text(std: float, relative: float) -> str:
     return text + (f" ({100 * relative:.1f}%)" if relative < 1.0 else "")
 
 
+OFF_DATA = (
+    "⚠ **Off the data**: this z_B is less likely under the training records' density than 99% of "
+    "them; its gait and path are the model's extrapolation."
+)
+
+
+def gait_text(gait: DecodedGait) -> str:
+    """What the gait is: the family member replayed (kind and parameters in words, the projection's
+    residual) and the off-the-data flag; empty for a gait with neither."""
+    lines = []
+    if gait.member is not None:
+        fit = f" (decoded shape {100 * gait.residual:.1f}% off it)" if gait.residual is not None else ""
+        lines.append(f"**Gait**: {gait.member.describe()}{fit}")
+    if gait.off_data:
+        lines.append(OFF_DATA)
+    return "\n\n".join(lines)
+
+
+def _with_gait(gait: DecodedGait, text: str) -> str:
+    head = gait_text(gait)
+    return f"{head}\n\n{text}" if head else text
+
+
 def decoded_text(gait: DecodedGait) -> str:
     """The panel while a decoded gait waits for its replay."""
     source = "model decode" if gait.source == "model" else gait.source
-    return f"Decoded in {gait.decode_ms:.1f} ms ({source}); simulating..."
+    return _with_gait(gait, f"Decoded in {gait.decode_ms:.1f} ms ({source}); simulating...")
 
 
 def failed_text(gait: DecodedGait, reason: str) -> str:
     """The panel when physics could not replay a decoded gait."""
     sampled = gait.latents is not None and gait.latents.zk_mode == "sampled"
-    return f"**Replay failed**: {reason}\n\nThe decoded gait is shown; physics could not replay it." + (
-        SAMPLED_FAILURE_HINT if sampled else ""
+    return _with_gait(
+        gait,
+        f"**Replay failed**: {reason}\n\nThe decoded gait is shown; physics could not replay it."
+        + (SAMPLED_FAILURE_HINT if sampled else ""),
     )
 
 
@@ -82,4 +107,4 @@ def simulated_text(gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> str
         if f.get("ensemble_broken"):
             lines.append(f"{int(f['ensemble_broken'])} ensemble member(s) broke and were left out.")
     # Paragraphs apart: a line right after a markdown table would be drawn as one more table row.
-    return "\n\n".join(lines)
+    return _with_gait(gait, "\n\n".join(lines))

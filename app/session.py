@@ -18,6 +18,7 @@ import numpy as np
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, BODY_RATE, SimulationError, Simulator, joint_shape
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, compare, perturbed_commands
+from snakeloco.sim.members import Member
 from snakeloco.sim.physics import StreamedReplay, replay_runner
 
 ZkMode = Literal["zero", "sampled"]
@@ -25,12 +26,18 @@ ZkMode = Literal["zero", "sampled"]
 
 @dataclass(frozen=True)
 class Latents:
-    """What a designer set: z_B, how z_1..8 are chosen, and the seed/temperature of a sampled draw."""
+    """What a designer set: z_B, how z_1..8 are chosen, and the seed/temperature of a sampled draw.
+
+    ``component`` and ``axes``: where the sliders sit when they move within a component of the
+    checkpoint's density (``model.density``): that component and the slider values (standard
+    deviations along its principal axes) that give ``z_b``; None where the sliders are z_B itself."""
 
     z_b: tuple[float, ...]
     zk_mode: ZkMode = "zero"
     seed: int = 0
     temperature: float = 1.0
+    component: int | None = None
+    axes: tuple[float, ...] | None = None
 
 
 @dataclass
@@ -44,6 +51,9 @@ class DecodedGait:
     decode_ms: float = 0.0
     source: str = "model"  # or "import: <name>"
     stats: dict[str, float] | None = None  # the model's predicted body statistics (model.stats)
+    member: Member | None = None  # the exact family member replayed (checkpoints that project)
+    residual: float | None = None  # the projection's relative residual
+    off_data: bool = False  # z_B lies where the checkpoint's density says records are not
 
 
 @dataclass
@@ -132,8 +142,14 @@ class GaitSession:
         z_j = None  # z_k = 0: decode's own zeros
         if latents.zk_mode == "sampled":
             z_j = self.model.joint_latents(z_b, latents.temperature, seed=latents.seed)
-        shape, body, stats = self.model.decode_with_stats(z_b, z_j)
-        commands = self.model.commands(shape[0])
+        member, residual = None, None
+        if self.model.projects:
+            members, residuals, shape, body, stats = self.model.decode_members(z_b, z_j)
+            member, residual = members[0], float(residuals[0])
+            commands = member.commands()  # exactly the member: replayed, drawn and exported
+        else:
+            shape, body, stats = self.model.decode_with_stats(z_b, z_j)
+            commands = self.model.commands(shape[0])
         return DecodedGait(
             latents,
             shape[0],
@@ -141,6 +157,9 @@ class GaitSession:
             commands,
             1e3 * (time.perf_counter() - t0),
             stats={k: float(v[0]) for k, v in stats.items()},
+            member=member,
+            residual=residual,
+            off_data=bool(self.model.off_data(z_b)[0]),
         )
 
     def replay(self, gait: DecodedGait) -> SimulatedGait:

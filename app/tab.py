@@ -92,14 +92,18 @@ class DesignerClient(GaitFiles, LatentMoves):
         self.timings: deque[Timing] = deque(maxlen=2000)
         self._timing_by_version: dict[int, Timing] = {}
         self._draw_lock = threading.RLock()
-        self._programmatic_z: tuple[float, ...] | None = None
+        self._programmatic_z: tuple[float, ...] | None = None  # slider values set from Python
+        self._shown_z: tuple[float, ...] | None = None  # the exact z_B they stand for
         self._z_lock = threading.RLock()
         self._setting_z = False
         self._quiet_mode_events = 0
+        self._quiet_component_events = 0
         self._closed = threading.Event()
         self._version = 0
         self._version_lock = threading.Lock()
-        self.controls = build_controls(client.gui, model.z_b_dim, tuple(self.models), family)
+        self.controls = build_controls(
+            client.gui, model.z_b_dim, tuple(self.models), family, self._component_names(model)
+        )
         self.scene = TabScene(client, self.controls.layers)
         self.scene.end_spread = END_SPREAD.get(model.family)
         self._wire()
@@ -132,10 +136,10 @@ class DesignerClient(GaitFiles, LatentMoves):
         c, g = self.controls, self._guarded
         for s in c.sliders:
             s.on_update(g(lambda _e: self._on_latents_changed()))
+        if c.component is not None:
+            c.component.on_update(g(lambda _e: self._on_component_changed()))
         c.reset_button.on_click(g(lambda _e: self._set_z(np.zeros(self.model.z_b_dim))))
-        c.random_button.on_click(
-            g(lambda _e: self._set_z(np.random.default_rng().standard_normal(self.model.z_b_dim)))
-        )
+        c.random_button.on_click(g(lambda _e: self.random_z()))
 
     def _wire(self) -> None:
         c, g = self.controls, self._guarded
@@ -177,13 +181,22 @@ class DesignerClient(GaitFiles, LatentMoves):
     # --- requests --------------------------------------------------------------------------------
 
     def current_latents(self) -> Latents:
-        """Latents as the GUI shows them now."""
+        """Latents as the GUI shows them now: the sliders are z_B itself, or positions along the
+        chosen cluster's axes (``model.density``) that give z_B."""
         c = self.controls
+        values = tuple(float(s.value) for s in c.sliders)
+        z_b, component, axes = values, None, None
+        density = self.model.config.density
+        if density is not None and c.component is not None and c.component.value in density.names:
+            component, axes = density.names.index(c.component.value), values
+            z_b = tuple(float(v) for v in density.to_z(component, np.asarray(values)))
         return Latents(
-            z_b=tuple(float(s.value) for s in c.sliders),
+            z_b=z_b,
             zk_mode=c.zk_mode.value,
             seed=int(c.zk_seed.value),
             temperature=float(c.zk_temperature.value),
+            component=component,
+            axes=axes,
         )
 
     def request_decode(self) -> int:
@@ -283,7 +296,14 @@ class DesignerClient(GaitFiles, LatentMoves):
 
     def _decode_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, latents = item
-        if not self.is_current(version) or len(latents.z_b) != self.model.z_b_dim:
+        density = self.model.config.density
+        if (
+            not self.is_current(version)
+            or len(latents.z_b) != self.model.z_b_dim
+            or (
+                latents.component is not None and (density is None or latents.component >= len(density.names))
+            )
+        ):
             return  # superseded (or sliders of a family this tab has just left)
         timing = self._timing(version)
         timing.started = time.perf_counter()

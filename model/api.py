@@ -3,6 +3,12 @@
 Shapes: shape (B, 8, L, 2) rad (single-sided FFT coefficients, ``sim.joint_shape`` convention);
 body_ds (B, 500, 6) at 5 Hz, channels vertical, forward, sideways (m), roll, pitch, yaw (rad);
 z_b (B, z_b_dim); z_j (B, 8, z_j_dim).
+
+A checkpoint of the structured family with ``members`` (schema 4) decodes *members*: each decoded
+shape is projected onto the family (``sim.members``), the shape returned is that member's (as the
+servos measure it) and the path is the member path head's prediction for it
+(``model.member_path``), so what is drawn, replayed and exported is one gait with its own path.
+``decode_raw`` keeps the network's own decode.
 """
 
 from __future__ import annotations
@@ -14,10 +20,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint
+from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint, load_member_head
+from snakeloco.model.member_path import MemberPathHead, member_inputs
 from snakeloco.model.network import HierarchicalVAE
-from snakeloco.model.stats import stats_dict
+from snakeloco.model.stats import stats_dict, stats_vector
 from snakeloco.model.tracing import trace_single
+from snakeloco.sim.members import Member, project_many
 
 
 def _finite(name: str, a: np.ndarray) -> np.ndarray:
@@ -31,10 +39,19 @@ def _finite(name: str, a: np.ndarray) -> np.ndarray:
 class GaitModel:
     """A loaded checkpoint ready for encoding and decoding. Thread-safe (calls are serialised)."""
 
-    def __init__(self, net: HierarchicalVAE, config: CheckpointConfig, path: Path | None = None) -> None:
+    def __init__(
+        self,
+        net: HierarchicalVAE,
+        config: CheckpointConfig,
+        path: Path | None = None,
+        member_head: MemberPathHead | None = None,
+    ) -> None:
         self.net = net.eval()
         self.config = config
         self.path = path
+        self.member_head = member_head
+        if (member_head is None) != (config.member_head is None):
+            raise ValueError("a member head and its config go together")
         norm = config.normalization.arrays()
         self._shape_mean, self._shape_std = norm["shape_mean"], norm["shape_std"]  # (L, 2)
         self._body_mean, self._body_std = norm["body_mean"], norm["body_std"]  # (6,)
@@ -74,11 +91,89 @@ class GaitModel:
 
         Decoded shapes are *measured* joint angles, so each coefficient is divided by the servo's
         measured complex gain before the inverse FFT (``sim.shape_to_commands(..., response=...)``);
-        a checkpoint without that gain resynthesises the shape as is.
+        a checkpoint without that gain resynthesises the shape as is. A checkpoint that decodes
+        members (``projects``) synthesises the member the shape projects onto
+        (``Member.commands``): for a decoded member's shape, exactly that member's commands.
         """
         from snakeloco.sim import shape_to_commands
 
-        return shape_to_commands(shape, self.freqs, response=self._servo_response)
+        if not self.projects:
+            return shape_to_commands(shape, self.freqs, response=self._servo_response)
+        shape = np.asarray(shape, np.float64)
+        members, _ = self.project(shape.reshape(-1, *shape.shape[-3:]))
+        out = np.stack([m.commands() for m in members])
+        return out.reshape(*shape.shape[:-3], *out.shape[1:])
+
+    # --- the slider density and the family's members ---------------------------------------------
+
+    @property
+    def projects(self) -> bool:
+        """Whether decodes are projected onto exact members of the structured family."""
+        return self.config.members is not None
+
+    def sample_z_b(self, n: int, seed: int = 0, component: int | None = None) -> np.ndarray:
+        """n slider positions (n, Db) from the shipped sampler: the density over the training
+        records' posterior z_B (``model.density``; one ``component`` of it, or all), deterministic in
+        ``seed``. A checkpoint without a density draws from the N(0, I) prior."""
+        if self.config.density is None:
+            if component is not None:
+                raise ValueError("this checkpoint has no density, so no components to draw from")
+            return np.random.default_rng(seed).standard_normal((n, self.z_b_dim))
+        return self.config.density.sample(n, seed, component)[0]
+
+    def off_data(self, z_b: np.ndarray) -> np.ndarray:
+        """Whether each z_B (B, Db) lies off the data (less dense than 99% of the training records'
+        posteriors): (B,) bool. All False without a density."""
+        z = self._check_z_b(z_b).astype(np.float64)
+        if self.config.density is None:
+            return np.zeros(len(z), bool)
+        return self.config.density.off_data(z)
+
+    def _gain(self) -> np.ndarray | None:
+        g = self._servo_response
+        return None if g is None else g[..., 0] + 1j * g[..., 1]  # (8, L)
+
+    def project(self, shape: np.ndarray) -> tuple[list[Member], np.ndarray]:
+        """Measured joint shapes (B, 8, L, 2) -> the members they project onto (their commanded
+        coefficients fitted, ``sim.members.project``) and the fits' relative residuals (B,)."""
+        if not self.projects:
+            raise ValueError("this checkpoint's family has no members to project onto")
+        shape = self._check_shape(shape)
+        c = shape[..., 0] + 1j * shape[..., 1]
+        if (g := self._gain()) is not None:
+            c = c / g
+        return project_many(np.stack([c.real, c.imag], axis=-1), self.config.members)
+
+    def member_shapes(self, members: list[Member]) -> np.ndarray:
+        """The joint shapes (B, 8, L, 2) the servos measure for members (commanded x servo gain)."""
+        c = np.stack([m.shape() for m in members])
+        c = c[..., 0] + 1j * c[..., 1]
+        if (g := self._gain()) is not None:
+            c = c * g
+        return np.stack([c.real, c.imag], axis=-1)
+
+    def predict_paths(self, members: list[Member]) -> np.ndarray:
+        """The body series (B, 500, 6) the member path head predicts for members (physical units)."""
+        if self.member_head is None:
+            raise ValueError("this checkpoint has no member path head")
+        x = member_inputs(np.stack([m.shape() for m in members]), np.asarray(self.config.member_head.support))
+        with self._lock, torch.inference_mode():
+            body = self.member_head(torch.as_tensor(x, dtype=torch.float32)).numpy().astype(np.float64)
+        return body * self._body_std + self._body_mean
+
+    def decode_members(
+        self, z_b: np.ndarray, z_j: np.ndarray | None = None
+    ) -> tuple[list[Member], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Decode, project and predict: the members (B), the projections' residuals (B,), the
+        members' measured shapes (B, 8, L, 2), the paths predicted for them (B, 500, 6) (the
+        network's own body decode where the checkpoint has no member head) and those paths'
+        statistics {name: (B,)}."""
+        shape, body, stats = self.decode_raw(z_b, z_j, with_stats=True)
+        members, residuals = self.project(shape)
+        if self.member_head is None:
+            return members, residuals, self.member_shapes(members), body, stats
+        body = self.predict_paths(members)
+        return members, residuals, self.member_shapes(members), body, stats_dict(stats_vector(body))
 
     def robot_warning(self) -> str | None:
         """None if the checkpoint was trained on this robot (``sim/snake.xml``), else a warning.
@@ -160,7 +255,8 @@ class GaitModel:
         return mu.numpy().astype(np.float64), logvar.numpy().astype(np.float64)
 
     def decode(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """z_b (B, Db) and z_j (B, 8, Dj) (None: zeros, the paper's setting (a)) -> shape, body_ds."""
+        """z_b (B, Db) and z_j (B, 8, Dj) (None: zeros, the paper's setting (a)) -> shape, body_ds.
+        Where the checkpoint ``projects``: the member's shape and the path predicted for it."""
         shape, body, _ = self.decode_with_stats(z_b, z_j)
         return shape, body
 
@@ -172,6 +268,14 @@ class GaitModel:
         Names (``model.stats.STAT_NAMES``): path_length (m over the 100 s), median_speed (m/s),
         vertical_std (m), net_roll (rad); as ``sim.consistency.path_stats`` measures them at 5 Hz.
         """
+        if self.projects:
+            _, _, shape, body, stats = self.decode_members(z_b, z_j)
+            return shape, body, stats
+        return self.decode_raw(z_b, z_j, with_stats=True)
+
+    def decode_raw(self, z_b: np.ndarray, z_j: np.ndarray | None = None, with_stats: bool = False):
+        """The network's own decode, no projection: shape, body_ds (and the statistics head's
+        prediction with ``with_stats``)."""
         z_b = self._check_z_b(z_b)
         zj = None
         if z_j is not None:
@@ -183,6 +287,8 @@ class GaitModel:
         with self._lock, torch.inference_mode():
             shape, body, stats = self._generate(torch.as_tensor(z_b), zj)
         shape_p, body_p = self._phys(shape, body)
+        if not with_stats:
+            return shape_p, body_p
         return shape_p, body_p, self.stats_from_network(stats.numpy())
 
     def _check_shape(self, shape: np.ndarray) -> np.ndarray:
@@ -272,4 +378,4 @@ def load_pretrained(path: str | Path | None = None) -> GaitModel:
 
     directory = resolve_checkpoint(path)
     net, config = load_checkpoint(directory)
-    return GaitModel(net, config, directory)
+    return GaitModel(net, config, directory, load_member_head(directory, config))

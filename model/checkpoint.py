@@ -18,14 +18,19 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from snakeloco.model.config import ModelConfig
+from snakeloco.model.density import LatentDensity
+from snakeloco.model.member_path import MEMBER_HEAD_WEIGHTS, MemberHeadConfig, MemberPathHead
 from snakeloco.model.network import HierarchicalVAE
+from snakeloco.sim.structured import StructuredConfig
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 """2: the body-statistics head (signal CNN, MLP, inverse-transform buffers) and its normalisation.
-3: the body decoder may see the gait's predicted statistics (``ModelConfig.body_sees_stats``)."""
-READABLE_VERSIONS = (2, 3)
+3: the body decoder may see the gait's predicted statistics (``ModelConfig.body_sees_stats``).
+4: the slider density over z_B (``density``), the structured family decodes are projected onto
+(``members``) and the member path head (``member_head``, weights in ``MEMBER_HEAD_WEIGHTS``)."""
+READABLE_VERSIONS = (2, 3, 4)
 """Schema versions this code loads; a version-2 config is read with ``body_sees_stats`` off, as
-its decoder was built."""
+its decoder was built; versions 2-3 have no density, members or member head."""
 WEIGHTS = "model.safetensors"
 CONFIG = "config.json"
 PRETRAINED_DIR = Path(__file__).with_name("pretrained")
@@ -137,6 +142,22 @@ class CheckpointConfig(BaseModel):
         "above SUPPORT_FRACTION of the largest); a decoded coefficient outside it is set to zero, so a "
         "decoded gait keeps still what its family keeps still. None (older checkpoints): all of them.",
     )
+    density: LatentDensity | None = Field(
+        None,
+        description="Gaussian mixture over the training records' posterior z_B: the sliders, Random and "
+        "generated gaits draw from it, and a z_B it finds unlikely is flagged (``model.density``). None: "
+        "the N(0, I) prior.",
+    )
+    members: StructuredConfig | None = Field(
+        None,
+        description="The structured family every decoded shape is projected onto (``sim.members``): "
+        "the commands replayed, drawn and exported are exactly one member. None: decodes as they are.",
+    )
+    member_head: MemberHeadConfig | None = Field(
+        None,
+        description="The member path head (``model.member_path``): the decoded path is its prediction "
+        "for the projected member. Needs ``members``.",
+    )
     mjcf_sha256: str
     train: dict = Field(default_factory=dict, description="The resolved training config.")
     summary: TrainSummary = TrainSummary()
@@ -156,6 +177,10 @@ class CheckpointConfig(BaseModel):
                 raise ValueError(
                     f"shape_support must be ({self.model.n_joints}, {n_l}) with a coefficient in it"
                 )
+        if self.member_head is not None and self.members is None:
+            raise ValueError("member_head needs the family it predicts members of (members)")
+        if self.density is not None and self.density.dim != self.model.z_b_dim:
+            raise ValueError(f"density over {self.density.dim} dimensions for a z_B of {self.model.z_b_dim}")
         if self.servo_response is not None:
             g = np.asarray(self.servo_response, dtype=np.float64)
             if g.shape != (self.model.n_joints, n_l, 2) or not np.isfinite(g).all():
@@ -165,13 +190,28 @@ class CheckpointConfig(BaseModel):
         return self
 
 
-def save_checkpoint(directory: str | Path, net: HierarchicalVAE, config: CheckpointConfig) -> Path:
-    """Write weights and config to ``directory`` (created if needed); returns the directory."""
+def save_checkpoint(
+    directory: str | Path,
+    net: HierarchicalVAE,
+    config: CheckpointConfig,
+    member_head: MemberPathHead | None = None,
+) -> Path:
+    """Write weights and config to ``directory`` (created if needed); returns the directory.
+    ``member_head``: its weights go to ``MEMBER_HEAD_WEIGHTS`` (the config must describe it)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    if (member_head is None) != (config.member_head is None):
+        raise ValueError("a member head's weights and its config go together")
     state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
     tmp_w, tmp_c = directory / (WEIGHTS + ".tmp"), directory / (CONFIG + ".tmp")
     save_file(state, str(tmp_w), metadata={"schema_version": str(SCHEMA_VERSION)})
+    if member_head is not None:
+        head_state = {k: v.detach().cpu().contiguous() for k, v in member_head.state_dict().items()}
+        tmp_h = directory / (MEMBER_HEAD_WEIGHTS + ".tmp")
+        save_file(head_state, str(tmp_h))
+        tmp_h.replace(directory / MEMBER_HEAD_WEIGHTS)
+    else:
+        (directory / MEMBER_HEAD_WEIGHTS).unlink(missing_ok=True)
     # Written as this code's schema: the model config spells out every field, older ones included.
     config = config.model_copy(update={"schema_version": SCHEMA_VERSION})
     tmp_c.write_text(json.dumps(config.model_dump(mode="json"), indent=2))
@@ -237,3 +277,31 @@ def load_checkpoint(directory: str | Path | None = None) -> tuple[HierarchicalVA
         )
     net.eval()
     return net, config
+
+
+def load_member_head(directory: str | Path, config: CheckpointConfig) -> MemberPathHead | None:
+    """The member path head a checkpoint's config describes (None where it has none).
+
+    Raises:
+        CheckpointError: its weights are missing, corrupt, of another shape or not finite.
+    """
+    if config.member_head is None:
+        return None
+    directory = resolve_checkpoint(directory)
+    path = directory / MEMBER_HEAD_WEIGHTS
+    if not path.is_file():
+        raise CheckpointError(
+            f"checkpoint {directory}: missing {MEMBER_HEAD_WEIGHTS} (its config has a member head)"
+        )
+    try:
+        state = load_file(str(path))
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"checkpoint {directory}: corrupt {MEMBER_HEAD_WEIGHTS} ({exc})") from exc
+    head = MemberPathHead(config.member_head)
+    expected = head.state_dict()
+    if set(state) != set(expected) or any(state[k].shape != expected[k].shape for k in expected):
+        raise CheckpointError(f"checkpoint {directory}: {MEMBER_HEAD_WEIGHTS} does not match its config")
+    if any(not torch.isfinite(v).all() for v in state.values()):
+        raise CheckpointError(f"checkpoint {directory}: {MEMBER_HEAD_WEIGHTS} contains NaN or Inf")
+    head.load_state_dict(state)
+    return head.requires_grad_(False).eval()

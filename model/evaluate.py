@@ -115,6 +115,9 @@ ZK_MODES: dict[str, float | None] = {"zk_zero": None, "zk_sampled": 1.0}
 """The consistency check's z_k modes (report keys): z_k = 0, and z_k sampled from the learned prior
 at this temperature (``GaitModel.joint_latents``)."""
 REPLAYS = "consistency-replays"
+POSITIONS = ("sampler", "prior")
+"""Where the consistency check's z_B come from: the shipped sampler (``GaitModel.sample_z_b``: where
+the sliders and Random put them) or N(0, I) (what dragging sliders to their edges used to reach)."""
 
 
 def consistency(
@@ -126,8 +129,11 @@ def consistency(
     progress=None,
     replays: str | Path | None = None,
     backend: BackendConfig | None = None,
+    positions: str = "sampler",
 ) -> dict:
-    """Decode n_prior z_B from the prior (z_k = 0 and z_k sampled), replay each as an ensemble, score.
+    """Decode n_prior z_B from the sampler (or the N(0, I) prior, ``positions``; z_k = 0 and z_k
+    sampled), replay each as an ensemble, score. Per mode also: the share of z_B the density flags
+    as off the data and the figures per density component (``per_component``).
 
     Returns per mode: medians of each figure over the gaits whose own (unperturbed) replay
     simulated cleanly, the count of those that broke (``n_broken``), and the fraction of all
@@ -138,12 +144,27 @@ def consistency(
     then re-scored in seconds instead of replaying 2 n_prior ensembles. ``backend``: where the replays
     run (``sim.backend``; default this machine's ``workers`` threads).
     """
-    z_b = np.random.default_rng(seed).standard_normal((n_prior, model.z_b_dim))
+    if positions not in POSITIONS:
+        raise ValueError(f"positions must be one of {POSITIONS}, got {positions!r}")
+    if positions == "sampler":
+        z_b = model.sample_z_b(n_prior, seed)
+    else:
+        z_b = np.random.default_rng(seed).standard_normal((n_prior, model.z_b_dim))
+    density = model.config.density
+    component = density.component_of(z_b) if density is not None else np.zeros(n_prior, np.int64)
+    names = density.names if density is not None else ["prior"]
+    off_data = model.off_data(z_b)
     modes = {
         name: model.joint_latents(z_b, temperature, seed=seed + 1) for name, temperature in ZK_MODES.items()
     }
     decoded = {name: model.decode_with_stats(z_b, z_j) for name, z_j in modes.items()}
-    drawn = {"n_prior": n_prior, "ensemble": ensemble, "seed": seed, "temperature": ZK_MODES["zk_sampled"]}
+    drawn = {
+        "n_prior": n_prior,
+        "ensemble": ensemble,
+        "seed": seed,
+        "temperature": ZK_MODES["zk_sampled"],
+        "positions": positions,
+    }
     if replays is not None and Path(replays).exists():
         need = [f"{name}/{k}" for name in modes for k in ("shapes", "bodies", "ok")]
         file = load_side_file(replays, REPLAYS, drawn, need)
@@ -169,17 +190,23 @@ def consistency(
     for name, (_, bodies, stats) in decoded.items():
         sim_bodies, sim_ok = stored[name]["bodies"], stored[name]["ok"]
         rows, broken = [], 0
+        broken_in = np.zeros(len(names), np.int64)
         for i in range(n_prior):
             ok = sim_ok[i]
             if not ok[0] or ok.sum() < 2:  # its own replay broke, or no spread is left
                 broken += 1
+                broken_in[component[i]] += 1
                 continue
             # As the designer does: perturbed members that broke leave the ensemble (counted).
             predicted = {k: float(v[i]) for k, v in stats.items()}
             row = compare(bodies[i], sim_bodies[i][ok].astype(np.float64), BODY_RATE, predicted)
             row["ensemble_broken"] = float((~ok).sum())
+            row["component"] = float(component[i])
+            row["off_data"] = float(off_data[i])
             rows.append(row)
-        keys = [k for k in (rows[0] if rows else {}) if k not in ("heading_deg", "rolls")]
+        keys = [
+            k for k in (rows[0] if rows else {}) if k not in ("heading_deg", "rolls", "component", "off_data")
+        ]
         summary = {k: float(np.median([r[k] for r in rows])) for k in keys}
         summary["diversity"] = diversity(rows)
         for k in PREDICTABLE:  # how far another draw of gaits could move the medians that are judged
@@ -193,6 +220,20 @@ def consistency(
         summary["n_broken"] = broken
         summary["broken_replay_fraction"] = float((~sim_ok).sum()) / float(n_prior * ensemble)
         summary["n_gaits_with_a_broken_member"] = int(broken + sum(r["ensemble_broken"] > 0 for r in rows))
+        summary["positions"] = positions
+        summary["off_data_fraction"] = float(off_data.mean())
+        summary["per_component"] = {
+            c_name: {
+                "n_gaits": len(mine),
+                "n_broken": int(broken_in[c]),
+                **{
+                    k: float(np.median([r[k] for r in mine])) if mine else float("nan")
+                    for k in ("xy_r2", "final_error_rel", "final_spread")
+                },
+            }
+            for c, c_name in enumerate(names)
+            for mine in [[r for r in rows if r["component"] == c]]
+        }
         summary["gaits"] = rows
         report[name] = summary
     return report
@@ -239,6 +280,7 @@ def evaluate(
     replays: str | Path | None = None,
     backend: BackendConfig | None = None,
     floor_records: int = 0,
+    positions: str = "sampler",
 ) -> dict:
     """All evaluation figures for a checkpoint on a (held-out) dataset (``replays``, ``backend``:
     ``consistency``; ``floor_records``: how many of the dataset's records ``physics_floor`` replays,
@@ -265,7 +307,15 @@ def evaluate(
             runner.close()
     if n_prior > 0:
         out["consistency"] = consistency(
-            model, n_prior, ensemble, seed, workers, progress=progress, replays=replays, backend=backend
+            model,
+            n_prior,
+            ensemble,
+            seed,
+            workers,
+            progress=progress,
+            replays=replays,
+            backend=backend,
+            positions=positions,
         )
     return out
 
@@ -307,9 +357,17 @@ def format_report(r: dict) -> str:
     ]
     for mode, c in r.get("consistency", {}).items():
         lines.append(
-            f"consistency ({mode}): {c['n_gaits']} gaits, {c['n_broken']} whose own replay broke "
+            f"consistency ({mode}, z_B from the {c.get('positions', 'prior')}, "
+            f"{100 * c.get('off_data_fraction', 0.0):.0f}% flagged off the data): {c['n_gaits']} gaits, "
+            f"{c['n_broken']} whose own replay broke "
             f"({100 * c.get('broken_replay_fraction', float('nan')):.1f}% of all replays broke); medians:"
         )
+        for c_name, p in c.get("per_component", {}).items():
+            lines.append(
+                f"  component {c_name}: {p['n_gaits']} gaits ({p['n_broken']} broke), xy-path R^2 "
+                f"{p['xy_r2']:.3f}, final-position error {100 * p['final_error_rel']:.1f}% of the distance, "
+                f"ensemble spread {p['final_spread']:.3f}"
+            )
         lines.append(
             f"  physics' spread: final position {c.get('final_spread', float('nan')):.2f} x displacement; "
             + ", ".join(f"{k} {c.get(k + '_spread', float('nan')):.3f}" for k in PREDICTABLE)

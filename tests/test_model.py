@@ -145,7 +145,7 @@ def test_training_writes_metrics_and_checkpoint(checkpoint):
     for key in ("train_loss", "val_loss", "val_r2_shape", "val_r2_body", "lr"):
         assert np.isfinite(rows[-1][key])
     cfg = json.loads((checkpoint / "config.json").read_text())
-    assert cfg["schema_version"] == 3 and cfg["model"]["z_b_dim"] == 3
+    assert cfg["schema_version"] == 4 and cfg["model"]["z_b_dim"] == 3
     assert len(cfg["freqs"]) == 8 and cfg["summary"]["epochs_run"] == 2
 
 

@@ -1,0 +1,138 @@
+"""The body path the model predicts for an exact member of the structured family.
+
+The hierarchical VAE decodes a joint shape and a body path side by side from z_B. The designer
+replays the *member* the shape projects onto (``sim.members``), so the path it draws must be the
+path of that member, not a second decode beside the shape (a shape error or a blend of clusters
+then gives a path for a gait that is never replayed). ``MemberPathHead`` is that prediction: an
+MLP from the member's commanded coefficients on the family's support to the body series
+(500, 6) at 5 Hz, in the checkpoint's body normalisation. It is trained after the VAE on the
+training records (each record is a member) and on MuJoCo replays of the members the sliders
+produce (``model.sampler``): physics is the teacher, never the predictor at run time.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
+
+MEMBER_HEAD_WEIGHTS = "member_head.safetensors"
+CHANNEL_WEIGHTS = (1.0, 4.0, 4.0, 1.0, 1.0, 4.0)
+"""Loss weight per body channel (vertical, forward, sideways, roll, pitch, yaw): the path in the
+plane and the heading are what the designer draws and scores; the oscillating channels still count
+(the predicted statistics come from them)."""
+
+
+class MemberHeadConfig(BaseModel):
+    """The head's size and its input statistics (stored in the checkpoint's ``config.json``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    support: list[list[bool]] = Field(description="(8, L) the coefficients fed in (the family's support).")
+    input_mean: list[float] = Field(description="(2 S,) mean of the inputs (rad) over the training set.")
+    input_std: list[float] = Field(description="(2 S,) their std (rad), floored at 1e-3.")
+    hidden: int = Field(256, ge=8, description="Width of the hidden layers.")
+    layers: int = Field(3, ge=1, description="Hidden layers.")
+    steps: int = Field(500, ge=1, description="Body steps predicted (5 Hz over 100 s).")
+    channels: int = Field(6, ge=1, description="Body channels predicted.")
+    summary: dict = Field(default_factory=dict, description="How it was fitted and what it scored.")
+
+
+class MemberPathHead(nn.Module):
+    """Commanded member coefficients (B, 2 S) rad -> normalised body series (B, 500, 6)."""
+
+    def __init__(self, cfg: MemberHeadConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        n_in = len(cfg.input_mean)
+        dims = [n_in] + [cfg.hidden] * cfg.layers
+        layers: list[nn.Module] = []
+        for a, b in itertools.pairwise(dims):
+            layers += [nn.Linear(a, b), nn.SiLU()]
+        layers.append(nn.Linear(dims[-1], cfg.steps * cfg.channels))
+        self.mlp = nn.Sequential(*layers)
+        self.register_buffer("in_mean", torch.tensor(cfg.input_mean, dtype=torch.float32))
+        self.register_buffer("in_std", torch.tensor(cfg.input_std, dtype=torch.float32))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.mlp((x - self.in_mean) / self.in_std)
+        return y.view(-1, self.cfg.steps, self.cfg.channels)  # (B, T, C)
+
+
+def member_inputs(shapes: np.ndarray, support: np.ndarray) -> np.ndarray:
+    """Commanded member shapes (B, 8, L, 2) -> the head's inputs (B, 2 S): the coefficients on the
+    support (8, L), real and imaginary parts."""
+    return np.asarray(shapes, np.float64)[:, np.asarray(support, bool)].reshape(len(shapes), -1)
+
+
+def fit_member_head(
+    inputs: np.ndarray,
+    body: np.ndarray,
+    val_inputs: np.ndarray,
+    val_body: np.ndarray,
+    support: np.ndarray,
+    *,
+    epochs: int = 400,
+    lr: float = 2e-3,
+    batch_size: int = 128,
+    hidden: int = 256,
+    layers: int = 3,
+    seed: int = 0,
+    log: Callable[[str], None] | None = print,
+) -> tuple[MemberPathHead, dict]:
+    """Fit a head on (inputs (N, 2 S), normalised body (N, 500, 6)) pairs, the epoch with the lowest
+    validation loss kept (``model.finetune.fit_best``). Returns the head and what it scored."""
+    from snakeloco.model.finetune import fit_best
+
+    torch.manual_seed(seed)
+    x, y = torch.as_tensor(inputs, dtype=torch.float32), torch.as_tensor(body, dtype=torch.float32)
+    vx, vy = torch.as_tensor(val_inputs, dtype=torch.float32), torch.as_tensor(val_body, dtype=torch.float32)
+    cfg = MemberHeadConfig(
+        support=np.asarray(support, bool).tolist(),
+        input_mean=x.mean(0).tolist(),
+        input_std=x.std(0).clamp_min(1e-3).tolist(),
+        hidden=hidden,
+        layers=layers,
+        steps=y.shape[1],
+        channels=y.shape[2],
+    )
+    head = MemberPathHead(cfg)
+    w = torch.tensor(CHANNEL_WEIGHTS[: y.shape[2]], dtype=torch.float32)
+
+    def loss(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+        return (((pred - true) ** 2).mean(dim=(0, 1)) * w).sum() / w.sum()
+
+    def val_loss() -> float:
+        head.eval()
+        with torch.no_grad():
+            return float(loss(head(vx), vy))
+
+    best_epoch, history = fit_best(
+        head,
+        head,
+        len(x),
+        lambda idx: loss(head(x[idx]), y[idx]),
+        val_loss,
+        epochs,
+        lr,
+        batch_size,
+        seed,
+        None,
+        min_batch=2,
+    )
+    summary = {
+        "epochs": epochs,
+        "best_epoch": best_epoch,
+        "val_loss": val_loss(),
+        "train_examples": len(x),
+        "val_examples": len(vx),
+        "lr": lr,
+        "seed": seed,
+    }
+    if log:
+        log(f"member path head: best epoch {best_epoch} of {epochs}, val loss {summary['val_loss']:.4f}")
+    return head.requires_grad_(False).eval(), summary | {"history": history[-5:]}

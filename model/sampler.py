@@ -1,0 +1,228 @@
+"""``snakeloco calibrate --sampler``: keep the sliders on the data and predict the path of the member
+that is replayed.
+
+Three things are fitted after training and stored in the checkpoint (schema 4):
+
+1. **The slider density** (``model.density``): a Gaussian mixture over the training records'
+   posterior z_B. ``GaitModel.sample_z_b`` draws from it, the designer's sliders move along one of
+   its components' principal axes, and a z_B it finds unlikely is flagged.
+2. **The family** decodes are projected onto (``sim.members``): the dataset's structured config.
+3. **The member path head** (``model.member_path``), trained on the training records (each record is
+   a member, its recorded path the label) and on MuJoCo replays of the members the sampler's z_B
+   decode to (z_k = 0 and sampled at temperature 1, as the designer decodes them): the distribution
+   the sliders produce, labelled by physics. A tenth of the z_B draws (both modes together) and the
+   dataset's validation records are held out to choose the epoch and to report the fit.
+
+The paper family gets the density only (``density_only``): its decodes are no family's members and
+its promise stays statistical. The component names say where each component's mean gait goes (the
+predicted path's end: "forward, 17 m").
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from snakeloco.model.api import GaitModel, load_pretrained
+from snakeloco.model.checkpoint import save_checkpoint
+from snakeloco.model.density import fit_density, name_components
+from snakeloco.model.member_path import fit_member_head, member_inputs
+from snakeloco.model.replays import load_side_file, replay_shapes, save_side_file
+from snakeloco.model.train import split_records
+from snakeloco.sim import DatasetError, joint_shape, load_dataset
+from snakeloco.sim.backend import BackendConfig, open_backend
+from snakeloco.sim.members import project_many
+
+SAMPLER_GAITS = "sampler-gaits"
+GAIT_KEYS = ("z_b", "mode", "z_index", "shape", "body")
+ZK_TEMPERATURE = 1.0
+"""The sampled z_k mode's temperature: the designer's default."""
+
+
+class SamplerConfig(BaseModel):
+    """What ``calibrate --sampler`` fits (defaults: the shipped structured checkpoint's)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    density_only: bool = Field(
+        False, description="Fit and store the slider density only (no replays; the paper family)."
+    )
+    max_components: int = Field(6, ge=1, description="Most mixture components tried (chosen by BIC).")
+    samples: int = Field(
+        1024,
+        ge=0,
+        description="Sampler z_B decoded with z_k = 0 and with z_k sampled (T = 1), each member replayed "
+        "once: the member path head's labels beside the records.",
+    )
+    seed: int = Field(
+        3000,
+        ge=0,
+        description="Seed of those draws (evaluate uses 0, calibrate 1000, the designer's Random none).",
+    )
+    epochs: int = Field(400, ge=1, description="Epochs of the member path head.")
+    lr: float = Field(2e-3, gt=0, description="Peak learning rate of the head (Adam, cosine to 1%).")
+    hidden: int = Field(256, ge=8, description="Width of the head's hidden layers.")
+    val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
+
+
+def _drawn(cfg: SamplerConfig) -> dict:
+    return {"samples": cfg.samples, "seed": cfg.seed, "temperature": ZK_TEMPERATURE}
+
+
+def replay_sampler_gaits(
+    model: GaitModel,
+    cfg: SamplerConfig,
+    workers: int | None = None,
+    backend: BackendConfig | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, np.ndarray]:
+    """Draw ``cfg.samples`` z_B from the model's density, decode each with z_k = 0 (mode 0) and
+    sampled (mode 1), project onto members (``model`` must project) and replay each member once.
+
+    Returns, broken replays dropped: z_b (M, Db), mode (M,), z_index (M,) which draw, shape
+    (M, 8, L, 2) the members' commanded shapes, body (M, 500, 6) their replays at 5 Hz."""
+    z = model.sample_z_b(cfg.samples, cfg.seed)
+    runner = open_backend(backend, workers)
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in GAIT_KEYS}
+    try:
+        for mode, temperature in enumerate((None, ZK_TEMPERATURE)):
+            z_j = model.joint_latents(z, temperature, seed=cfg.seed + 1)
+            members, _, measured, _, _ = model.decode_members(z, z_j)
+            bodies, ok = replay_shapes(model, measured, runner, progress=progress)
+            ok = ok[:, 0]
+            parts["z_b"].append(z[ok])
+            parts["mode"].append(np.full(int(ok.sum()), mode))
+            parts["z_index"].append(np.flatnonzero(ok))
+            parts["shape"].append(np.stack([m.shape() for m in members])[ok])
+            parts["body"].append(bodies[ok, 0])
+    finally:
+        runner.close()
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def record_members(ds, index: np.ndarray, family) -> np.ndarray:
+    """The commanded member shapes (n, 8, L, 2) of dataset records: each record's commands
+    transformed (``sim.joint_shape``: exact for its periodic commands) and projected onto its family."""
+    commanded = joint_shape(ds.commands[index].astype(np.float64), ds.config.excitation)
+    members, residuals = project_many(commanded, family)
+    if residuals.max() > 1e-4:
+        raise DatasetError(
+            f"record {int(index[residuals.argmax()])} is not a member of its family (residual "
+            f"{residuals.max():.2g}): the dataset and the family config disagree"
+        )
+    return np.stack([m.shape() for m in members])
+
+
+def _path_r2(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """xy-path R^2 of predicted vs true body series (n, T, 6), per gait."""
+    from snakeloco.sim.consistency import xy_r2
+
+    return np.array([xy_r2(p, t) for p, t in zip(pred, true, strict=True)])
+
+
+def fit_sampler(
+    checkpoint: str | Path | None,
+    data: str | Path,
+    out: str | Path,
+    cfg: SamplerConfig | None = None,
+    *,
+    workers: int | None = None,
+    backend: BackendConfig | None = None,
+    log: Callable[[str], None] | None = print,
+    progress: Callable[[int], None] | None = None,
+    gaits_path: str | Path | None = None,
+) -> dict:
+    """Fit the slider density (and, for the structured family, the member path head) of
+    ``checkpoint`` on its training data ``data``; write the checkpoint to ``out``. Returns the summary
+    (also stored as ``summary.sampler``)."""
+    cfg = cfg or SamplerConfig()
+    t_start = time.perf_counter()
+    model = load_pretrained(checkpoint)
+    config = model.config
+    ds = load_dataset(data)
+    if ds.meta_hash != config.dataset_meta_sha256:
+        raise DatasetError(
+            f"{data} is not the dataset this checkpoint was trained on (meta hash {ds.meta_hash[:12]}, "
+            f"checkpoint {config.dataset_meta_sha256[:12]})"
+        )
+    tr_idx, va_idx = split_records(
+        len(ds), float(config.train.get("val_fraction", 0.1)), int(config.train.get("seed", 0))
+    )
+    z_post, _ = model.encode(ds.shape[tr_idx], ds.body_ds[tr_idx])
+    density = fit_density(z_post, cfg.max_components, seed=cfg.seed)
+    summary: dict = {**cfg.model_dump(), "components": len(density.weights), "fitted_on": len(tr_idx)}
+    if log:
+        log(f"density: {len(density.weights)} components over {len(tr_idx)} training posteriors")
+    head, head_cfg, members = None, None, None
+    if not cfg.density_only:
+        if ds.config.family != "structured":
+            raise DatasetError(f"{data}: the member path head needs a structured-family dataset")
+        members = ds.config.structured
+        model = GaitModel(
+            model.net, config.model_copy(update={"density": density, "members": members}), model.path
+        )
+        gaits = None
+        if gaits_path is not None and Path(gaits_path).exists():
+            gaits = load_side_file(gaits_path, SAMPLER_GAITS, _drawn(cfg), list(GAIT_KEYS))
+            if log:
+                log(f"reusing {len(gaits['z_b'])} replayed sampler gaits from {gaits_path}")
+        if gaits is None:
+            t0 = time.perf_counter()
+            gaits = replay_sampler_gaits(model, cfg, workers, backend, progress)
+            summary["replay_s"] = time.perf_counter() - t0
+            if gaits_path is not None:
+                save_side_file(gaits_path, _drawn(cfg), **gaits)
+        summary["broken"] = 2 * cfg.samples - len(gaits["z_b"])
+        support = np.asarray(config.shape_support or np.ones((8, len(config.freqs)), bool))
+        held = np.random.default_rng(cfg.seed).permutation(cfg.samples)[
+            : max(1, round(cfg.samples * cfg.val_fraction))
+        ]
+        g_val = np.isin(gaits["z_index"], held)
+        rec_tr, rec_va = record_members(ds, tr_idx, members), record_members(ds, va_idx, members)
+
+        def norm(body: np.ndarray) -> np.ndarray:
+            return (np.asarray(body, np.float64) - model._body_mean) / model._body_std
+
+        x = member_inputs(np.concatenate([rec_tr, gaits["shape"][~g_val]]), support)
+        y = norm(np.concatenate([ds.body_ds[tr_idx], gaits["body"][~g_val]]))
+        vx = member_inputs(np.concatenate([rec_va, gaits["shape"][g_val]]), support)
+        vy = norm(np.concatenate([ds.body_ds[va_idx], gaits["body"][g_val]]))
+        t0 = time.perf_counter()
+        head, fit = fit_member_head(
+            x, y, vx, vy, support, epochs=cfg.epochs, lr=cfg.lr, hidden=cfg.hidden, seed=cfg.seed, log=log
+        )
+        fit["fit_s"] = time.perf_counter() - t0
+        model = GaitModel(
+            model.net, model.config.model_copy(update={"member_head": head.cfg}), model.path, head
+        )
+        pred = model.predict_paths(project_many(gaits["shape"][g_val], members)[0])
+        fit["held_out_xy_r2_median"] = float(np.median(_path_r2(pred, gaits["body"][g_val])))
+        pred = model.predict_paths(project_many(rec_va, members)[0])
+        fit["val_records_xy_r2_median"] = float(np.median(_path_r2(pred, ds.body_ds[va_idx])))
+        head_cfg = head.cfg.model_copy(update={"summary": fit})
+        summary["member_head"] = fit
+        if log:
+            log(
+                f"member path head: held-out sampler gaits xy R² median {fit['held_out_xy_r2_median']:.3f}, "
+                f"validation records {fit['val_records_xy_r2_median']:.3f}"
+            )
+    # Names: where each component's mean gait goes (z_k = 0), as this checkpoint predicts it.
+    means = np.asarray(density.means)
+    _, body = model.decode(means)
+    ends = np.stack([body[:, -1, 1], body[:, -1, 2], np.degrees(body[:, -1, 5] - body[:, 0, 5])], axis=1)
+    density = density.model_copy(update={"names": name_components(ends)})
+    summary["names"] = density.names
+    summary["wall_time_s"] = time.perf_counter() - t_start
+    summary["data"] = str(data)
+    new_summary = config.summary.model_copy(update={"sampler": summary})
+    final = config.model_copy(
+        update={"density": density, "members": members, "member_head": head_cfg, "summary": new_summary}
+    )
+    save_checkpoint(out, model.net, final, head.requires_grad_(False) if head is not None else None)
+    if log:
+        log(f"components: {', '.join(density.names)}; wrote {out}")
+    return summary

@@ -1,0 +1,288 @@
+"""Exact members of the structured family, and the projection of any joint shape onto them.
+
+A *member* is what the structured family draws (``sim.structured``): one gait-equation wave of a
+kind the family allows, at one of that kind's excited frequencies, plus (where the family steers) a
+slow steering wave of amplitude S and phase psi on the yaw joints at the lowest excited frequency:
+
+    c_k(main bin)  = wave coefficients (``GaitEquation.shape``)
+    c_k(bin 0)    += S e^{i psi}   on the yaw joints (k = 2, 4, 6, 8)
+
+scaled as a whole to the command limit where its peak command would exceed it. Its parameters are
+named, JSON-ready and re-synthesise its commands to the bit (``Member.commands``).
+
+``project`` takes a *commanded* joint shape (8, L, 2) rad (a decoded shape divided by the servo
+gain) and returns the member of ``StructuredConfig`` closest to it in the least-squares sense over
+the complex coefficients, with the relative residual of the fit. For each allowed kind and
+frequency the amplitudes and phase offsets have closed forms given the spatial frequency nu, and
+nu is found on a grid over the family's range and polished by Newton's method on the derivative
+of the fit (so an exact member projects onto itself to rounding). Parameters are clipped to the
+family's ranges: a projected member is one the family could have drawn (before screening). The
+mixed preset's optional second wave is not a member parameter: projection drops it (the shipped
+structured family has none).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from snakeloco.sim.excitation import RECORD
+from snakeloco.sim.gaits import MODULES, PITCH, GaitEquation
+from snakeloco.sim.robot import COMMAND_LIMIT
+from snakeloco.sim.spectra import shape_to_commands
+from snakeloco.sim.structured import KINDS, StructuredConfig
+
+STEERING_BIN = 0
+"""The steering wave runs at the lowest excited frequency (0.05 Hz: 20 s periods)."""
+YAW = ~PITCH
+SPECIFIC_FIRST = ("undulate", "roll", "sidewind", "turn")
+"""Kinds from the most to the least constrained: an undulation is also a turning wave with no pitch,
+so a shape both fit equally well is called by the more specific name."""
+FREQS = RECORD.freqs
+"""(L,) excited frequencies (Hz)."""
+GRID = 721
+"""Spatial-frequency grid points per fit before Newton's polish (0.003 rad per module apart on the
+widest range): fine enough that the grid's best lies in the basin of the global optimum."""
+NU_RANGES: dict[str, tuple[float, float]] = {
+    "sidewind": (0.4, 1.4),
+    "roll": (0.0, 1.2),
+    "turn_pitch": (0.0, 2.0),
+    "turn_yaw": (0.0, 1.6),
+}
+"""|Spatial frequency| ranges (rad per module) of the kinds ``draw_wave`` draws, other than
+undulation's (``StructuredConfig.undulate_wavenumber``)."""
+AMPLITUDE_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
+    "sidewind": ((0.1, 0.6), (0.5, 1.2)),
+    "roll": ((0.2, 1.0), (0.2, 1.0)),
+    "turn": ((0.05, 0.5), (0.4, 1.2)),
+}
+"""(pitch, yaw) amplitude ranges (rad) of ``draw_wave``'s kinds other than undulation."""
+
+
+class Member(BaseModel):
+    """One gait of the structured family, by its parameters (rad, rad per module, Hz)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    kind: Literal["undulate", "sidewind", "roll", "turn"] = Field(description="Kind of the main wave.")
+    wave: GaitEquation = Field(description="The main travelling wave (``sim.gaits``).")
+    steering_amplitude: float = Field(0.0, ge=0, le=COMMAND_LIMIT, description="Steering wave (rad).")
+    steering_phase: float = Field(0.0, description="Phase of the steering wave (rad).")
+
+    def shape(self) -> np.ndarray:
+        """The member's commanded joint shape (8, L, 2) rad (``sim.spectra`` convention)."""
+        shape = self.wave.shape()
+        shape[YAW, STEERING_BIN, 0] += self.steering_amplitude * np.cos(self.steering_phase)
+        shape[YAW, STEERING_BIN, 1] += self.steering_amplitude * np.sin(self.steering_phase)
+        return shape
+
+    def commands(self) -> np.ndarray:
+        """Its joint commands (2000, 8) rad at 20 Hz: what is replayed, drawn and exported."""
+        return shape_to_commands(self.shape())
+
+    def params(self) -> dict:
+        """JSON-ready parameters; ``Member.model_validate(params)`` gives the same member back."""
+        return self.model_dump(mode="json")
+
+    def describe(self) -> str:
+        """The member in words, e.g. "undulation, wave to the tail (forward), 0.71 rad, 0.62 rad/module
+        at 0.52 Hz; steering 0.25 rad at 0.05 Hz"."""
+        w = self.wave
+        if self.kind == "undulate":
+            way = "wave to the tail (forward)" if w.nu_yaw > 0 else "wave to the head (backward)"
+            text = f"undulation, {way}, {w.a_yaw:.2f} rad, {abs(w.nu_yaw):.2f} rad/module"
+        else:
+            text = (
+                f"{ {'sidewind': 'sidewinding', 'roll': 'rolling', 'turn': 'turning'}[self.kind] }, pitch "
+                f"{w.a_pitch:.2f} rad / {w.nu_pitch:.2f} rad/module, yaw {w.a_yaw:.2f} rad / "
+                f"{w.nu_yaw:.2f} rad/module, offset {w.delta:.2f} rad"
+            )
+        text += f" at {w.frequency:.2f} Hz"
+        if self.steering_amplitude > 0:
+            f0 = FREQS[STEERING_BIN]
+            text += f"; steering {self.steering_amplitude:.2f} rad at {f0:.2f} Hz"
+        return text
+
+
+def member_from_draw(drawn: dict) -> Member:
+    """The member of a record as ``draw_structured`` logged it (``drawn``: kind, wave, steering,
+    scale). Records with a second wave are not members (the mixed preset's)."""
+    if "second_wave" in drawn:
+        raise ValueError("a record with a second wave is not a member of a one-wave family")
+    scale = float(drawn["scale"])
+    wave = dict(drawn["wave"])
+    wave["a_pitch"], wave["a_yaw"] = scale * wave["a_pitch"], scale * wave["a_yaw"]
+    steering = drawn.get("steering") or {"amplitude": 0.0, "phase": 0.0}
+    return Member(
+        kind=drawn["kind"],
+        wave=GaitEquation(**wave),
+        steering_amplitude=scale * steering["amplitude"],
+        steering_phase=steering["phase"],
+    )
+
+
+# --- the fit ---------------------------------------------------------------------------------------
+
+
+def _sums(z: np.ndarray, k: np.ndarray, nu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """S(nu) = sum_k z_k e^{-i nu k} and its first two derivatives in nu, for nu (G,): each (G,)."""
+    e = z[None, :] * np.exp(-1j * nu[:, None] * k[None, :])  # (G, n)
+    return e.sum(1), (-1j * k * e).sum(1), (-(k**2) * e).sum(1)
+
+
+def _term(s: np.ndarray, ds: np.ndarray, dds: np.ndarray, free: bool):
+    """A group's fitted amplitude times its size, t(nu), and its two derivatives: Re S with the
+    group's phase fixed by the family, |S| with it free."""
+    if not free:
+        return s.real, ds.real, dds.real
+    mag = np.maximum(np.abs(s), 1e-30)  # its cube stays a normal float
+    cross = (np.conj(s) * ds).real
+    return mag, cross / mag, (np.abs(ds) ** 2 + (np.conj(s) * dds).real) / mag - cross**2 / mag**3
+
+
+def _objective(groups: list[tuple[np.ndarray, np.ndarray, bool]], nu: np.ndarray, shared: bool):
+    """F(nu) = what the fit explains (sum |z|^2 minus the residual) and F', F'' over nu (G,).
+
+    ``groups``: (z, modules, phase free) per joint group sharing nu. Independent amplitudes:
+    F = sum_g max(t_g, 0)^2 / n_g; one shared amplitude (rolling): F = (sum_g t_g)^2 / sum_g n_g.
+    """
+    ts = [_term(*_sums(z, k, nu), free) for z, k, free in groups]
+    if shared:
+        n = sum(len(z) for z, _, _ in groups)
+        t, dt, ddt = (sum(parts) for parts in zip(*ts, strict=True))
+        t = np.maximum(t, 0.0)
+        return t**2 / n, 2 * t * dt / n, 2 * (dt**2 + t * ddt) / n
+    f = df = ddf = 0.0
+    for (z, _, _), (t, dt, ddt) in zip(groups, ts, strict=True):
+        on = t > 0
+        f = f + np.where(on, t**2, 0.0) / len(z)
+        df = df + np.where(on, 2 * t * dt, 0.0) / len(z)
+        ddf = ddf + np.where(on, 2 * (dt**2 + t * ddt), 0.0) / len(z)
+    return f, df, ddf
+
+
+def _best_nu(groups, lo: float, hi: float, shared: bool = False) -> float:
+    """The spatial frequency in [-hi, -lo] u [lo, hi] that maximises the fit: grid, then Newton."""
+    half = np.linspace(lo, hi, GRID // 2 + 1)
+    grid = np.concatenate([-half[::-1], half])
+    f, _, _ = _objective(groups, grid, shared)
+    i = int(np.argmax(f))
+    nu, sign = float(grid[i]), 1.0 if grid[i] >= 0 else -1.0
+    for _ in range(50):
+        _, df, ddf = _objective(groups, np.array([nu]), shared)
+        if not ddf[0] < 0:
+            break  # not in a maximum's bowl (a clipped amplitude): keep the grid's best
+        step = float(df[0] / ddf[0])
+        new = sign * float(np.clip(sign * (nu - step), lo, hi))
+        if new == nu:
+            break
+        nu = new
+        if abs(step) < 1e-15:
+            break
+    return nu
+
+
+def _amplitude(z: np.ndarray, k: np.ndarray, nu: float, free: bool) -> tuple[float, float]:
+    """A group's least-squares amplitude (>= 0) and phase offset (0 where fixed) at ``nu``."""
+    s = (z * np.exp(-1j * nu * k)).sum() / len(z)
+    if free:
+        return float(abs(s)), float(np.angle(s))
+    return max(float(s.real), 0.0), 0.0
+
+
+def _fit_wave(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig) -> GaitEquation:
+    """The ``kind`` wave at ``frequency`` closest to commanded coefficients c (8,) complex at its bin.
+
+    The wave's coefficients are A e^{i(phi_k - pi/2)} (``GaitEquation.shape``), so z = c e^{i pi/2}
+    holds A e^{i phi_k}: pitch phase nu_p k, yaw phase nu_y k + delta.
+    """
+    z = c * 1j
+    zp, zy, kp, ky = z[PITCH], z[YAW], MODULES[PITCH].astype(float), MODULES[YAW].astype(float)
+    if kind == "undulate":
+        lo, hi = cfg.undulate_wavenumber
+        nu = _best_nu([(zy, ky, False)], lo, hi)
+        a, _ = _amplitude(zy, ky, nu, False)
+        a = float(np.clip(a, *cfg.undulate_amplitude))
+        return GaitEquation(a_yaw=a, nu_yaw=nu, frequency=frequency)
+    if kind == "turn":  # independent waves: two separate fits
+        nu_p = _best_nu([(zp, kp, False)], *NU_RANGES["turn_pitch"])
+        nu_y = _best_nu([(zy, ky, True)], *NU_RANGES["turn_yaw"])
+        nu_p, nu_y = float(np.clip(nu_p, -2.0, 2.0)), float(np.clip(nu_y, -1.6, 1.6))
+    else:
+        nu = _best_nu([(zp, kp, False), (zy, ky, True)], *NU_RANGES[kind], shared=kind == "roll")
+        nu_p = nu_y = nu
+    a_p, _ = _amplitude(zp, kp, nu_p, False)
+    a_y, delta = _amplitude(zy, ky, nu_y, True)
+    (p_lo, p_hi), (y_lo, y_hi) = AMPLITUDE_RANGES[kind]
+    if kind == "roll":  # one amplitude for both groups: the least-squares one
+        a_p = a_y = float(np.clip((4 * a_p + 4 * a_y) / 8, p_lo, p_hi))
+    a_p, a_y = float(np.clip(a_p, p_lo, p_hi)), float(np.clip(a_y, y_lo, y_hi))
+    return GaitEquation(a_pitch=a_p, a_yaw=a_y, nu_pitch=nu_p, nu_yaw=nu_y, delta=delta, frequency=frequency)
+
+
+def _steering(c0: np.ndarray, cfg: StructuredConfig) -> tuple[float, float]:
+    """The steering wave (amplitude, phase) closest to the yaw joints' lowest-bin coefficients: their
+    mean, its amplitude snapped to the family's {0} u [lo, hi]."""
+    if cfg.steering <= 0:
+        return 0.0, 0.0
+    s = c0[YAW].mean()
+    lo, hi = cfg.steering_amplitude
+    amplitude = float(abs(s))
+    if amplitude < lo / 2:
+        return 0.0, 0.0
+    return float(np.clip(amplitude, lo, hi)), float(np.angle(s))
+
+
+def _within_limit(member: Member) -> Member:
+    """The member scaled as ``draw_structured`` scales a draw: its peak command at most the limit."""
+    shape = member.shape()
+    if np.hypot(shape[..., 0], shape[..., 1]).sum(axis=1).max() <= COMMAND_LIMIT:
+        return member  # the sum of a joint's amplitudes bounds its peak: no synthesis needed
+    peak = float(np.abs(shape_to_commands(shape, limit=np.inf)).max())
+    if peak <= COMMAND_LIMIT:
+        return member
+    s = COMMAND_LIMIT / peak
+    w = member.wave
+    wave = w.model_copy(update={"a_pitch": s * w.a_pitch, "a_yaw": s * w.a_yaw})
+    return member.model_copy(update={"wave": wave, "steering_amplitude": s * member.steering_amplitude})
+
+
+def residual(shape: np.ndarray, member: Member) -> float:
+    """Relative distance of a commanded shape (8, L, 2) from a member: ||c - c_m|| / ||c||."""
+    shape = np.asarray(shape, np.float64)
+    return float(np.linalg.norm(shape - member.shape()) / max(np.linalg.norm(shape), 1e-12))
+
+
+def project(shape: np.ndarray, cfg: StructuredConfig) -> tuple[Member, float]:
+    """The member of family ``cfg`` closest to a commanded joint shape (8, L, 2) rad, and the fit's
+    relative residual (0 for a member: projecting a member gives it back)."""
+    shape = np.asarray(shape, np.float64)
+    if shape.shape != (len(MODULES), RECORD.n_components, 2) or not np.isfinite(shape).all():
+        raise ValueError(f"a joint shape must be finite ({len(MODULES)}, {RECORD.n_components}, 2)")
+    c = shape[..., 0] + 1j * shape[..., 1]  # (8, L)
+    amplitude, phase = _steering(c[:, STEERING_BIN], cfg)
+    best: tuple[float, Member] | None = None
+    weights = dict(zip(KINDS, cfg.kind_weights, strict=True))
+    for kind in SPECIFIC_FIRST:
+        if weights[kind] <= 0:
+            continue
+        for f in cfg.frequencies[kind]:
+            b = int(np.argmin(np.abs(FREQS - f)))
+            wave = _fit_wave(kind, c[:, b], float(FREQS[b]), cfg)
+            member = _within_limit(
+                Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase)
+            )
+            r = residual(shape, member)
+            if best is None or r < best[0] - 1e-9:  # ties go to the more specific kind
+                best = (r, member)
+    if best is None:
+        raise ValueError("the family allows no kind of wave (every kind weight is 0)")
+    return best[1], best[0]
+
+
+def project_many(shapes: np.ndarray, cfg: StructuredConfig) -> tuple[list[Member], np.ndarray]:
+    """``project`` over commanded shapes (B, 8, L, 2): the members and residuals (B,)."""
+    fits = [project(s, cfg) for s in np.asarray(shapes, np.float64)]
+    return [m for m, _ in fits], np.array([r for _, r in fits])

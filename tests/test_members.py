@@ -1,0 +1,120 @@
+"""Shown is done: exact family members, the slider density, and the path predicted for the member.
+
+The fast tests run on numbers alone; the slow one builds a tiny structured checkpoint with a
+density and a member path head (``calibrate --sampler``) and checks the designer's promises on it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, read_member, write_gait_csv
+from snakeloco.model.density import LatentDensity, fit_density, name_components
+from snakeloco.sim import shape_to_commands
+from snakeloco.sim.gaits import GaitEquation
+from snakeloco.sim.members import Member, member_from_draw, project, residual
+from snakeloco.sim.structured import STRUCTURED_PRESETS, draw_structured
+
+UNDULATE = STRUCTURED_PRESETS["undulate"]
+MIXED = STRUCTURED_PRESETS["mixed"]
+
+
+def test_a_record_projects_onto_its_own_member_and_a_member_onto_itself():
+    for index in range(12):
+        shape, drawn = draw_structured(UNDULATE, 7, index, 0)
+        member, r = project(shape, UNDULATE)
+        np.testing.assert_allclose(member.shape(), member_from_draw(drawn).shape(), atol=1e-13)
+        assert r < 1e-12
+        again, r2 = project(member.shape(), UNDULATE)
+        np.testing.assert_allclose(again.shape(), member.shape(), rtol=0, atol=1e-14)  # nothing changes
+        assert r2 < 1e-12
+
+
+def test_every_kind_of_the_mixed_family_projects_to_its_own_kind():
+    seen = set()
+    for index in range(120):
+        shape, drawn = draw_structured(MIXED, 3, index, 0)
+        if "second_wave" in drawn:
+            continue
+        member, r = project(shape, MIXED)
+        assert r < 1e-9, (drawn["kind"], r)
+        assert member.kind == drawn["kind"]
+        seen.add(member.kind)
+    assert seen == {"undulate", "sidewind", "roll", "turn"}
+
+
+def test_a_noisy_shape_projects_onto_a_member_inside_the_family_with_its_residual():
+    rng = np.random.default_rng(0)
+    shape, drawn = draw_structured(UNDULATE, 1, 4, 0)
+    noisy = shape + 0.05 * rng.standard_normal(shape.shape)  # every coefficient, zeros included
+    member, r = project(noisy, UNDULATE)
+    assert r == pytest.approx(residual(noisy, member)) and 0.05 < r < 1.0
+    lo, hi = UNDULATE.undulate_amplitude
+    assert member.kind == "undulate" and lo <= member.wave.a_yaw <= hi and member.wave.a_pitch == 0.0
+    assert UNDULATE.undulate_wavenumber[0] <= abs(member.wave.nu_yaw) <= UNDULATE.undulate_wavenumber[1]
+    # the fit finds the drawn wave under the noise
+    truth = member_from_draw(drawn)
+    assert member.wave.nu_yaw == pytest.approx(truth.wave.nu_yaw, abs=0.1)
+    c = member.shape()
+    np.testing.assert_array_equal(c[0::2], 0.0)  # pitch joints still, as in every record
+    assert np.abs(shape_to_commands(c, limit=np.inf)).max() <= 2.2 + 1e-12
+
+
+def test_a_member_scaled_to_the_command_limit_stays_a_member():
+    big = Member(kind="turn", wave=GaitEquation(a_pitch=0.5, a_yaw=1.2, nu_yaw=0.3, frequency=0.52))
+    shape = 2.5 * big.shape()  # beyond the command limit
+    member, _ = project(shape, MIXED)
+    assert np.abs(member.commands()).max() <= 2.2 + 1e-12
+    np.testing.assert_allclose(project(member.shape(), MIXED)[0].shape(), member.shape(), atol=1e-14)
+
+
+def test_the_exported_csv_carries_the_member_whose_parameters_give_its_commands_to_the_bit():
+    from types import SimpleNamespace
+
+    from snakeloco.app.gait_csv import gait_comments
+
+    member, _ = project(draw_structured(UNDULATE, 0, 2, 0)[0], UNDULATE)
+    gait = SimpleNamespace(latents=None, source="model", member=member)
+    text = write_gait_csv(member.commands(), gait_comments(gait, None, "abc"))
+    assert "# gait: undulation" in text
+    again = read_member(text)
+    assert again == member
+    np.testing.assert_array_equal(again.commands(), read_gait_csv(text).commands)  # to the bit
+    with pytest.raises(GaitCSVError, match="member"):
+        read_member(text.replace('"a_yaw":', '"a_yaw_typo":'))
+
+
+def _two_clusters(n: int = 300, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    a = rng.normal([3, 0, 0], [0.3, 0.5, 0.2], (n, 3))
+    b = rng.normal([-3, 1, 0], [0.4, 0.2, 0.3], (n, 3))
+    return np.concatenate([a, b])
+
+
+def test_the_density_separates_clusters_samples_deterministically_and_flags_the_gap():
+    z = _two_clusters()
+    d = fit_density(z, max_components=4, seed=0)
+    assert len(d.weights) == 2  # BIC picks the two clusters
+    s1, c1 = d.sample(64, seed=5)
+    s2, c2 = d.sample(64, seed=5)
+    np.testing.assert_array_equal(s1, s2)
+    np.testing.assert_array_equal(c1, c2)
+    assert not np.array_equal(s1, d.sample(64, seed=6)[0])
+    between = np.array([[0.0, 0.5, 0.0]])  # where N(0, I) puts its mass, between the clusters
+    assert d.off_data(between)[0]
+    assert d.off_data(z).mean() == pytest.approx(0.01, abs=0.01)  # the records themselves are on it
+    assert not d.off_data(np.asarray(d.means)).any()
+    # a slider position along a component's axes and back
+    s = np.array([0.5, -1.0, 2.0])
+    for c in range(2):
+        np.testing.assert_allclose(d.to_axes(c, d.to_z(c, s)), s, atol=1e-12)
+    assert (d.component_of(np.asarray(d.means)) == np.arange(2)).all()
+    again = LatentDensity.model_validate_json(d.model_dump_json())
+    np.testing.assert_allclose(again.log_density(z[:5]), d.log_density(z[:5]))
+
+
+def test_components_are_named_by_where_their_gaits_go():
+    names = name_components(np.array([[17.0, 1.0, 5.0], [-12.0, 0.5, 0.0], [0.5, 4.0, 120.0], [16.0, 0, 0]]))
+    assert names == ["forward, 17 m", "backward, 12 m", "left, turning left, 4 m", "forward, 16 m"]
+    assert name_components(np.array([[5.0, 0, 0], [5.2, 0, 0]])) == ["forward, 5 m", "forward, 5 m (2)"]
