@@ -253,8 +253,9 @@ def search(
 ) -> list[Candidate]:
     """CMA-ES over z_B from ``cfg.starts`` starts; the ``cfg.candidates`` best distinct optima by
     predicted cost. ``cancelled`` is polled every generation (True: stop and return what there is)."""
-    rng = np.random.default_rng(cfg.seed)
-    screen = rng.standard_normal((cfg.screen, model.z_b_dim))
+    # The shipped sampler's draws: where the training records are (N(0, I) for a checkpoint without
+    # a density, the same draws as before it had one).
+    screen = model.sample_z_b(cfg.screen, seed=cfg.seed)
     _, body = model.decode(screen)
     cost = objective(path_end(body), screen, target, cfg)
     starts: list[np.ndarray] = []

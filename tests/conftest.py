@@ -44,3 +44,24 @@ def checkpoint(tiny_dataset_path, tmp_path_factory):
     cfg = TrainConfig(epochs=2, batch_size=2, val_fraction=0.25)
     train(tiny_dataset_path, out, cfg, SMALL, log=None, progress=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def member_checkpoint(tmp_path_factory):
+    """A tiny structured-family checkpoint with what ``calibrate --sampler`` adds: the slider density,
+    the family its decodes project onto and a member path head. Its records are the undulate preset's
+    draws screened leniently (two replays each, any spread kept), so it builds in seconds."""
+    from snakeloco.model import TrainConfig, train
+    from snakeloco.model.sampler import SamplerConfig, fit_sampler
+    from snakeloco.sim.structured import STRUCTURED_PRESETS
+
+    family = STRUCTURED_PRESETS["undulate"].model_copy(
+        update={"max_spread": 1e3, "coefficient_noise": 0.0, "members": 2}
+    )
+    cfg = GenerateConfig(num_samples=6, seed=5, family="structured", structured=family)
+    data = generate_dataset(cfg, tmp_path_factory.mktemp("data") / "structured.npz", workers=2)
+    trained = tmp_path_factory.mktemp("ckpt_structured_vae")
+    train(data, trained, TrainConfig(epochs=2, batch_size=2, val_fraction=0.34), SMALL, log=None, progress=False)
+    out = tmp_path_factory.mktemp("ckpt_structured")
+    fit_sampler(trained, data, out, SamplerConfig(samples=4, epochs=3, hidden=16), workers=2, log=None)
+    return out, data

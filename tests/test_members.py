@@ -118,3 +118,66 @@ def test_components_are_named_by_where_their_gaits_go():
     names = name_components(np.array([[17.0, 1.0, 5.0], [-12.0, 0.5, 0.0], [0.5, 4.0, 120.0], [16.0, 0, 0]]))
     assert names == ["forward, 17 m", "backward, 12 m", "left, turning left, 4 m", "forward, 16 m"]
     assert name_components(np.array([[5.0, 0, 0], [5.2, 0, 0]])) == ["forward, 5 m", "forward, 5 m (2)"]
+
+
+@pytest.mark.slow
+def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predicted_for_them(member_checkpoint):
+    from snakeloco.model import load_pretrained
+
+    path, _ = member_checkpoint
+    m = load_pretrained(path)
+    assert m.projects and m.member_head is not None and m.config.density is not None
+    z = m.sample_z_b(5, seed=1)
+    np.testing.assert_array_equal(z, m.sample_z_b(5, seed=1))  # deterministic in its seed
+    assert not np.array_equal(z, m.sample_z_b(5, seed=2))
+    members, residuals, shape, body, stats = m.decode_members(z)
+    s2, b2 = m.decode(z)
+    np.testing.assert_array_equal(s2, shape)
+    np.testing.assert_array_equal(b2, body)
+    np.testing.assert_allclose(body, m.predict_paths(members))  # the member's path, not a second decode
+    raw_shape, raw_body = m.decode_raw(z)
+    assert not np.allclose(raw_body, body)
+    for member, s in zip(members, shape, strict=True):
+        again, _ = m.project(s[None])
+        np.testing.assert_allclose(again[0].shape(), member.shape(), atol=1e-12)  # an exact member
+        np.testing.assert_allclose(m.commands(s), member.commands(), atol=1e-12)
+    assert (residuals > 0).all() and set(stats) == {"path_length", "median_speed", "vertical_std", "net_roll"}
+    assert m.off_data(np.full((1, m.z_b_dim), 50.0))[0]
+    assert not m.off_data(np.asarray(m.config.density.means)).any()
+
+
+@pytest.mark.slow
+def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_data(member_checkpoint):
+    from snakeloco.app.server import DesignerServer
+
+    from helpers import connect_headless
+
+    path, _ = member_checkpoint
+    srv = DesignerServer(port=0, checkpoint=path, ensemble=2, workers=2, verbose=False)
+    client = None
+    try:
+        client, d = connect_headless(srv)
+        density = d.model.config.density
+        assert d.controls.component is not None and d.controls.component.options == tuple(density.names)
+        d.sliders[0].value = 1.0
+        assert d.wait_idle(60) and d.decoded.latents.axes[0] == 1.0
+        comp = density.names.index(d.controls.component.value)
+        np.testing.assert_allclose(d.decoded.latents.z_b, density.to_z(comp, np.asarray(d.decoded.latents.axes)))
+        member = d.decoded.member
+        assert member is not None and d.decoded.commands is not None
+        np.testing.assert_array_equal(d.decoded.commands, member.commands())  # replayed: exactly the member
+        assert "**Gait**: undulation" in d.controls.panel.content
+        text = d.export_text()
+        np.testing.assert_array_equal(read_member(text).commands(), read_gait_csv(text).commands)
+        d.show_latents(np.full(d.model.z_b_dim, 8.0))  # far from every record
+        assert d.wait_idle(60) and d.decoded.off_data
+        assert "Off the data" in d.controls.panel.content
+        d.random_z()
+        assert d.wait_idle(60)
+        lat = d.decoded.latents
+        assert lat.component == density.names.index(d.controls.component.value)
+        np.testing.assert_allclose([s.value for s in d.sliders], np.clip(np.round(lat.axes, 2), -3, 3))
+    finally:
+        if client is not None:
+            client.close()
+        srv.stop()
