@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import save_checkpoint
@@ -51,6 +51,13 @@ class SamplerConfig(BaseModel):
     density_only: bool = Field(
         False, description="Fit and store the slider density only (no replays; the paper family)."
     )
+    prefix: bool = Field(
+        False,
+        description="With --sampler.density-only: the dataset is the first N records of the checkpoint's "
+        "training set (the same family, seed and config with fewer samples; records are deterministic in "
+        "seed and index), and the density is fitted to those of them in the training split. For a "
+        "training set too large to regenerate whole.",
+    )
     max_components: int = Field(6, ge=1, description="Most mixture components tried (chosen by BIC).")
     samples: int = Field(
         1024,
@@ -67,6 +74,12 @@ class SamplerConfig(BaseModel):
     lr: float = Field(2e-3, gt=0, description="Peak learning rate of the head (Adam, cosine to 1%).")
     hidden: int = Field(256, ge=8, description="Width of the head's hidden layers.")
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
+
+    @model_validator(mode="after")
+    def _prefix_for_a_density_only(self) -> SamplerConfig:
+        if self.prefix and not self.density_only:
+            raise ValueError("--sampler.prefix fits a density only: add --sampler.density-only")
+        return self
 
 
 def _drawn(cfg: SamplerConfig) -> dict:
@@ -144,14 +157,23 @@ def fit_sampler(
     model = load_pretrained(checkpoint)
     config = model.config
     ds = load_dataset(data)
-    if ds.meta_hash != config.dataset_meta_sha256:
+    n_trained = int(config.train.get("n_train", 0)) + int(config.train.get("n_val", 0))
+    if cfg.prefix:
+        if ds.config.family != config.family or not 0 < len(ds) <= n_trained:
+            raise DatasetError(
+                f"{data}: {len(ds)} {ds.config.family} records cannot be a prefix of this checkpoint's "
+                f"{n_trained} {config.family} training records"
+            )
+    elif ds.meta_hash != config.dataset_meta_sha256:
         raise DatasetError(
             f"{data} is not the dataset this checkpoint was trained on (meta hash {ds.meta_hash[:12]}, "
             f"checkpoint {config.dataset_meta_sha256[:12]})"
         )
+    split_n = n_trained if cfg.prefix else len(ds)
     tr_idx, va_idx = split_records(
-        len(ds), float(config.train.get("val_fraction", 0.1)), int(config.train.get("seed", 0))
+        split_n, float(config.train.get("val_fraction", 0.1)), int(config.train.get("seed", 0))
     )
+    tr_idx, va_idx = np.sort(tr_idx[tr_idx < len(ds)]), np.sort(va_idx[va_idx < len(ds)])
     z_post, _ = model.encode(ds.shape[tr_idx], ds.body_ds[tr_idx])
     density = fit_density(z_post, cfg.max_components, seed=cfg.seed)
     summary: dict = {**cfg.model_dump(), "components": len(density.weights), "fitted_on": len(tr_idx)}

@@ -1,4 +1,8 @@
-"""``snakeloco bench model``: decode latency of the slider path and batch throughput."""
+"""``snakeloco bench model``: decode latency of the slider path and batch throughput.
+
+For a checkpoint that decodes family members (``GaitModel.projects``) the network's own decode
+(``decode_raw``: what the slider path cost before projection and path prediction) is timed in the
+same run, interleaved call by call, so the two p50s are measured side by side."""
 
 from __future__ import annotations
 
@@ -16,11 +20,15 @@ def bench_model(checkpoint=None, n: int = 200, batch: int = 256) -> dict:
     z = rng.standard_normal((n, model.z_b_dim))
     for w in rng.standard_normal((10, model.z_b_dim)):  # warm-up draws of their own: --calls may be < 10
         model.decode(w[None])
-    times = []
+    times, raw = [], []
     for i in range(n):
         t0 = time.perf_counter()
         model.decode(z[i : i + 1])
         times.append(time.perf_counter() - t0)
+        if model.projects:
+            t0 = time.perf_counter()
+            model.decode_raw(z[i : i + 1])
+            raw.append(time.perf_counter() - t0)
     zb = rng.standard_normal((batch, model.z_b_dim))
     model.decode(zb)
     t0 = time.perf_counter()
@@ -29,9 +37,15 @@ def bench_model(checkpoint=None, n: int = 200, batch: int = 256) -> dict:
         model.decode(zb)
     per_s = reps * batch / (time.perf_counter() - t0)
     ms = 1e3 * np.asarray(times)
-    return {
+    out = {
         "decode_p50_ms": float(np.percentile(ms, 50)),
         "decode_p95_ms": float(np.percentile(ms, 95)),
         "batch": batch,
         "batch_decodes_per_s": per_s,
     }
+    if raw:
+        raw_ms = 1e3 * np.asarray(raw)
+        out["decode_raw_p50_ms"] = float(np.percentile(raw_ms, 50))
+        out["decode_raw_p95_ms"] = float(np.percentile(raw_ms, 95))
+        out["projection_cost_ratio"] = out["decode_p50_ms"] / out["decode_raw_p50_ms"]
+    return out

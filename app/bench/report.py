@@ -33,6 +33,12 @@ def model(cmd) -> dict:
         f"decode one z_B: p50 {r['decode_p50_ms']:.2f} ms, p95 {r['decode_p95_ms']:.2f} ms; "
         f"batch of {r['batch']}: {r['batch_decodes_per_s']:.0f} decodes/s"
     )
+    if "decode_raw_p50_ms" in r:
+        print(
+            f"the network's own decode (no projection, no member path): p50 {r['decode_raw_p50_ms']:.2f} ms, "
+            f"p95 {r['decode_raw_p95_ms']:.2f} ms; projection and path prediction cost "
+            f"{r['projection_cost_ratio']:.2f}x"
+        )
     return r
 
 
