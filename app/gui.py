@@ -9,7 +9,7 @@ import numpy as np
 import viser
 import viser.uplot as uplot
 
-from snakeloco.app.scene import JOINT_COLORS, LAYERS, LIGHT_RENDERING
+from snakeloco.app.scene import GEN_COLOR, JOINT_COLORS, LAYERS, LIGHT_RENDERING, SIM_COLOR
 from snakeloco.sim import BODY_TIMES, N_JOINTS, RECORD
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
@@ -26,6 +26,12 @@ COMMAND_PLOT_STEP = 2
 (3 Hz), so no wave is lost, in a plot a few hundred pixels wide; half the bytes of every decoded
 gait's largest message (9 series of float64, which viser sends whatever dtype it is given)."""
 COMMAND_PLOT_TIMES = RECORD.times[::COMMAND_PLOT_STEP]
+WIDE_PX = 1200
+"""A window at least this wide has room for the plots beside the scene: they open by default."""
+
+
+def hex_color(rgb: tuple[int, int, int]) -> str:
+    return "#{:02x}{:02x}{:02x}".format(*rgb)
 
 
 def help_text() -> str:
@@ -70,6 +76,7 @@ def build_design_controls(gui: viser.GuiApi) -> DesignControls:
 class Controls:
     """The handles of one tab's GUI."""
 
+    readout: viser.GuiHtmlHandle
     family: viser.GuiDropdownHandle
     zb_folder: viser.GuiFolderHandle
     component: viser.GuiDropdownHandle | None
@@ -84,6 +91,7 @@ class Controls:
     speed: viser.GuiSliderHandle
     scrubber: viser.GuiSliderHandle
     follow: viser.GuiCheckboxHandle
+    frame_button: viser.GuiButtonHandle
     layers: dict[str, viser.GuiCheckboxHandle]
     light: viser.GuiCheckboxHandle
     baseline: viser.GuiDropdownHandle
@@ -159,8 +167,11 @@ def build_controls(
     families: tuple[str, ...],
     family: str,
     components: list[str] | None = None,
+    wide: bool = False,
 ) -> Controls:
-    """Add every folder and control of a tab to ``gui``."""
+    """Add every folder and control of a tab to ``gui``: the readout first, in view without
+    scrolling; ``wide`` (a window of at least ``WIDE_PX``): the plots open too."""
+    readout = gui.add_html("<div>Decoding...</div>")
     with gui.add_folder("Model"):
         family_dropdown = gui.add_dropdown(
             "Gait family",
@@ -183,6 +194,11 @@ def build_controls(
         last = float(RECORD.times[-1])
         scrubber = gui.add_slider("Time (s)", 0.0, last, 1.0 / RECORD.sample_rate, 0.0)
         follow = gui.add_checkbox("Follow snake", False, hint="Keep the camera on the snake as it travels")
+        frame_button = gui.add_button(
+            "Frame paths",
+            hint="Point the camera at the snake and both paths (it does so by itself after "
+            "each decode and replay until you move the camera)",
+        )
     with gui.add_folder("Layers"):
         layers = {name: gui.add_checkbox(name, True) for name in LAYERS}
         light = gui.add_checkbox(
@@ -208,7 +224,7 @@ def build_controls(
         import_button = gui.add_upload_button("Import CSV", mime_type=".csv,text/csv,text/plain")
     with gui.add_folder("Consistency"):
         panel = gui.add_markdown("Decoding...")
-    with gui.add_folder("Plots", expand_by_default=False):
+    with gui.add_folder("Plots", expand_by_default=wide):
         no_time = {"x": {"time": False}}  # uPlot would read x as dates
         nan = np.full(len(BODY_TIMES), np.nan)
         plots = {}
@@ -217,8 +233,8 @@ def build_controls(
                 data=(BODY_TIMES, nan, nan),
                 series=(
                     uplot.Series(label="t (s)"),
-                    uplot.Series(label="generated", stroke="darkorange", width=2),
-                    uplot.Series(label="simulated", stroke="royalblue", width=2),
+                    uplot.Series(label="model", stroke=hex_color(GEN_COLOR), width=2),
+                    uplot.Series(label="MuJoCo", stroke=hex_color(SIM_COLOR), width=2),
                 ),
                 scales=no_time,
                 title=name,
@@ -229,9 +245,7 @@ def build_controls(
             series=(
                 uplot.Series(label="t (s)"),
                 *[
-                    uplot.Series(
-                        label=f"joint {k + 1}", stroke="#{:02x}{:02x}{:02x}".format(*JOINT_COLORS[k]), width=1
-                    )
+                    uplot.Series(label=f"joint {k + 1}", stroke=hex_color(JOINT_COLORS[k]), width=1)
                     for k in range(N_JOINTS)
                 ],
             ),
@@ -242,6 +256,7 @@ def build_controls(
     with gui.add_folder("Help", expand_by_default=False):
         gui.add_markdown(help_text())
     return Controls(
+        readout=readout,
         family=family_dropdown,
         zb_folder=zb_folder,
         component=component,
@@ -256,6 +271,7 @@ def build_controls(
         speed=speed,
         scrubber=scrubber,
         follow=follow,
+        frame_button=frame_button,
         layers=layers,
         light=light,
         baseline=baseline,

@@ -12,6 +12,7 @@ import trimesh
 import viser
 
 from snakeloco.app.session import DecodedGait, SimulatedGait
+from snakeloco.app.view import Framer, MetreGrid
 from snakeloco.app.viser_patches import set_arrays
 from snakeloco.sim import BODY_DOWNSAMPLE, LINK_LENGTH, LINK_RADIUS, N_LINKS, LinkPoses
 
@@ -37,7 +38,7 @@ SHAPE_SCALE = 1.5
 """Point-cloud metres per radian of FFT coefficient."""
 JOINT_SPACING = 0.12
 """Point-cloud height step between joints (m)."""
-LAYERS = ("Snake", "Generated path", "Simulated path", "Ensemble fan", "Joint shapes", "Grid")
+LAYERS = ("Snake", "Generated path", "Simulated path", "Ensemble fan", "Joint shapes", "Metre grid", "Grid")
 """The Layers checkboxes, in the order they are shown."""
 LIGHT_RENDERING = "Light rendering"
 """The Layers checkbox that draws the scene without its costly passes (``TabScene.set_light``)."""
@@ -118,8 +119,12 @@ class TabScene:
             for name, position in (("decoded", (-1.5, 1.0, 0.0)), ("measured", (-1.5, -1.0, 0.0)))
         }
         self.clouds: dict[str, viser.PointCloudHandle] = {}
+        self.metres = MetreGrid(scene)
+        self._gen_points: np.ndarray | None = None  # what framing keeps in view (start frame, m)
+        self._sim_points: np.ndarray | None = None
         client.camera.position = (-2.5, -3.5, 2.5)
         client.camera.look_at = (0.5, 0.0, 0.0)
+        self.framer = Framer(client)
 
     def set_light(self, light: bool) -> None:
         """Full rendering (cascaded shadows, environment lighting) or light: neither. In a browser
@@ -136,6 +141,7 @@ class TabScene:
         on = {name: box.value for name, box in self.layers.items()}
         self.snake.visible = on["Snake"]
         self.grid.visible = on["Grid"]
+        self.metres.visible = on["Metre grid"]
         if self.gen_path is not None:
             self.gen_path.visible = on["Generated path"]
         if self.band is not None:
@@ -175,6 +181,7 @@ class TabScene:
                     node.visible = False
         if self.sim_path is not None:
             self.sim_path.visible = False
+        self._sim_points = None
         for node in self.fan:
             node.remove()
         self.fan, self._fan_drawn = [], 0
@@ -193,6 +200,7 @@ class TabScene:
         z0 = float(self.start[0][2])
         self.sim_path = self._line("simulated", polyline(points), SIM_COLOR, 4.0, "Simulated path", z0)
         self._sim_drawn = len(body)
+        self._sim_points = points
 
     def draw_streaming(self, body: np.ndarray, qpos0: np.ndarray) -> None:
         """The simulated path so far (a streamed replay's first samples)."""
@@ -219,6 +227,7 @@ class TabScene:
         """The decoded path: the line it is, or, for a family in ``END_SPREAD``, a thin mean path and
         a ring where the replay is likely to end."""
         points = path_points(body, 0.0)
+        self._gen_points = points
         thickness = 4.0 if self.end_spread is None else 1.5
         self.gen_path = self._line("generated", polyline(points), GEN_COLOR, thickness, "Generated path", z0)
         if self.end_spread is None:
@@ -235,6 +244,12 @@ class TabScene:
             position=(0.0, 0.0, z0),
             visible=self.layers["Generated path"].value,
         )
+
+    def frame(self, force: bool = False) -> bool:
+        """Point the camera at the snake's start and both paths (``view.Framer``: not after the
+        user moved it, unless ``force``); returns whether it moved."""
+        points = [np.zeros((1, 3)), *(p for p in (self._gen_points, self._sim_points) if p is not None)]
+        return self.framer.frame(np.concatenate(points), force=force)
 
     def draw_fan(self, ensemble_body: np.ndarray) -> None:
         """The ensemble's perturbed members (K, T, 6; member 0, the replay, is the simulated path)
@@ -265,3 +280,4 @@ class TabScene:
                 camera.position = tuple(
                     np.asarray(camera.position) + positions.mean(axis=0) - np.asarray(camera.look_at)
                 )
+                self.framer.placed()

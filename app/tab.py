@@ -24,9 +24,10 @@ import viser
 from snakeloco.app import panel
 from snakeloco.app.design_panel import DesignPanel
 from snakeloco.app.gait_files import GaitFiles
-from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls
+from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, WIDE_PX, build_controls
 from snakeloco.app.latent_moves import LatentMoves
 from snakeloco.app.playback import PAUSE_WHEN_HIDDEN_JS, SOFTWARE_RENDERING_JS, Playback
+from snakeloco.app.readout import STREAM_READOUT_PERIOD_S, TabReadout
 from snakeloco.app.scene import END_SPREAD, TabScene
 from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
 from snakeloco.app.viser_patches import run_javascript
@@ -57,7 +58,7 @@ STREAM_PATH_PERIOD_S = 0.25
 each time; the snake's pose goes every animation frame)."""
 
 
-class DesignerClient(GaitFiles, LatentMoves):
+class DesignerClient(GaitFiles, LatentMoves, TabReadout):
     """One browser tab: GUI, scene, session, a decode worker and a physics worker."""
 
     def __init__(
@@ -89,6 +90,7 @@ class DesignerClient(GaitFiles, LatentMoves):
         self.simulated: SimulatedGait | None = None
         self.streaming = None  # the current gait's streamed replay so far (sim.StreamedReplay)
         self._path_drawn = 0.0
+        self._readout_drawn = 0.0
         self.timings: deque[Timing] = deque(maxlen=2000)
         self._timing_by_version: dict[int, Timing] = {}
         self._draw_lock = threading.RLock()
@@ -102,7 +104,12 @@ class DesignerClient(GaitFiles, LatentMoves):
         self._version = 0
         self._version_lock = threading.Lock()
         self.controls = build_controls(
-            client.gui, model.z_b_dim, tuple(self.models), family, self._component_names(model)
+            client.gui,
+            model.z_b_dim,
+            tuple(self.models),
+            family,
+            self._component_names(model),
+            wide=client.camera.image_width >= WIDE_PX,
         )
         self.scene = TabScene(client, self.controls.layers)
         self.scene.end_spread = END_SPREAD.get(model.family)
@@ -152,6 +159,7 @@ class DesignerClient(GaitFiles, LatentMoves):
         )
         c.resample_button.on_click(g(lambda _e: self._resample()))
         c.play_button.on_click(g(lambda _e: self.playback.toggle()))
+        c.frame_button.on_click(g(lambda _e: self._frame(force=True)))
         c.scrubber.on_update(g(lambda event: self.playback.on_scrub(event)))
         for layer in c.layers.values():
             layer.on_update(g(lambda _e: self._apply_layers()))
@@ -341,6 +349,9 @@ class DesignerClient(GaitFiles, LatentMoves):
                 self._path_drawn = now
                 with self.client.atomic():
                     self.scene.draw_streaming(part.body, part.qpos[0])
+            if (first or now - self._readout_drawn > STREAM_READOUT_PERIOD_S) and self.decoded is not None:
+                self._readout_drawn = now
+                self.show_readout(self.decoded, "streaming", part.body)
             if first:
                 self.playback.restart()
                 self._draw_snake(0)
@@ -360,6 +371,7 @@ class DesignerClient(GaitFiles, LatentMoves):
             with self._draw_lock:
                 if is_current():
                     self.controls.panel.content = panel.failed_text(decoded, str(exc))
+                    self.show_readout(decoded, "failed", reason=str(exc))
                     self.client.add_notification(
                         "Replay failed", str(exc), color="red", auto_close_seconds=8.0
                     )
@@ -404,18 +416,27 @@ class DesignerClient(GaitFiles, LatentMoves):
 
     # --- drawing ---------------------------------------------------------------------------------
 
+    def _frame(self, force: bool = False) -> None:
+        with self._draw_lock:
+            self.scene.frame(force=force)
+
     def _draw_decoded(self, gait: DecodedGait) -> None:
         with self.client.atomic():
             self.scene.draw_decoded(gait)
             self.controls.show_paths(gait.body_ds, None)
             self.controls.show_commands(gait.commands)
             self.controls.panel.content = panel.decoded_text(gait)
+            self.show_readout(gait, "simulating")
+            if gait.body_ds is not None:
+                self.scene.frame()
 
     def _draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
         with self.client.atomic():
             self.scene.draw_simulated(gait, sim, ensemble)
             if not ensemble:  # the ensemble's draw follows the replay's: the same two series
                 self.controls.show_paths(gait.body_ds, sim.body[::BODY_DOWNSAMPLE])
+                self.show_readout(gait, "done", sim.body)
+                self.scene.frame()
             self.controls.panel.content = panel.simulated_text(gait, sim, ensemble)
         self._draw_snake()
 

@@ -61,7 +61,9 @@ def member_checkpoint(tmp_path_factory):
     cfg = GenerateConfig(num_samples=6, seed=5, family="structured", structured=family)
     data = generate_dataset(cfg, tmp_path_factory.mktemp("data") / "structured.npz", workers=2)
     trained = tmp_path_factory.mktemp("ckpt_structured_vae")
-    train(data, trained, TrainConfig(epochs=2, batch_size=2, val_fraction=0.34), SMALL, log=None, progress=False)
+    train(
+        data, trained, TrainConfig(epochs=2, batch_size=2, val_fraction=0.34), SMALL, log=None, progress=False
+    )
     out = tmp_path_factory.mktemp("ckpt_structured")
     fit_sampler(trained, data, out, SamplerConfig(samples=4, epochs=3, hidden=16), workers=2, log=None)
     return out, data

@@ -121,7 +121,9 @@ def test_components_are_named_by_where_their_gaits_go():
 
 
 @pytest.mark.slow
-def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predicted_for_them(member_checkpoint):
+def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predicted_for_them(
+    member_checkpoint,
+):
     from snakeloco.model import load_pretrained
 
     path, _ = member_checkpoint
@@ -135,7 +137,7 @@ def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predict
     np.testing.assert_array_equal(s2, shape)
     np.testing.assert_array_equal(b2, body)
     np.testing.assert_allclose(body, m.predict_paths(members))  # the member's path, not a second decode
-    raw_shape, raw_body = m.decode_raw(z)
+    _, raw_body = m.decode_raw(z)
     assert not np.allclose(raw_body, body)
     for member, s in zip(members, shape, strict=True):
         again, _ = m.project(s[None])
@@ -162,16 +164,18 @@ def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_
         d.sliders[0].value = 1.0
         assert d.wait_idle(60) and d.decoded.latents.axes[0] == 1.0
         comp = density.names.index(d.controls.component.value)
-        np.testing.assert_allclose(d.decoded.latents.z_b, density.to_z(comp, np.asarray(d.decoded.latents.axes)))
+        np.testing.assert_allclose(
+            d.decoded.latents.z_b, density.to_z(comp, np.asarray(d.decoded.latents.axes))
+        )
         member = d.decoded.member
         assert member is not None and d.decoded.commands is not None
         np.testing.assert_array_equal(d.decoded.commands, member.commands())  # replayed: exactly the member
-        assert "**Gait**: undulation" in d.controls.panel.content
+        assert "Gait: undulation" in d.controls.readout.content
         text = d.export_text()
         np.testing.assert_array_equal(read_member(text).commands(), read_gait_csv(text).commands)
         d.show_latents(np.full(d.model.z_b_dim, 8.0))  # far from every record
         assert d.wait_idle(60) and d.decoded.off_data
-        assert "Off the data" in d.controls.panel.content
+        assert "Off the data" in d.controls.readout.content
         d.random_z()
         assert d.wait_idle(60)
         lat = d.decoded.latents
