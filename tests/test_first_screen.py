@@ -67,7 +67,10 @@ def test_the_readout_is_in_view_and_says_what_the_server_computed_and_the_camera
                 assert cell.inner_text() == text, key
                 box = cell.bounding_box()  # in the first viewport: no scrolling
                 assert box is not None and box["y"] >= 0 and box["x"] >= 0
-                assert box["y"] + box["height"] <= VIEWPORT["height"] and box["x"] + box["width"] <= VIEWPORT["width"]
+                assert (
+                    box["y"] + box["height"] <= VIEWPORT["height"]
+                    and box["x"] + box["width"] <= VIEWPORT["width"]
+                )
             # The numbers are those of the paths drawn: the model's end and MuJoCo's replay end.
             end = d.decoded.body_ds[-1]
             assert r.model.distance_m == pytest.approx(np.hypot(end[1], end[2]))
