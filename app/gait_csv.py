@@ -174,6 +174,10 @@ def gait_comments(
     if gait.latents is not None:
         lat = gait.latents
         comments["z_B"] = "[" + ", ".join(f"{v:.4f}" for v in lat.z_b) + "]"
+        if lat.axes is not None:  # sliders along a cluster's axes (``model.density``)
+            comments["sliders"] = (
+                "[" + ", ".join(f"{v:.4f}" for v in lat.axes) + f"] in cluster {lat.component + 1}"
+            )
         comments["z_k mode"] = lat.zk_mode + (
             f" (seed {lat.seed}, temperature {lat.temperature})" if lat.zk_mode == "sampled" else ""
         )

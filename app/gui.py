@@ -21,6 +21,11 @@ NO_BASELINE = "none"
 """The Baseline dropdown's entry for "no library gait"."""
 PATH_PLOTS = {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}
 """Generated-vs-simulated plots: title -> body channel (``sim.BODY_CHANNELS``)."""
+PATH_PLOT_STEP = 2
+"""The path plots show every 2nd sample of the 5 Hz body series (250 points over 100 s, in a plot a
+few hundred pixels wide): half the bytes of each of the 2 path updates a slider move sends, which
+leaves room for the readout's."""
+PATH_PLOT_TIMES = BODY_TIMES[::PATH_PLOT_STEP]
 COMMAND_PLOT_STEP = 2
 """The commands plot shows every 2nd sample (10 Hz): above twice the highest excited frequency
 (3 Hz), so no wave is lost, in a plot a few hundred pixels wide; half the bytes of every decoded
@@ -103,11 +108,11 @@ class Controls:
 
     def show_paths(self, generated: np.ndarray | None, simulated: np.ndarray | None) -> None:
         """Generated vs simulated body series (500, 6) in the plots; a missing one is drawn as NaN."""
-        missing = np.full(len(BODY_TIMES), np.nan)
+        missing = np.full(len(PATH_PLOT_TIMES), np.nan)
         for name, ch in PATH_PLOTS.items():
-            gen = generated[:, ch] if generated is not None else missing
-            sim = simulated[:, ch] if simulated is not None else missing
-            self.plots[name].data = (BODY_TIMES, gen, sim)
+            gen = generated[::PATH_PLOT_STEP, ch] if generated is not None else missing
+            sim = simulated[::PATH_PLOT_STEP, ch] if simulated is not None else missing
+            self.plots[name].data = (PATH_PLOT_TIMES, gen, sim)
 
     def show_commands(self, commands: np.ndarray) -> None:
         """Joint commands (2000, 8) rad in the commands plot, every ``COMMAND_PLOT_STEP``-th sample."""
@@ -226,11 +231,11 @@ def build_controls(
         panel = gui.add_markdown("Decoding...")
     with gui.add_folder("Plots", expand_by_default=wide):
         no_time = {"x": {"time": False}}  # uPlot would read x as dates
-        nan = np.full(len(BODY_TIMES), np.nan)
+        nan = np.full(len(PATH_PLOT_TIMES), np.nan)
         plots = {}
         for name in PATH_PLOTS:
             plots[name] = gui.add_uplot(
-                data=(BODY_TIMES, nan, nan),
+                data=(PATH_PLOT_TIMES, nan, nan),
                 series=(
                     uplot.Series(label="t (s)"),
                     uplot.Series(label="model", stroke=hex_color(GEN_COLOR), width=2),

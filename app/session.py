@@ -39,6 +39,11 @@ class Latents:
     component: int | None = None
     axes: tuple[float, ...] | None = None
 
+    @property
+    def sliders(self) -> tuple[float, ...]:
+        """The slider values these latents were read from: ``axes``, or z_B itself."""
+        return self.axes if self.axes is not None else self.z_b
+
 
 @dataclass
 class DecodedGait:

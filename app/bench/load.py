@@ -52,6 +52,7 @@ from snakeloco.app.bench.processes import (
     split_cpus,
 )
 from snakeloco.app.gait_csv import read_gait_csv
+from snakeloco.app.gui import PATH_PLOT_STEP
 from snakeloco.app.server import DesignerServer, tune_process
 from snakeloco.app.tab import DesignerClient
 from snakeloco.sim import BODY_DOWNSAMPLE
@@ -208,7 +209,7 @@ def replay_problems(d: DesignerClient) -> list[str]:
     physics refused the gait (thrown, diverged), the panel saying so for that gait."""
     if d.simulated is not None:
         drawn = d.controls.plots["forward (m)"].data[2]
-        if np.allclose(drawn, d.simulated.body[::BODY_DOWNSAMPLE, 1], atol=1e-12):
+        if np.allclose(drawn, d.simulated.body[:: BODY_DOWNSAMPLE * PATH_PLOT_STEP, 1], atol=1e-12):
             return []
         return ["drawn simulated path is not the final replay"]
     last = d.timings[-1] if d.timings else None
@@ -231,12 +232,12 @@ def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: i
     wait_until(lambda: np.allclose(shown(), z, atol=1e-9), CATCH_UP_S)
     if not np.allclose(shown(), z, atol=1e-9):
         problems.append(f"browser sliders {shown()} != server sliders {list(z)} after {CATCH_UP_S:g} s")
-    if d.decoded is None or d.decoded.latents is None or d.decoded.latents.z_b != z:
+    if d.decoded is None or d.decoded.latents is None or d.decoded.latents.sliders != z:
         problems.append(f"current gait decoded from {getattr(d.decoded, 'latents', None)}, sliders at {z}")
         return problems
-    shape, body = d.model.decode(np.asarray(z)[None])
+    shape, body = d.model.decode(np.asarray(d.decoded.latents.z_b)[None])
     commands = d.model.commands(shape[0])
-    if not np.allclose(d.controls.plots["forward (m)"].data[1], body[0, :, 1], atol=1e-9):
+    if not np.allclose(d.controls.plots["forward (m)"].data[1], body[0, ::PATH_PLOT_STEP, 1], atol=1e-9):
         problems.append("drawn generated path is not the decode of the final sliders")
     problems += replay_problems(d)
     path = tmp / f"client{index}.csv"
@@ -247,8 +248,9 @@ def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: i
     exported = read_gait_csv(text.encode()).commands
     if not np.array_equal(exported, commands):
         problems.append("exported commands are not those of the final sliders")
-    if "# z_B: [" + ", ".join(f"{v:.4f}" for v in z) + "]" not in text:
-        line = next((ln for ln in text.splitlines() if ln.startswith("# z_B:")), "no z_B line")
+    key = "# sliders: [" if d.decoded.latents.axes is not None else "# z_B: ["
+    if key + ", ".join(f"{v:.4f}" for v in z) + "]" not in text:
+        line = next((ln for ln in text.splitlines() if ln.startswith(key[:-2])), f"no {key[2:-3]} line")
         problems.append(f"exported z_B comment does not match the final sliders {list(z)}: {line!r}")
     now = tuple(float(s.value) for s in d.sliders)
     if problems and now != z:  # says whether a late browser event moved the sliders during the checks

@@ -148,7 +148,7 @@ def bench_tabs(
                 # decoded (a starved tab's last key press can reach the server late); either is
                 # its own, and what Export CSV writes is the drawn one.
                 def current(d=d) -> set[float]:
-                    return {d.sliders[0].value, *([d.decoded.latents.z_b[0]] if d.decoded else [])}
+                    return {d.sliders[0].value, *([d.decoded.latents.sliders[0]] if d.decoded else [])}
 
                 own = current()
                 try:
@@ -161,7 +161,7 @@ def bench_tabs(
                     read_gait_csv(path.read_bytes())  # a whole, valid gait file, of this tab's gait
                     own |= current()
                     text = path.read_text()
-                    export_ok.append(any(f"# z_B: [{v:.4f}" in text for v in own))
+                    export_ok.append(any(f"# {k}: [{v:.4f}" in text for v in own for k in ("z_B", "sliders")))
                     export_errors.append(
                         None
                         if export_ok[-1]
