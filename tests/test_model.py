@@ -459,6 +459,12 @@ def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
     # The undulation family: only the yaw joints' steering (0.05 Hz) and wave (0.52 Hz) coefficients.
     support = np.asarray(structured.config.shape_support)
     assert support.sum() == 8 and support[1::2, 0].all() and support[1::2, 4].all()
+    # Both ship a slider density; the structured one decodes exact members with their predicted paths.
+    assert by_name.config.density is not None and not by_name.projects
+    assert structured.config.density is not None and structured.projects and structured.member_head is not None
+    for m in (by_name, structured):
+        z = m.sample_z_b(64, seed=11)
+        assert m.off_data(z).mean() < 0.1 and m.off_data(np.full((1, m.z_b_dim), 6.0))[0]
     main(["bench", "model", "--checkpoint", "paper", "--calls", "3", "--json"])
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["decode_p50_ms"] > 0
     # A directory of that name here is what the user means; a name that is neither says what is shipped.
