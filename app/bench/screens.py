@@ -3,7 +3,7 @@ snakeloco.app.bench.screens OUT_DIR`` (Debian chromium, 1500x950, software WebGL
 
 For each shipped gait family: the first load, after a slider drag, after the replay finished, and
 with a failed replay (a decoded gait whose commands are swapped for a square wave that throws the
-snake, as the failed-replay test does). Files: ``OUT_DIR/{family}-{state}.png``.
+snake, as the failed-replay test does). Files: ``OUT_DIR/{family}-{state}.jpg``.
 """
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ def shoot_family(family: str, out: Path, timeout: float = 600.0) -> list[Path]:
 
             def snap(state: str) -> None:
                 page.wait_for_timeout(2500)  # let the page draw what arrived
-                path = out / f"{family}-{state}.png"
-                page.screenshot(path=str(path))
+                path = out / f"{family}-{state}.jpg"
+                page.screenshot(path=str(path), type="jpeg", quality=80)
                 paths.append(path)
 
             assert d.wait_idle(timeout)
