@@ -235,29 +235,21 @@ def run_calibrate(cmd: Calibrate) -> dict:
         from snakeloco.model.sampler import fit_sampler
 
         sc = cmd.sampler_config
-        progress, bar = _progress_bar(0 if sc.density_only else 2 * sc.samples, "replay sampler members")
-        try:
-            return fit_sampler(
-                cmd.checkpoint,
-                cmd.data,
-                cmd.out,
-                sc,
-                workers=cmd.workers,
-                backend=cmd.backend,
-                progress=progress,
-                gaits_path=cmd.gaits,
-            )
-        finally:
-            if bar[0] is not None:
-                bar[0].close()
-
-    progress, bar = _progress_bar(cmd.config.gait_count, "replay prior gaits")
+        total, label, run, cfg = (
+            0 if sc.density_only else 2 * sc.samples,
+            "replay sampler members",
+            fit_sampler,
+            sc,
+        )
+    else:
+        total, label, run, cfg = cmd.config.gait_count, "replay prior gaits", calibrate, cmd.config
+    progress, bar = _progress_bar(total, label)
     try:
-        return calibrate(
+        return run(
             cmd.checkpoint,
             cmd.data,
             cmd.out,
-            cmd.config,
+            cfg,
             workers=cmd.workers,
             backend=cmd.backend,
             progress=progress,

@@ -136,33 +136,17 @@ def build_sliders(gui: viser.GuiApi, folder, z_b_dim: int, components: list[str]
                 hint="A cluster of the training records in z_B, named by where its mean gait goes; the "
                 "sliders move within it",
             )
-            sliders = [
-                gui.add_slider(
-                    f"z_B {i + 1}",
-                    -SLIDER_RANGE,
-                    SLIDER_RANGE,
-                    0.01,
-                    0.0,
-                    hint=f"Along the cluster's axis {i + 1} (largest spread first), in its standard deviations",
-                )
-                for i in range(z_b_dim)
-            ]
-            reset_button = gui.add_button("Reset z_B", hint="To the cluster's centre")
-            random_button = gui.add_button("Random z_B", hint="Draw z_B where the training records are")
+            hint = "Along the cluster's axis {} (largest spread first), in its standard deviations"
+            reset_hint, random_hint = "To the cluster's centre", "Draw z_B where the training records are"
         else:
-            sliders = [
-                gui.add_slider(
-                    f"z_B {i + 1}",
-                    -SLIDER_RANGE,
-                    SLIDER_RANGE,
-                    0.01,
-                    0.0,
-                    hint=f"Body latent dimension {i + 1}",
-                )
-                for i in range(z_b_dim)
-            ]
-            reset_button = gui.add_button("Reset z_B", hint="All z_B to 0 (the prior mean)")
-            random_button = gui.add_button("Random z_B", hint="Draw z_B from its N(0, I) prior")
+            hint = "Body latent dimension {}"
+            reset_hint, random_hint = "All z_B to 0 (the prior mean)", "Draw z_B from its N(0, I) prior"
+        sliders = [
+            gui.add_slider(f"z_B {i + 1}", -SLIDER_RANGE, SLIDER_RANGE, 0.01, 0.0, hint=hint.format(i + 1))
+            for i in range(z_b_dim)
+        ]
+        reset_button = gui.add_button("Reset z_B", hint=reset_hint)
+        random_button = gui.add_button("Random z_B", hint=random_hint)
     return component, sliders, reset_button, random_button
 
 

@@ -34,12 +34,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.model.api import GaitModel, load_pretrained
-from snakeloco.model.checkpoint import save_checkpoint
+from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.finetune import fit_head, fit_path_decoder
 from snakeloco.model.replays import check_same_gaits, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.stats import STAT_NAMES, stats_vector
 from snakeloco.model.train import split_records
-from snakeloco.sim import DatasetError, load_dataset
+from snakeloco.sim import load_dataset
 from snakeloco.sim.backend import BackendConfig, open_backend
 
 MODES: dict[str, float | None] = {"zk_zero": None, "zk_t0.5": 0.5, "zk_t1": 1.0}
@@ -211,11 +211,7 @@ def calibrate(
     model = load_pretrained(checkpoint)
     config = model.config
     ds = load_dataset(data)
-    if ds.meta_hash != config.dataset_meta_sha256:
-        raise DatasetError(
-            f"{data} is not the dataset this checkpoint was trained on (meta hash {ds.meta_hash[:12]}, "
-            f"checkpoint {config.dataset_meta_sha256[:12]})"
-        )
+    check_trained_on(config, ds, data)
     warning = model.robot_warning()
     if warning and log:
         log(f"warning: {warning}")

@@ -190,6 +190,18 @@ class CheckpointConfig(BaseModel):
         return self
 
 
+def check_trained_on(config: CheckpointConfig, ds, data: str | Path) -> None:
+    """A DatasetError unless the dataset ``ds`` (read from ``data``) is the one the checkpoint with
+    ``config`` was trained on (its meta hash)."""
+    from snakeloco.sim import DatasetError
+
+    if ds.meta_hash != config.dataset_meta_sha256:
+        raise DatasetError(
+            f"{data} is not the dataset this checkpoint was trained on (meta hash {ds.meta_hash[:12]}, "
+            f"checkpoint {config.dataset_meta_sha256[:12]})"
+        )
+
+
 def save_checkpoint(
     directory: str | Path,
     net: HierarchicalVAE,
@@ -254,10 +266,7 @@ def load_checkpoint(directory: str | Path | None = None) -> tuple[HierarchicalVA
         config = CheckpointConfig.model_validate(raw)
     except ValidationError as exc:
         raise CheckpointError(f"checkpoint {directory}: invalid {CONFIG}: {exc}") from exc
-    try:
-        state = load_file(str(w_path))
-    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
-        raise CheckpointError(f"checkpoint {directory}: corrupt {WEIGHTS} ({exc})") from exc
+    state = _read_weights(directory, WEIGHTS)
     net = HierarchicalVAE(config.model)
     expected = net.state_dict()
     missing = sorted(set(expected) - set(state))
@@ -279,6 +288,14 @@ def load_checkpoint(directory: str | Path | None = None) -> tuple[HierarchicalVA
     return net, config
 
 
+def _read_weights(directory: Path, name: str) -> dict[str, torch.Tensor]:
+    """The tensors of a checkpoint's safetensors file ``name``; a CheckpointError if it is corrupt."""
+    try:
+        return load_file(str(directory / name))
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"checkpoint {directory}: corrupt {name} ({exc})") from exc
+
+
 def load_member_head(directory: str | Path, config: CheckpointConfig) -> MemberPathHead | None:
     """The member path head a checkpoint's config describes (None where it has none).
 
@@ -293,10 +310,7 @@ def load_member_head(directory: str | Path, config: CheckpointConfig) -> MemberP
         raise CheckpointError(
             f"checkpoint {directory}: missing {MEMBER_HEAD_WEIGHTS} (its config has a member head)"
         )
-    try:
-        state = load_file(str(path))
-    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
-        raise CheckpointError(f"checkpoint {directory}: corrupt {MEMBER_HEAD_WEIGHTS} ({exc})") from exc
+    state = _read_weights(directory, MEMBER_HEAD_WEIGHTS)
     head = MemberPathHead(config.member_head)
     expected = head.state_dict()
     if set(state) != set(expected) or any(state[k].shape != expected[k].shape for k in expected):

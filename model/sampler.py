@@ -28,7 +28,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from snakeloco.model.api import GaitModel, load_pretrained
-from snakeloco.model.checkpoint import save_checkpoint
+from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.density import fit_density, name_components
 from snakeloco.model.member_path import fit_member_head, member_inputs
 from snakeloco.model.replays import load_side_file, replay_shapes, save_side_file
@@ -164,11 +164,8 @@ def fit_sampler(
                 f"{data}: {len(ds)} {ds.config.family} records cannot be a prefix of this checkpoint's "
                 f"{n_trained} {config.family} training records"
             )
-    elif ds.meta_hash != config.dataset_meta_sha256:
-        raise DatasetError(
-            f"{data} is not the dataset this checkpoint was trained on (meta hash {ds.meta_hash[:12]}, "
-            f"checkpoint {config.dataset_meta_sha256[:12]})"
-        )
+    else:
+        check_trained_on(config, ds, data)
     split_n = n_trained if cfg.prefix else len(ds)
     tr_idx, va_idx = split_records(
         split_n, float(config.train.get("val_fraction", 0.1)), int(config.train.get("seed", 0))

@@ -461,7 +461,9 @@ def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
     assert support.sum() == 8 and support[1::2, 0].all() and support[1::2, 4].all()
     # Both ship a slider density; the structured one decodes exact members with their predicted paths.
     assert by_name.config.density is not None and not by_name.projects
-    assert structured.config.density is not None and structured.projects and structured.member_head is not None
+    assert (
+        structured.config.density is not None and structured.projects and structured.member_head is not None
+    )
     for m in (by_name, structured):
         z = m.sample_z_b(64, seed=11)
         assert m.off_data(z).mean() < 0.1 and m.off_data(np.full((1, m.z_b_dim), 6.0))[0]
