@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
@@ -51,12 +51,12 @@ class SamplerConfig(BaseModel):
     density_only: bool = Field(
         False, description="Fit and store the slider density only (no replays; the paper family)."
     )
-    prefix: bool = Field(
+    regenerated: bool = Field(
         False,
-        description="With --sampler.density-only: the dataset is the first N records of the checkpoint's "
-        "training set (the same family, seed and config with fewer samples; records are deterministic in "
-        "seed and index), and the density is fitted to those of them in the training split. For a "
-        "training set too large to regenerate whole.",
+        description="The dataset is the checkpoint's training set generated again (the same family, seed "
+        "and config; records are deterministic in seed and index), possibly only its first N records or "
+        "under another MuJoCo version, so its meta hash differs: the records of the training split are "
+        "used. For a training set not at hand or too large to regenerate whole.",
     )
     max_components: int = Field(6, ge=1, description="Most mixture components tried (chosen by BIC).")
     samples: int = Field(
@@ -74,12 +74,6 @@ class SamplerConfig(BaseModel):
     lr: float = Field(2e-3, gt=0, description="Peak learning rate of the head (Adam, cosine to 1%).")
     hidden: int = Field(256, ge=8, description="Width of the head's hidden layers.")
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
-
-    @model_validator(mode="after")
-    def _prefix_for_a_density_only(self) -> SamplerConfig:
-        if self.prefix and not self.density_only:
-            raise ValueError("--sampler.prefix fits a density only: add --sampler.density-only")
-        return self
 
 
 def _drawn(cfg: SamplerConfig) -> dict:
@@ -158,15 +152,15 @@ def fit_sampler(
     config = model.config
     ds = load_dataset(data)
     n_trained = int(config.train.get("n_train", 0)) + int(config.train.get("n_val", 0))
-    if cfg.prefix:
+    if cfg.regenerated:
         if ds.config.family != config.family or not 0 < len(ds) <= n_trained:
             raise DatasetError(
-                f"{data}: {len(ds)} {ds.config.family} records cannot be a prefix of this checkpoint's "
-                f"{n_trained} {config.family} training records"
+                f"{data}: {len(ds)} {ds.config.family} records cannot be this checkpoint's "
+                f"{n_trained} {config.family} training records generated again"
             )
     else:
         check_trained_on(config, ds, data)
-    split_n = n_trained if cfg.prefix else len(ds)
+    split_n = n_trained if cfg.regenerated else len(ds)
     tr_idx, va_idx = split_records(
         split_n, float(config.train.get("val_fraction", 0.1)), int(config.train.get("seed", 0))
     )

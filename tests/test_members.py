@@ -11,7 +11,7 @@ import pytest
 
 from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, read_member, write_gait_csv
 from snakeloco.model.density import LatentDensity, fit_density, name_components
-from snakeloco.sim import shape_to_commands
+from snakeloco.sim import GenerateConfig, generate_dataset, shape_to_commands
 from snakeloco.sim.gaits import GaitEquation
 from snakeloco.sim.members import Member, member_from_draw, project, residual
 from snakeloco.sim.structured import STRUCTURED_PRESETS, draw_structured
@@ -202,10 +202,13 @@ def test_calibrate_sampler_density_only_gives_the_paper_family_a_sampler_and_a_f
     np.testing.assert_array_equal(z, m.sample_z_b(4, seed=3))
     np.testing.assert_array_equal(m.decode(z)[0], before.decode(z)[0])  # its decodes unchanged
     assert m.off_data(np.full((1, m.z_b_dim), 40.0))[0]
-    # a prefix needs --sampler.density-only; a dataset of another family or size is refused in one line
+    # A dataset regenerated must be of the checkpoint's family and at most its size: refused in one line.
+    bigger = tmp_path / "bigger.npz"
+    generate_dataset(GenerateConfig(num_samples=5, seed=11), bigger, workers=2)
+    args[2] = str(bigger)
     with pytest.raises(SystemExit):
-        main([*args, "--sampler", "--sampler.prefix"])
-    assert "density-only" in capsys.readouterr().err
+        main([*args, "--sampler", "--sampler.density-only", "--sampler.regenerated"])
+    assert "cannot be this checkpoint's 4 paper training records" in capsys.readouterr().err
 
 
 @pytest.mark.slow
