@@ -60,7 +60,7 @@ class SamplerConfig(BaseModel):
     )
     max_components: int = Field(6, ge=1, description="Most mixture components tried (chosen by BIC).")
     samples: int = Field(
-        768,
+        256,
         ge=0,
         description="Sampler z_B decoded with z_k = 0 and with z_k sampled (T = 1), each member replayed "
         "once: the member path head's labels beside the records.",
