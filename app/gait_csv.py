@@ -1,7 +1,9 @@
 """Gait CSV files: what "Export CSV" writes and "Import CSV" accepts.
 
-Format: optional ``#`` comment lines (export writes z_B, the z_k mode and seed, the checkpoint hash
-and the consistency figures there; import ignores them), then the header
+Format: optional ``#`` comment lines (export writes z_B, the z_k mode and seed, the slider values
+along a cluster's axes, the structured family member as JSON (``# member:``, whose parameters give the
+commands to the bit: ``read_member``), the checkpoint hash and the consistency figures there; import
+ignores them), then the header
 ``time_s,joint_1,...,joint_8`` and exactly 2000 rows at a 0.05 s step starting at 0: time (s) and
 the 8 joint commands (rad) within +/-2.2 rad. No other columns. Numbers are written in Python's
 shortest round-trip form, so an exported gait re-imports to the very same float64 commands, and

@@ -23,7 +23,7 @@ import torch
 from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint, load_member_head
 from snakeloco.model.member_path import MemberPathHead, member_inputs
 from snakeloco.model.network import HierarchicalVAE
-from snakeloco.model.stats import stats_dict, stats_vector
+from snakeloco.model.stats import stats_dict
 from snakeloco.model.tracing import trace_single
 from snakeloco.sim.members import Member, project_many
 
@@ -166,14 +166,16 @@ class GaitModel:
     ) -> tuple[list[Member], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Decode, project and predict: the members (B), the projections' residuals (B,), the
         members' measured shapes (B, 8, L, 2), the paths predicted for them (B, 500, 6) (the
-        network's own body decode where the checkpoint has no member head) and those paths'
-        statistics {name: (B,)}."""
+        network's own body decode where the checkpoint has no member head) and the statistics the
+        model predicts for the members' shapes {name: (B,)} (``predict_stats``)."""
         shape, body, stats = self.decode_raw(z_b, z_j, with_stats=True)
         members, residuals = self.project(shape)
         if self.member_head is None:
             return members, residuals, self.member_shapes(members), body, stats
-        body = self.predict_paths(members)
-        return members, residuals, self.member_shapes(members), body, stats_dict(stats_vector(body))
+        # The statistics head judges the member's own shape: the predicted path's 5 Hz steps carry the
+        # head's small ripple, which a path length summed over 500 steps would count 3x over.
+        measured = self.member_shapes(members)
+        return members, residuals, measured, self.predict_paths(members), self.predict_stats(measured)
 
     def robot_warning(self) -> str | None:
         """None if the checkpoint was trained on this robot (``sim/snake.xml``), else a warning.
