@@ -31,8 +31,6 @@ COMMAND_PLOT_STEP = 2
 (3 Hz), so no wave is lost, in a plot a few hundred pixels wide; half the bytes of every decoded
 gait's largest message (9 series of float64, which viser sends whatever dtype it is given)."""
 COMMAND_PLOT_TIMES = RECORD.times[::COMMAND_PLOT_STEP]
-WIDE_PX = 1200
-"""A window at least this wide has room for the plots beside the scene: they open by default."""
 
 
 def hex_color(rgb: tuple[int, int, int]) -> str:
@@ -156,10 +154,9 @@ def build_controls(
     families: tuple[str, ...],
     family: str,
     components: list[str] | None = None,
-    wide: bool = False,
 ) -> Controls:
     """Add every folder and control of a tab to ``gui``: the readout first, in view without
-    scrolling; ``wide`` (a window of at least ``WIDE_PX``): the plots open too."""
+    scrolling."""
     readout = gui.add_html("<div>Decoding...</div>")
     with gui.add_folder("Model"):
         family_dropdown = gui.add_dropdown(
@@ -213,7 +210,7 @@ def build_controls(
         import_button = gui.add_upload_button("Import CSV", mime_type=".csv,text/csv,text/plain")
     with gui.add_folder("Consistency"):
         panel = gui.add_markdown("Decoding...")
-    with gui.add_folder("Plots", expand_by_default=wide):
+    with gui.add_folder("Plots", expand_by_default=False):
         no_time = {"x": {"time": False}}  # uPlot would read x as dates
         nan = np.full(len(PATH_PLOT_TIMES), np.nan)
         plots = {}

@@ -1,23 +1,11 @@
-"""What makes a tab's scene readable at a glance: a metre grid that light rendering keeps, distance
-rings around the start, and a camera that frames the snake and both paths.
-
-Frame: the start frame of ``scene.py`` (x forward, y left, z up; metres). The metre grid is plain
-line segments (one node for the 1 m lines, one for every 5 m), so it costs a software-WebGL browser
-what two paths cost, unlike viser's shaded grid, which light rendering turns off.
-"""
+"""A camera that frames the snake and both paths. Frame: the start frame of ``scene.py`` (x forward,
+y left, z up; metres)."""
 
 from __future__ import annotations
 
 import numpy as np
 import viser
 
-GRID_HALF = 40
-"""The metre grid spans +/- this many metres around the start (the fastest gaits go ~33 m in 100 s)."""
-RINGS_M = (1.0, 5.0, 10.0, 20.0, 30.0)
-"""Distance rings around the start (m), each labelled: 1 m and 10 m read differently at any zoom."""
-MINOR_COLOR = (205, 205, 205)
-MAJOR_COLOR = (150, 150, 150)
-RING_COLOR = (120, 120, 120)
 VIEW_DIRECTION = np.array([-3.0, -3.5, 2.5]) / np.linalg.norm([-3.0, -3.5, 2.5])
 """From where the camera looks at what it frames (unit vector from the target, start frame): behind
 the start, to the right and above, as the tab's first view."""
@@ -25,58 +13,6 @@ FRAME_MARGIN = 1.2
 """The framed points' bounding circle fills 1 / this of the narrower field of view."""
 MOVED_TOLERANCE_M = 0.02
 """A camera this far from where the tab last put it was moved by the user: framing leaves it alone."""
-
-
-def grid_segments(half: int = GRID_HALF, step: int = 1, skip: int | None = None) -> np.ndarray:
-    """(n, 2, 3) segments of the lines x = k step and y = k step (|k step| <= half) on the ground;
-    lines at multiples of ``skip`` are left out (drawn by another node)."""
-    ks = np.arange(-half, half + 1, step)
-    if skip is not None:
-        ks = ks[ks % skip != 0]
-    ks = ks.astype(np.float32)
-    lo, hi = np.full_like(ks, -half), np.full_like(ks, half)
-    zero = np.zeros_like(ks)
-    xs = np.stack([np.stack([ks, lo, zero], -1), np.stack([ks, hi, zero], -1)], 1)
-    ys = np.stack([np.stack([lo, ks, zero], -1), np.stack([hi, ks, zero], -1)], 1)
-    return np.concatenate([xs, ys]).astype(np.float32)
-
-
-def circle_segments(radius: float, n: int = 96) -> np.ndarray:
-    """(n, 2, 3) segments of a ground circle around the start."""
-    a = np.linspace(0.0, 2 * np.pi, n + 1)
-    p = np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros(n + 1)], -1).astype(np.float32)
-    return np.stack([p[:-1], p[1:]], 1)
-
-
-class MetreGrid:
-    """The metre grid, the distance rings with their labels and the start marker of one tab."""
-
-    def __init__(self, scene: viser.SceneApi) -> None:
-        self.nodes = [
-            scene.add_line_segments("/metres/minor", grid_segments(skip=5), MINOR_COLOR, thickness=1.0),
-            scene.add_line_segments("/metres/major", grid_segments(step=5), MAJOR_COLOR, thickness=1.5),
-            scene.add_line_segments(
-                "/metres/rings",
-                np.concatenate([circle_segments(r) for r in RINGS_M]),
-                RING_COLOR,
-                thickness=2.0,
-            ),
-            scene.add_label("/metres/start", "start", position=(0.0, 0.0, 0.02)),
-        ]
-        # Labels where the rings cross the forward axis's right side (where paths rarely run).
-        self.nodes += [
-            scene.add_label(f"/metres/ring_{r:g}", f"{r:g} m", position=(r * 0.7071, -r * 0.7071, 0.02))
-            for r in RINGS_M
-        ]
-
-    @property
-    def visible(self) -> bool:
-        return self.nodes[0].visible
-
-    @visible.setter
-    def visible(self, on: bool) -> None:
-        for node in self.nodes:
-            node.visible = on
 
 
 def framing(points: np.ndarray, fov: float, aspect: float) -> tuple[np.ndarray, np.ndarray]:

@@ -471,7 +471,6 @@ def test_light_rendering_drops_shadows_environment_and_grid_and_full_brings_them
         assert ("lights", (True,), {"cast_shadow": False}) in calls
         assert ("environment", (None,), {}) in calls
         assert d.controls.layers["Grid"].value is False and not d.scene.grid.visible
-        assert d.scene.metres.visible  # the metre grid is lines: light rendering keeps it
         calls.clear()
         d.controls.light.value = False
         assert ("lights", (True,), {"cast_shadow": True}) in calls
