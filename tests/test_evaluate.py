@@ -129,7 +129,10 @@ def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
             assert lo <= c[k] <= hi
         assert sum(c["diversity"]["heading_quadrants"].values()) == c["n_gaits"]
     text = format_report(report)
-    assert "consistency (zk_zero)" in text and "90% bootstrap interval of the median" in text
+    assert (
+        "consistency (zk_zero, z_B from the sampler" in text
+        and "90% bootstrap interval of the median" in text
+    )
     assert "physics' floor (2 records" in text and "where the replays went" in text
     assert (
         f"from z_B alone (z_k = 0, what the sliders draw at a record's z_B) {report['r2_shape_zk_zero']:.3f}"
