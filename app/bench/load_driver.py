@@ -94,6 +94,7 @@ class _Dragger:
 
             thumb = self.page.get_by_role("slider").nth(int(self.rng.integers(self.n_sliders)))
             try:  # a page starved of CPU may not lay out its sliders within Playwright's 30 s
+                thumb.scroll_into_view_if_needed()  # below the readout in a short window
                 box = thumb.bounding_box()
                 track = thumb.locator("xpath=..").bounding_box()
             except PlaywrightTimeout:
