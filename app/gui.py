@@ -31,6 +31,8 @@ COMMAND_PLOT_STEP = 2
 (3 Hz), so no wave is lost, in a plot a few hundred pixels wide; half the bytes of every decoded
 gait's largest message (9 series of float64, which viser sends whatever dtype it is given)."""
 COMMAND_PLOT_TIMES = RECORD.times[::COMMAND_PLOT_STEP]
+WIDE_PX = 1200
+"""A window at least this wide has room for the plots below the readout: they open by default."""
 
 
 def hex_color(rgb: tuple[int, int, int]) -> str:
@@ -154,9 +156,10 @@ def build_controls(
     families: tuple[str, ...],
     family: str,
     components: list[str] | None = None,
+    wide: bool = False,
 ) -> Controls:
     """Add every folder and control of a tab to ``gui``: the readout first, in view without
-    scrolling."""
+    scrolling; ``wide`` (a window of at least ``WIDE_PX``): the plots open too."""
     readout = gui.add_html("<div>Decoding...</div>")
     with gui.add_folder("Model"):
         family_dropdown = gui.add_dropdown(
@@ -190,7 +193,7 @@ def build_controls(
         light = gui.add_checkbox(
             LIGHT_RENDERING,
             False,
-            hint="Draw without shadows, environment lighting or the shaded grid: a browser without a GPU "
+            hint="Draw without shadows, environment lighting or the shaded grid (the metre grid stays): a browser without a GPU "
             "(software WebGL) draws each frame 2-3x sooner and answers the controls sooner. Set on by "
             "the page itself when it renders in software; turn the Grid back on at will",
         )
@@ -210,7 +213,7 @@ def build_controls(
         import_button = gui.add_upload_button("Import CSV", mime_type=".csv,text/csv,text/plain")
     with gui.add_folder("Consistency"):
         panel = gui.add_markdown("Decoding...")
-    with gui.add_folder("Plots", expand_by_default=False):
+    with gui.add_folder("Plots", expand_by_default=wide):
         no_time = {"x": {"time": False}}  # uPlot would read x as dates
         nan = np.full(len(PATH_PLOT_TIMES), np.nan)
         plots = {}

@@ -12,7 +12,7 @@ import trimesh
 import viser
 
 from snakeloco.app.session import DecodedGait, SimulatedGait
-from snakeloco.app.view import Framer
+from snakeloco.app.view import Framer, MetreGrid
 from snakeloco.app.viser_patches import set_arrays
 from snakeloco.sim import BODY_DOWNSAMPLE, LINK_LENGTH, LINK_RADIUS, N_LINKS, LinkPoses
 
@@ -38,7 +38,7 @@ SHAPE_SCALE = 1.5
 """Point-cloud metres per radian of FFT coefficient."""
 JOINT_SPACING = 0.12
 """Point-cloud height step between joints (m)."""
-LAYERS = ("Snake", "Generated path", "Simulated path", "Ensemble fan", "Joint shapes", "Grid")
+LAYERS = ("Snake", "Generated path", "Simulated path", "Ensemble fan", "Joint shapes", "Metre grid", "Grid")
 """The Layers checkboxes, in the order they are shown."""
 LIGHT_RENDERING = "Light rendering"
 """The Layers checkbox that draws the scene without its costly passes (``TabScene.set_light``)."""
@@ -119,11 +119,12 @@ class TabScene:
             for name, position in (("decoded", (-1.5, 1.0, 0.0)), ("measured", (-1.5, -1.0, 0.0)))
         }
         self.clouds: dict[str, viser.PointCloudHandle] = {}
+        self.metres = MetreGrid(scene)
         self._gen_points: np.ndarray | None = None  # what framing keeps in view (start frame, m)
         self._sim_points: np.ndarray | None = None
         client.camera.position = (-2.5, -3.5, 2.5)
         client.camera.look_at = (0.5, 0.0, 0.0)
-        self.framer = Framer(client)
+        self.framer = Framer(client, self.metres)
 
     def set_light(self, light: bool) -> None:
         """Full rendering (cascaded shadows, environment lighting) or light: neither. In a browser
@@ -140,6 +141,7 @@ class TabScene:
         on = {name: box.value for name, box in self.layers.items()}
         self.snake.visible = on["Snake"]
         self.grid.visible = on["Grid"]
+        self.metres.visible = on["Metre grid"]
         if self.gen_path is not None:
             self.gen_path.visible = on["Generated path"]
         if self.band is not None:

@@ -24,7 +24,7 @@ import viser
 from snakeloco.app import panel
 from snakeloco.app.design_panel import DesignPanel
 from snakeloco.app.gait_files import GaitFiles
-from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, build_controls
+from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, WIDE_PX, build_controls
 from snakeloco.app.latent_moves import LatentMoves
 from snakeloco.app.playback import PAUSE_WHEN_HIDDEN_JS, SOFTWARE_RENDERING_JS, Playback
 from snakeloco.app.readout import STREAM_READOUT_PERIOD_S, TabReadout
@@ -109,6 +109,7 @@ class DesignerClient(GaitFiles, LatentMoves, TabReadout):
             tuple(self.models),
             family,
             self._component_names(model),
+            wide=client.camera.image_width >= WIDE_PX,
         )
         self.scene = TabScene(client, self.controls.layers)
         self.scene.end_spread = END_SPREAD.get(model.family)

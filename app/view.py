@@ -1,5 +1,12 @@
-"""A camera that frames the snake and both paths. Frame: the start frame of ``scene.py`` (x forward,
-y left, z up; metres)."""
+"""What makes a tab's scene readable at a glance: a metre grid that light rendering keeps, distance
+rings around the start, and a camera that frames the snake and both paths. Frame: the start frame of
+``scene.py`` (x forward, y left, z up; metres).
+
+The metre grid is a flat mesh of thin quads (about 1,700 triangles), not line segments: three.js's
+screen-space lines extrude a segment that passes behind the camera across the whole window, which
+painted wide grey bands over a software-WebGL page when the rings were lines. Its line widths follow
+the framing (``MetreGrid.fit``), so they stay one to three pixels wide whether the paths span 2 m or
+30 m."""
 
 from __future__ import annotations
 
@@ -13,6 +20,95 @@ FRAME_MARGIN = 1.2
 """The framed points' bounding circle fills 1 / this of the narrower field of view."""
 MOVED_TOLERANCE_M = 0.02
 """A camera this far from where the tab last put it was moved by the user: framing leaves it alone."""
+GRID_HALF_M = 40
+"""The metre grid spans +/- this many metres around the start (the fastest gaits go ~33 m in 100 s)."""
+RINGS_M = (1.0, 2.0, 5.0, 10.0, 20.0, 30.0)
+"""Distance rings around the start (m), each labelled: 1 m and 10 m read differently at any zoom."""
+GRID_WIDTHS = {"minor": 0.0012, "major": 0.0025, "rings": 0.003}
+"""Line width (m) per metre of camera distance: about 1, 2.5 and 3 px at 950 px and viser's 50 deg
+field of view."""
+GRID_COLORS = {"minor": (200, 200, 200), "major": (150, 150, 150), "rings": (110, 110, 110)}
+GRID_LIFT_M = 0.002
+"""The grid's height above the ground, so that viser's shaded grid (at 0) does not fight it."""
+
+
+def ground_quads(segments: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ground segments (n, 2, 2) xy -> a mesh of one thin quad each, ``width`` wide: vertices
+    (4 n, 3) at ``GRID_LIFT_M`` and faces (2 n, 3), facing up."""
+    a, b = segments[:, 0], segments[:, 1]
+    d = b - a
+    normal = np.stack([-d[:, 1], d[:, 0]], -1) / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    off = 0.5 * width * normal
+    xy = np.stack([a - off, b - off, b + off, a + off], 1).reshape(-1, 2)
+    vertices = np.concatenate([xy, np.full((len(xy), 1), GRID_LIFT_M)], 1).astype(np.float32)
+    k = 4 * np.arange(len(segments))[:, None]
+    faces = np.concatenate([k + np.array([0, 1, 2]), k + np.array([0, 2, 3])]).astype(np.uint32)
+    return vertices, faces
+
+
+def grid_lines(step: int, skip: int | None = None, half: int = GRID_HALF_M) -> np.ndarray:
+    """(n, 2, 2) segments of the lines x = k step and y = k step (|k step| <= half); lines at
+    multiples of ``skip`` are left out (another node draws them)."""
+    ks = np.arange(-half, half + 1, step, dtype=np.float64)
+    if skip is not None:
+        ks = ks[ks % skip != 0]
+    lo, hi = np.full_like(ks, -half), np.full_like(ks, half)
+    xs = np.stack([np.stack([ks, lo], -1), np.stack([ks, hi], -1)], 1)
+    ys = np.stack([np.stack([lo, ks], -1), np.stack([hi, ks], -1)], 1)
+    return np.concatenate([xs, ys])
+
+
+def ring_lines(radii=RINGS_M, n: int = 96) -> np.ndarray:
+    """(len(radii) n, 2, 2) segments of circles around the start."""
+    a = np.linspace(0.0, 2 * np.pi, n + 1)
+    circles = [np.stack([r * np.cos(a), r * np.sin(a)], -1) for r in radii]
+    return np.concatenate([np.stack([c[:-1], c[1:]], 1) for c in circles])
+
+
+class MetreGrid:
+    """The metre grid (1 m lines, every 5 m darker), the labelled distance rings and the start
+    marker of one tab."""
+
+    def __init__(self, scene: viser.SceneApi) -> None:
+        self.scene = scene
+        self._lines = {"minor": grid_lines(1, skip=5), "major": grid_lines(5), "rings": ring_lines()}
+        self.meshes: dict[str, viser.MeshHandle] = {}
+        self.distance = 0.0
+        self.labels = [scene.add_label("/metres/start", "start", position=(0.0, 0.0, 0.02))] + [
+            # Where the rings cross the start's right rear (where paths rarely run).
+            scene.add_label(f"/metres/ring_{r:g}", f"{r:g} m", position=(-r * 0.7071, -r * 0.7071, 0.02))
+            for r in RINGS_M
+        ]
+        self._visible = True
+        self.fit(float(np.linalg.norm([-2.5, -3.5, 2.5])))  # the tab's first view
+
+    def fit(self, distance: float) -> None:
+        """Line widths for a camera ``distance`` m from what it looks at; redrawn only when that
+        changed by more than a quarter (a few kB)."""
+        if self.distance and 0.8 < distance / self.distance < 1.25:
+            return
+        self.distance = distance
+        for name, segments in self._lines.items():
+            vertices, faces = ground_quads(segments, GRID_WIDTHS[name] * distance)
+            self.meshes[name] = self.scene.add_mesh_simple(
+                f"/metres/{name}",
+                vertices,
+                faces,
+                color=GRID_COLORS[name],
+                cast_shadow=False,
+                receive_shadow=False,
+                visible=self._visible,
+            )
+
+    @property
+    def visible(self) -> bool:
+        return self._visible
+
+    @visible.setter
+    def visible(self, on: bool) -> None:
+        self._visible = on
+        for node in [*self.meshes.values(), *self.labels]:
+            node.visible = on
 
 
 def framing(points: np.ndarray, fov: float, aspect: float) -> tuple[np.ndarray, np.ndarray]:
@@ -46,8 +142,9 @@ class Framer:
     """Frames a tab's camera on what it shows, unless the user moved the camera since the tab last
     placed it (then only "Frame paths" does)."""
 
-    def __init__(self, client: viser.ClientHandle) -> None:
+    def __init__(self, client: viser.ClientHandle, grid: MetreGrid | None = None) -> None:
         self.client = client
+        self.grid = grid
         self._placed: np.ndarray | None = np.asarray(client.camera.position, np.float64)
 
     def placed(self) -> None:
@@ -69,4 +166,6 @@ class Framer:
             camera.position = tuple(position)
             camera.look_at = tuple(look_at)
         self._placed = np.asarray(position, np.float64)
+        if self.grid is not None:
+            self.grid.fit(float(np.linalg.norm(position - look_at)))
         return True

@@ -471,6 +471,7 @@ def test_light_rendering_drops_shadows_environment_and_grid_and_full_brings_them
         assert ("lights", (True,), {"cast_shadow": False}) in calls
         assert ("environment", (None,), {}) in calls
         assert d.controls.layers["Grid"].value is False and not d.scene.grid.visible
+        assert d.scene.metres.visible  # the metre grid is a few quads: light rendering keeps it
         calls.clear()
         d.controls.light.value = False
         assert ("lights", (True,), {"cast_shadow": True}) in calls
@@ -478,3 +479,22 @@ def test_light_rendering_drops_shadows_environment_and_grid_and_full_brings_them
         assert d.controls.layers["Grid"].value is True and d.scene.grid.visible
     finally:
         client.close()
+
+
+def test_the_metre_grid_is_thin_quads_on_the_ground_one_per_line():
+    from snakeloco.app.view import GRID_HALF_M, GRID_LIFT_M, RINGS_M, grid_lines, ground_quads, ring_lines
+
+    lines = grid_lines(1, skip=5)
+    assert len(lines) == 2 * (2 * GRID_HALF_M + 1 - (2 * GRID_HALF_M // 5 + 1))  # 5 m lines left out
+    vertices, faces = ground_quads(lines, 0.02)
+    assert vertices.shape == (4 * len(lines), 3) and faces.shape == (2 * len(lines), 3)
+    assert np.all(vertices[:, 2] == np.float32(GRID_LIFT_M))
+    quad = vertices[:4, :2].astype(np.float64)  # the line x = -40: 2 cm wide, 80 m long
+    assert np.ptp(quad[:, 0]) == pytest.approx(0.02, abs=1e-5) and np.ptp(quad[:, 1]) == pytest.approx(80.0)
+    # Faces face up (counter-clockwise seen from above), so the default front side is drawn.
+    a, b, c = (vertices[faces[:, i], :2].astype(np.float64) for i in range(3))
+    cross = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+    assert np.all(cross > 0)
+    rings = ring_lines(n=96)
+    radii = np.linalg.norm(rings.reshape(-1, 2), axis=1).reshape(len(RINGS_M), -1)
+    assert np.allclose(radii, np.array(RINGS_M)[:, None])

@@ -4,8 +4,11 @@ paths after a decode and a replay, and the metre grid stays with light rendering
 
 from __future__ import annotations
 
+import io
+
 import numpy as np
 import pytest
+from PIL import Image
 
 from snakeloco.app.bench.load import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.readout import READOUT_ID
@@ -25,6 +28,25 @@ def _ends_in_view(d) -> bool:
     return bool(in_view(np.array(ends), cam.position, cam.look_at, cam.fov, cam.aspect).all())
 
 
+def _canvas(page) -> np.ndarray:
+    return np.asarray(
+        Image.open(io.BytesIO(page.locator("canvas").first.screenshot())).convert("RGB"), np.int16
+    )
+
+
+def _grid_pixels(page, d) -> int:
+    """Pixels of the scene that change when the metre grid is turned off (and on again)."""
+    with_grid = _canvas(page)
+    d.controls.layers["Metre grid"].value = False
+    changed = 0
+    for _ in range(20):  # the page draws the change within a frame or a few
+        changed = int((np.abs(_canvas(page) - with_grid).max(axis=-1) > 30).sum())
+        if changed:
+            break
+    d.controls.layers["Metre grid"].value = True
+    return changed
+
+
 def test_the_readout_is_in_view_and_says_what_the_server_computed_and_the_camera_frames_the_paths(checkpoint):
     sync_api = pytest.importorskip("playwright.sync_api")
     srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
@@ -37,6 +59,11 @@ def test_the_readout_is_in_view_and_says_what_the_server_computed_and_the_camera
             d = next(iter(srv.clients.values()))
             assert d.wait_idle(90) and d.simulated is not None
             assert wait_until(lambda: d.controls.light.value is True, 30), "the page kept full rendering"
+            # The metre grid is drawn in light rendering (the shaded grid is not).
+            assert d.scene.metres.visible and not d.controls.layers["Grid"].value
+            assert _grid_pixels(page, d) > 2000, "the metre grid is not drawn with light rendering on"
+            # The plots open by default in a window this wide.
+            sync_api.expect(page.locator(".u-title", has_text="forward (m)")).to_be_visible(timeout=30000)
 
             # A decode far from the start: the camera frames both paths' ends once the replay is done.
             d.sliders[0].value = 2.5
