@@ -216,10 +216,14 @@ class BenchApp(Command):
 
 
 class BenchLoad(Command):
-    """Several headless Chromium tabs drag sliders on one server: latency, exceptions, stale draws, RSS."""
+    """Several users drag sliders on one server (protocol clients, or headless Chromium pages): latency, bytes, exceptions, stale draws, RSS."""
 
     clients: Annotated[int, Field(ge=1)] = 4
-    """Browser tabs in the multi-client phase (a single-client phase runs first, side by side)."""
+    """Users in the multi-client phase (a single-client phase runs first, side by side)."""
+    driver: Literal["protocol", "browser"] = "protocol"
+    """protocol: each user is an asyncio websocket client speaking viser's protocol (next to no CPU, as users' browsers on their own machines), with one real Chromium page beside the multi-client phase's; browser: a Chromium page each (for machines with spare cores: --pin-cpus)."""
+    browser_page: bool = True
+    """With --driver protocol: one Chromium page drags beside the protocol clients of the multi-client phase and passes the same stale checks on what it drew and exported."""
     seconds: Annotated[float, Field(gt=0)] = 60.0
     """Length of each phase."""
     json: bool = False

@@ -54,6 +54,7 @@ class Readout:
     gait: str = ""  # the gait in words (its family member, or where it came from)
     off_data: bool = False
     ring: bool = False  # the tab's family draws a ring where the replay is likely to end
+    sliders: tuple[float, ...] | None = None  # the slider values of the gait (None: a file's gait)
 
     @property
     def gap_m(self) -> float | None:
@@ -117,8 +118,11 @@ def readout_html(r: Readout, colors: dict[str, tuple[int, int, int]]) -> str:
         if gap is not None
         else "<b>End-point gap</b> after the replay"
     )
+    # Which slider values this readout is for: a protocol client (``bench load``) matches its views
+    # to its drags by it, and a stale readout says so.
+    sliders = f' data-sliders="{",".join(f"{v:.4f}" for v in r.sliders)}"' if r.sliders is not None else ""
     parts = [
-        f'<div id="{READOUT_ID}" style="font-size:0.82em;line-height:1.5">',
+        f'<div id="{READOUT_ID}"{sliders} data-state="{r.state}" style="font-size:0.82em;line-height:1.5">',
         "<div>" + " &nbsp;".join(legend) + "</div>",
         '<table style="border-collapse:collapse;width:100%"><tr style="opacity:0.7">'
         "<td></td><td>distance</td><td>direction</td><td>heading</td></tr>",
@@ -167,6 +171,7 @@ class TabReadout:
             gait=words,
             off_data=gait.off_data,
             ring=self.scene.end_spread is not None,
+            sliders=gait.latents.sliders if gait.latents is not None else None,
         )
         colors = {"model": GEN_COLOR, "mujoco": SIM_COLOR, "ensemble": FAN_COLOR, "ring": BAND_COLOR}
         self.controls.readout.content = readout_html(self.readout, colors)

@@ -235,8 +235,13 @@ def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: i
     if d.decoded is None or d.decoded.latents is None or d.decoded.latents.sliders != z:
         problems.append(f"current gait decoded from {getattr(d.decoded, 'latents', None)}, sliders at {z}")
         return problems
-    shape, body = d.model.decode(np.asarray(d.decoded.latents.z_b)[None])
-    commands = d.model.commands(shape[0])
+    z_b = np.asarray(d.decoded.latents.z_b)[None]
+    if d.model.projects:  # the exact member the decode projects onto: its commands, to the bit
+        members, _, _, body, _ = d.model.decode_members(z_b)
+        commands = members[0].commands()
+    else:
+        shape, body = d.model.decode(z_b)
+        commands = d.model.commands(shape[0])
     if not np.allclose(d.controls.plots["forward (m)"].data[1], body[0, ::PATH_PLOT_STEP, 1], atol=1e-9):
         problems.append("drawn generated path is not the decode of the final sliders")
     problems += replay_problems(d)
@@ -358,11 +363,20 @@ def bench_load(
     single_seconds: float | None = None,
     dwell: float = DWELL_S,
     browser_nice: int = BROWSER_NICE,
+    driver: str = "protocol",
+    browser_page: bool = True,
 ) -> dict:
-    """Run the single-client and ``clients``-client phases and summarise them (see module docstring)."""
+    """Run the single-client and ``clients``-client phases and summarise them (see module docstring).
+    ``driver``: "protocol" (``bench.protocol`` clients; ``browser_page``: one Chromium page beside
+    the multi-client phase's) or "browser" (a Chromium page each)."""
     import tempfile
 
-    require_browser("bench load")
+    from snakeloco.app.bench.load_protocol import protocol_phase
+
+    if driver not in ("protocol", "browser"):
+        raise ValueError(f"driver must be protocol or browser, got {driver!r}")
+    if driver == "browser" or browser_page:
+        require_browser("bench load")
     split = split_cpus() if pin_cpus else None
     all_cpus = sorted(os.sched_getaffinity(0)) if split else None
     if split:
@@ -380,7 +394,11 @@ def bench_load(
                 length = single_seconds if n == 1 and single_seconds else seconds
                 if log:
                     log(f"{n} client(s) dragging sliders for {length:g} s")
-                phases[n] = _phase(server, n, length, rng, Path(tmp), log, pages)
+                if driver == "protocol":
+                    with_page = browser_page and n == clients and clients > 1
+                    phases[n] = protocol_phase(server, n, length, rng, Path(tmp), log, pages, with_page)
+                else:
+                    phases[n] = _phase(server, n, length, rng, Path(tmp), log, pages)
     finally:
         rss.stop()
         browser_group.stop()
@@ -398,7 +416,9 @@ def bench_load(
     )
     all_rss = np.asarray(rss.samples)[:, 1]
     p95s = [c["decoded_p95_ms"] for c in multi["clients"]]
+    pages_checked = [ph["page"] for ph in phases.values() if ph.get("page")]
     result = {
+        "driver": driver,
         "clients": clients,
         "seconds": seconds,
         "rendered": render,
@@ -445,8 +465,23 @@ def bench_load(
         "server_exceptions": len(phases[1]["server_exceptions"]) + len(multi["server_exceptions"]),
         "exception_messages": (phases[1]["server_exceptions"] + multi["server_exceptions"])[:10],
         "page_errors": len(phases[1]["page_errors"]) + len(multi["page_errors"]),
-        "stale_draws": sum(bool(c["stale"]) for ph in phases.values() for c in ph["clients"]),
-        "stale_details": [c["stale"] for ph in phases.values() for c in ph["clients"] if c["stale"]],
+        "stale_draws": sum(bool(c["stale"]) for ph in phases.values() for c in ph["clients"])
+        + sum(bool(p["stale"]) for p in pages_checked),
+        "stale_details": [c["stale"] for ph in phases.values() for c in ph["clients"] if c["stale"]]
+        + [p["stale"] for p in pages_checked if p["stale"]],
+        "browser_page": pages_checked[0] if pages_checked else None,
+        # Protocol driver: bytes each client received while dragging, per decoded view the server
+        # drew for it and per drag; cores the load generators' process used.
+        "kb_per_move": [c.get("kb_per_move", float("nan")) for c in multi["clients"]],
+        "single_kb_per_move": single.get("kb_per_move", float("nan")),
+        "kb_per_drag": [c.get("kb_per_drag", float("nan")) for c in multi["clients"]],
+        "driver_cores": multi.get("driver_cores", multi["cores"]["browsers"]),
+        "single_driver_cores": phases[1].get("driver_cores", phases[1]["cores"]["browsers"]),
+        "delivery_p95_ms": [c.get("delivery_p95_ms", float("nan")) for c in multi["clients"]],
+        "multi_decoded_server_p95_ms": [
+            c.get("decoded_server_p95_ms", float("nan")) for c in multi["clients"]
+        ],
+        "multi_replay_server_p95_ms": [c.get("replay_server_p95_ms", float("nan")) for c in multi["clients"]],
         "rss_start_mb": float(all_rss[0]),
         "rss_end_mb": float(all_rss[-1]),
         "rss_peak_mb": float(all_rss.max()),

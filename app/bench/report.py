@@ -104,6 +104,8 @@ def load(cmd) -> dict:
         single_seconds=cmd.single_seconds,
         dwell=cmd.dwell,
         browser_nice=cmd.browser_nice,
+        driver=cmd.driver,
+        browser_page=cmd.browser_page,
     )
     where = (
         f"server on CPUs {r['server_cpus']}, browsers on CPUs {r['browser_cpus']}"
@@ -145,6 +147,25 @@ def load(cmd) -> dict:
         f"peak {r['rss_peak_mb']:.0f} MB; tabs idle before / after the drags "
         f"{r['rss_idle_before_mb']:.0f} / {r['rss_idle_after_mb']:.0f} MB"
     )
+    if r["driver"] == "protocol":
+        print(
+            f"protocol clients: kB received per decoded view, 1 client {r['single_kb_per_move']:.0f}, each of "
+            f"{r['clients']} "
+            + ", ".join(f"{v:.0f}" for v in r["kb_per_move"])
+            + " (per drag "
+            + ", ".join(f"{v:.0f}" for v in r["kb_per_drag"])
+            + f"); the clients' process used {r['single_driver_cores']:.3f} / {r['driver_cores']:.3f} cores; "
+            f"server part of the decoded view p95 "
+            + ", ".join(f"{v:.0f}" for v in r["multi_decoded_server_p95_ms"])
+            + " ms, delivery p95 "
+            + ", ".join(f"{v:.1f}" for v in r["delivery_p95_ms"])
+            + " ms"
+            + (
+                f"; the Chromium page beside them: stale {r['browser_page']['stale'] or 'none'}"
+                if r["browser_page"]
+                else ""
+            )
+        )
     for details in r["stale_details"]:
         print("stale:", "; ".join(details))
     for message in r["exception_messages"]:

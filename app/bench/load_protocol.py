@@ -1,0 +1,195 @@
+"""One phase of ``snakeloco bench load --driver protocol``: protocol clients (``bench.protocol``),
+all in one process at the browsers' nice, and optionally one real Chromium page beside them.
+
+Latencies are the clients' own: from a drag's trailing value leaving the client to the frame that
+carried its decoded view, first motion and replay ready (``protocol.Drag``), split into server time
+(the frame's timestamp) and delivery. Stale checks use what each client's stream last said (its
+readout is for its final sliders and says done or failed) and what the server drew for it (the
+generated path of an independent decode of those values, the simulated path of its replay), and
+for the Chromium page the browser driver's checks of what it drew and exported.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+from pathlib import Path
+
+import numpy as np
+
+from snakeloco.app.bench import protocol
+from snakeloco.app.bench.processes import CpuSplit, rss_mb
+from snakeloco.app.gui import PATH_PLOT_STEP
+from snakeloco.app.server import DesignerServer
+from snakeloco.app.tab import DesignerClient
+
+SETTLE_S = 120.0
+"""How long a client waits, after its last drag, for that drag's replay to be done."""
+
+
+def _p(values, q: float) -> float:
+    v = np.asarray(values, np.float64)
+    return float(np.percentile(v, q)) if v.size else float("nan")
+
+
+def server_problems(d: DesignerClient, s: dict, replay_problems) -> list[str]:
+    """What the server shows a protocol client that is not of its final sliders (``s``: the
+    client's summary)."""
+    z = [float(v.value) for v in d.sliders]
+    if not np.allclose(z, s["final_values"], atol=5e-5):
+        return [f"server sliders {z} != the client's final values {s['final_values']}"]
+    if d.decoded is None or d.decoded.latents is None:
+        return ["no gait decoded for the final sliders"]
+    _, body = d.model.decode(np.asarray(d.decoded.latents.z_b)[None])
+    problems = []
+    want = body[0, ::PATH_PLOT_STEP, 1]
+    if s["generated"] is None or not np.allclose(s["generated"], want, atol=1e-6):
+        problems.append("the generated path the client received is not the decode of its final sliders")
+    return problems + replay_problems(d)
+
+
+def _match(server: DesignerServer, before: set, summaries: list[dict]) -> list[DesignerClient | None]:
+    """The server tab of each client: the one whose sliders sit at its final values."""
+    tabs = [server.clients[k] for k in set(server.clients) - before if k in server.clients]
+    out = []
+    for s in summaries:
+        found = [
+            d for d in tabs if np.allclose([float(v.value) for v in d.sliders], s["final_values"], atol=5e-5)
+        ]
+        out.append(found[0] if found else None)
+        if found:
+            tabs.remove(found[0])
+    return out
+
+
+def protocol_phase(
+    server: DesignerServer, n: int, seconds: float, rng, tmp: Path, log, pages, with_page: bool
+) -> dict:
+    """``n`` protocol clients drag for ``seconds`` (plus, ``with_page``, one Chromium page); the
+    phase in ``bench_load``'s form."""
+    from snakeloco.app.bench.load import _Browser, _stale_checks, _wait_quiet, replay_problems
+
+    before = set(server.clients)
+    browser, page_tab, process = None, None, None
+    ctx = multiprocessing.get_context("spawn")
+    conn, child = ctx.Pipe()
+    seeds = [int(rng.integers(2**32)) for _ in range(n)]
+    errors_before = len(server.errors)
+    try:
+        if with_page:
+            browser = _Browser(f"http://127.0.0.1:{server.port}", pages)
+            browser.call("open", timeout=180)
+            from snakeloco.app.bench.load import wait_until
+
+            if not wait_until(lambda: set(server.clients) - before, 90):
+                raise RuntimeError("the Chromium page never connected to the designer")
+            page_tab = server.clients[(set(server.clients) - before).pop()]
+            page_tab.wait_idle(120)
+        seen = set(server.clients)
+        rss_idle_before = rss_mb()
+        cpu = CpuSplit()
+        t_start = time.monotonic()
+        process = ctx.Process(
+            target=protocol.main,
+            args=(
+                child,
+                f"http://127.0.0.1:{server.port}",
+                seeds,
+                seconds,
+                pages.dwell,
+                pages.nice,
+                SETTLE_S,
+            ),
+            name="bench-load-protocol",
+        )
+        process.start()
+        child.close()
+        if browser is not None:
+            browser.send("drag", seconds, page_tab.model.z_b_dim, [int(rng.integers(2**32))], pages.dwell)
+        if not conn.poll(seconds + SETTLE_S + 300):
+            raise RuntimeError("the protocol clients did not finish")
+        status, result = conn.recv()
+        if status != "ok":
+            raise RuntimeError(f"protocol clients: {result}")
+        page_moves = browser.receive("drag", timeout=600)[0] if browser is not None else None
+        cores = cpu.stop()
+        t_end = time.monotonic()
+        tabs = [d for k, d in server.clients.items() if k in seen and d is not page_tab]
+        settled = _wait_quiet(tabs + ([page_tab] if page_tab else []))
+        rss_idle_after = rss_mb()
+        clients = []
+        matched = _match(
+            server, before | ({k for k, d in server.clients.items() if d is page_tab}), result["clients"]
+        )
+        for i, (s, d) in enumerate(zip(result["clients"], matched, strict=True)):
+            stale = protocol.stream_problems(s)
+            stale += (
+                server_problems(d, s, replay_problems) if d is not None else ["no server tab at its values"]
+            )
+            drawn = [t for t in (d.timings if d else []) if np.isfinite(t.decoded) and np.isfinite(t.started)]
+            views = max(1, sum(1 for t in (d.timings if d else []) if np.isfinite(t.decoded)))
+            clients.append(
+                {
+                    "updates": len(d.timings) if d else 0,
+                    "decoded_drawn": len(s["decoded_ms"]),
+                    "replays_drawn": len(s["replay_ms"]),
+                    "decoded_p50_ms": _p(s["decoded_ms"], 50),
+                    "decoded_p95_ms": _p(s["decoded_ms"], 95),
+                    "decoded_server_p95_ms": _p(s["decoded_server_ms"], 95),
+                    "replay_p50_ms": _p(s["replay_ms"], 50),
+                    "replay_p95_ms": _p(s["replay_ms"], 95),
+                    "replay_server_p95_ms": _p(s["replay_server_ms"], 95),
+                    "first_motion_p50_ms": _p(s["first_motion_ms"], 50),
+                    "first_motion_p95_ms": _p(s["first_motion_ms"], 95),
+                    "delivery_p95_ms": s["delivery_p95_ms"],
+                    "wait_p95_ms": _p([1e3 * (t.started - t.submitted) for t in drawn], 95),
+                    "decode_p95_ms": _p([t.decode_ms for t in drawn], 95),
+                    "draw_p95_ms": _p([1e3 * (t.decoded - t.started) - t.decode_ms for t in drawn], 95),
+                    "drags": s["drags"],
+                    "kb_per_drag": s["bytes_dragging"] / 1e3 / max(1, s["drags"]),
+                    "kb_per_move": s["bytes_dragging"] / 1e3 / views,
+                    "mouse_moves": 0,
+                    "stalls": 0,
+                    "slowest_move_s": float("nan"),
+                    "move_p95_ms": float("nan"),
+                    "stale": stale if settled else ["did not settle within 180 s", *stale],
+                }
+            )
+            if log:
+                c = clients[-1]
+                log(
+                    f"  client {i + 1}/{n}: {c['drags']} drags, {c['replays_drawn']} replays ready, decoded "
+                    f"p95 {c['decoded_p95_ms']:.0f} ms, replay p95 {c['replay_p95_ms']:.0f} ms, "
+                    f"{c['kb_per_move']:.0f} kB per decoded view"
+                )
+        conn.send("close")  # the clients may leave now
+        process.join(60)
+        page = None
+        if browser is not None:
+            page = {
+                **page_moves,
+                "stale": _stale_checks(browser, page_tab, tmp, 0) if settled else ["did not settle"],
+            }
+        return {
+            "clients": clients,
+            "page": page,
+            "server_exceptions": server.errors[errors_before:],
+            "page_errors": browser.call("errors") if browser is not None else [],
+            "t_start": t_start,
+            "t_end": t_end,
+            "rss_idle_before_mb": rss_idle_before,
+            "rss_idle_after_mb": rss_idle_after,
+            "cores": cores,
+            "driver_cores": result["driver_cores"],
+        }
+    finally:
+        conn.close()
+        if process is not None and process.is_alive():
+            process.kill()
+            process.join(10)
+        if browser is not None:
+            try:
+                browser.call("close", timeout=60)
+            except RuntimeError:
+                pass
+            browser.close()

@@ -1,0 +1,373 @@
+"""Designer users without a browser: viser's wire protocol spoken from asyncio (``snakeloco bench
+load --driver protocol``).
+
+A user's browser runs on the user's machine; on a benchmark machine a Chromium per user competes
+with the server it measures (four software-WebGL pages on 2 cores: 6.7 runnable browser threads on
+average). A protocol client costs next to nothing, as a load tool's clients should. Against viser
+1.1.x it does what a page does on the wire:
+
+- joins with the websocket subprotocol ``viser-v{version}`` and sends a ``ViewerCameraMessage``
+  (no client exists on the server until one arrives), then keeps reading every frame;
+- keeps the GUI it is sent (creation messages by uuid, then ``GuiUpdateMessage`` merges) and finds
+  controls by label, as a person does;
+- pauses playback and turns on light rendering, as the browser driver's pages do;
+- drags a slider as viser's slider does: a value every 50 ms and a trailing one, then rests.
+
+Frames from the server are two little-endian u64 lengths, a zstd msgpack body (``messages``,
+``timestampSec`` from the server's ``perf_counter``, ``binaryBufferLengths``) and 8-byte aligned
+binary buffers that the body's ``{"__binary_index", "dtype"}`` placeholders point to.
+``perf_counter`` is the system's monotonic clock, so a frame's timestamp splits a latency measured
+here into server time (until the frame was made) and delivery (until it was read).
+
+A drag is matched to what it caused by the readout (``app.readout``): it carries the slider values
+its gait was decoded from and the replay's state, so the decoded view, first motion and replay
+ready of a drag are the first readouts for its final values with state simulating, streaming and
+done (or failed).
+
+This module imports numpy, msgspec, zstandard and websockets only (all of them viser's own
+dependencies): the process that runs the clients starts fast and stays small.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import time
+from dataclasses import dataclass, field
+
+import msgspec
+import numpy as np
+import websockets
+import zstandard
+
+SEND_PERIOD_S = 0.05
+"""How often viser's slider sends a dragged value (it throttles to 50 ms and sends a trailing one)."""
+CAMERA = {
+    "type": "ViewerCameraMessage",
+    "wxyz": [1.0, 0.0, 0.0, 0.0],
+    "position": [-2.5, -3.5, 2.5],
+    "fov": 0.8727,
+    "near": 0.01,
+    "far": 1000.0,
+    "image_height": 600,
+    "image_width": 960,
+    "look_at": [0.5, 0.0, 0.0],
+    "up_direction": [0.0, 0.0, 1.0],
+}
+"""What a 960x600 page reports of its camera when it opens (the browser driver's viewport)."""
+_SLIDERS = re.compile(r'data-sliders="([^"]*)"')
+_STATE = re.compile(r'data-state="([^"]*)"')
+DONE_STATES = ("done", "failed")
+
+
+def subprotocol() -> str:
+    import viser
+
+    return f"viser-v{viser.__version__}"
+
+
+def decode_frame(data: bytes) -> tuple[float, list[dict]]:
+    """A server frame -> (its server timestamp, its messages with binary placeholders replaced by
+    flat numpy arrays)."""
+    raw_len = int.from_bytes(data[0:8], "little")
+    zlen = int.from_bytes(data[8:16], "little")
+    body = msgspec.msgpack.decode(
+        zstandard.ZstdDecompressor().decompress(data[16 : 16 + zlen], max_output_size=raw_len)
+    )
+    buffers, offset = [], 16 + zlen
+    for n in body["binaryBufferLengths"]:
+        offset += (-offset) % 8
+        buffers.append(data[offset : offset + n])
+        offset += n
+
+    def resolve(obj):
+        if isinstance(obj, dict):
+            if "__binary_index" in obj and "dtype" in obj:
+                return np.frombuffer(buffers[obj["__binary_index"]], dtype=np.dtype(obj["dtype"]))
+            return {k: resolve(v) for k, v in obj.items()}
+        if isinstance(obj, list):
+            return [resolve(v) for v in obj]
+        return obj
+
+    return float(body["timestampSec"]), [resolve(m) for m in body["messages"]]
+
+
+def gui_update(uuid: str, value) -> bytes:
+    """A client frame: set a GUI control's value (a slider's, a checkbox's; True presses a button)."""
+    return msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": value}})
+
+
+def parse_readout(content: str) -> tuple[tuple[float, ...] | None, str | None]:
+    """The slider values and replay state a readout's HTML is for (None where it has none)."""
+    sliders, state = _SLIDERS.search(content), _STATE.search(content)
+    values = tuple(float(v) for v in sliders.group(1).split(",")) if sliders and sliders.group(1) else None
+    return values, state.group(1) if state else None
+
+
+@dataclass
+class Drag:
+    """One drag: its final values and when (client ``perf_counter``) each stage reached the client."""
+
+    slider: int
+    values: tuple[float, ...]
+    sent: float  # the trailing value went out
+    decoded: float = float("nan")
+    first_motion: float = float("nan")
+    replayed: float = float("nan")
+    server: dict[str, float] = field(default_factory=dict)  # the same stages' frame timestamps
+    failed: bool = False
+
+    def stage(self, state: str, now: float, stamp: float) -> None:
+        for name, states in (
+            ("decoded", ("simulating", "streaming", *DONE_STATES)),
+            ("first_motion", ("streaming", *DONE_STATES)),
+            ("replayed", DONE_STATES),
+        ):
+            if state in states and not np.isfinite(getattr(self, name)):
+                setattr(self, name, now)
+                self.server[name] = stamp
+        self.failed = self.failed or state == "failed"
+
+
+class ProtocolClient:
+    """One designer user on the wire. ``run`` joins, prepares the page as the browser driver does,
+    then ``drag_for``; everything received is read as it comes."""
+
+    def __init__(self, url: str, seed: int) -> None:
+        self.url = url.replace("http://", "ws://")
+        self.rng = np.random.default_rng(seed)
+        self.gui: dict[str, dict] = {}  # uuid -> {"type", "value", "props"}
+        self.bytes = 0
+        self.frames = 0
+        self.drags: list[Drag] = []
+        self.readout: tuple[tuple[float, ...] | None, str | None] = (None, None)
+        self.values: list[float] = []  # the slider values this client sent last
+        self.delivery_s: list[float] = []  # frame made on the server -> read here
+        self._changed = asyncio.Event()
+        self._ws = None
+        self.reading = True  # False: stop reading (a client that hangs; ``bench load`` tests)
+
+    # --- the GUI as sent ---------------------------------------------------------------------
+
+    def find(self, label: str, kind: str | None = None) -> str:
+        """The uuid of the control labelled ``label`` (of message type ``kind``)."""
+        for uuid, g in self.gui.items():
+            if g["props"].get("label") == label and (kind is None or g["type"] == kind):
+                return uuid
+        raise KeyError(f"no control labelled {label!r} among {len(self.gui)} received")
+
+    def sliders(self) -> list[str]:
+        found = []
+        i = 1
+        while True:
+            try:
+                found.append(self.find(f"z_B {i}", "GuiSliderMessage"))
+            except KeyError:
+                return found
+            i += 1
+
+    def plot(self, title: str) -> list[np.ndarray] | None:
+        """The series of the uPlot titled ``title`` as last received."""
+        for g in self.gui.values():
+            if g["type"] == "GuiUplotMessage" and g["props"].get("title") == title:
+                return [np.asarray(s) for s in g["props"].get("data") or []]
+        return None
+
+    def _apply(self, message: dict, now: float, stamp: float) -> None:
+        kind = message["type"]
+        if kind.startswith("Gui") and "uuid" in message and "props" in message:
+            self.gui[message["uuid"]] = {
+                "type": kind,
+                "value": message.get("value"),
+                "props": dict(message["props"]),
+            }
+        elif kind == "GuiUpdateMessage" and message["uuid"] in self.gui:
+            g = self.gui[message["uuid"]]
+            for k, v in message["updates"].items():
+                if k == "value":
+                    g["value"] = v
+                else:
+                    g["props"][k] = v
+            content = message["updates"].get("content")
+            if isinstance(content, str) and 'id="snakeloco-readout"' in content:
+                self.readout = parse_readout(content)
+                values, state = self.readout
+                if values is not None and state is not None:
+                    for drag in self.drags[-2:]:  # a drag's views arrive before the next one's
+                        if np.allclose(values, drag.values, atol=5e-5):
+                            drag.stage(state, now, stamp)
+        elif kind == "GuiRemoveMessage":
+            self.gui.pop(message.get("uuid"), None)
+
+    async def _read(self, ws) -> None:
+        async for data in ws:
+            now = time.perf_counter()
+            self.bytes += len(data)
+            self.frames += 1
+            stamp, messages = decode_frame(data)
+            self.delivery_s.append(now - stamp)
+            for message in messages:
+                self._apply(message, now, stamp)
+            self._changed.set()
+            while not self.reading:
+                await asyncio.sleep(0.5)
+
+    async def wait_for(self, predicate, timeout: float) -> bool:
+        deadline = time.perf_counter() + timeout
+        while not predicate():
+            left = deadline - time.perf_counter()
+            if left <= 0:
+                return False
+            self._changed.clear()
+            try:
+                await asyncio.wait_for(self._changed.wait(), min(left, 0.5))
+            except TimeoutError:
+                pass
+        return True
+
+    async def send(self, uuid: str, value) -> None:
+        await self._ws.send(gui_update(uuid, value))
+
+    # --- a user ------------------------------------------------------------------------------
+
+    async def join(self, timeout: float = 90.0) -> None:
+        """Connect, report a camera, wait for the sliders and the first replay; pause playback and
+        turn light rendering on."""
+        self._ws = await websockets.connect(self.url, subprotocols=[subprotocol()], max_size=None)
+        self._reader = asyncio.ensure_future(self._read(self._ws))
+        await self._ws.send(msgspec.msgpack.encode(CAMERA))
+        if not await self.wait_for(
+            lambda: len(self.sliders()) > 0 and self.readout[1] in DONE_STATES, timeout
+        ):
+            raise RuntimeError(f"the designer at {self.url} sent no sliders and replay within {timeout:g} s")
+        self.values = [float(self.gui[u]["value"]) for u in self.sliders()]
+        await self.send(self.find("Pause", "GuiButtonMessage"), True)
+        await self.send(self.find("Light rendering", "GuiCheckboxMessage"), True)
+
+    async def drag(self, dwell: float) -> Drag:
+        """Drag one random slider to a random value in 10-30 sends 50 ms apart (the last one sent
+        twice, as viser's trailing send), then rest ``dwell`` s."""
+        uuids = self.sliders()
+        i = int(self.rng.integers(len(uuids)))
+        props = self.gui[uuids[i]]["props"]
+        lo, hi, step = float(props["min"]), float(props["max"]), float(props["step"])
+        start, target = self.values[i], float(self.rng.uniform(lo, hi))
+        n = int(self.rng.integers(10, 30))
+        for k in range(1, n + 1):
+            value = round(min(max(start + (target - start) * k / n, lo), hi) / step) * step
+            self.values[i] = round(value, 6)
+            await self.send(uuids[i], self.values[i])
+            await asyncio.sleep(SEND_PERIOD_S)
+        await self.send(uuids[i], self.values[i])  # viser's trailing send
+        drag = Drag(i, tuple(self.values), time.perf_counter())
+        self.drags.append(drag)
+        await asyncio.sleep(dwell)
+        return drag
+
+    async def drag_for(self, seconds: float, dwell: float) -> None:
+        end = time.perf_counter() + seconds
+        while time.perf_counter() < end:
+            await self.drag(dwell)
+
+    async def close(self) -> None:
+        if self._ws is not None:
+            await self._ws.close()
+            self._reader.cancel()
+
+    def summary(self) -> dict:
+        """Per-drag figures (ms), bytes, and what the stream last said (for the stale checks)."""
+        drags = self.drags
+
+        def ms(stage: str) -> list[float]:
+            return [1e3 * (getattr(d, stage) - d.sent) for d in drags if np.isfinite(getattr(d, stage))]
+
+        def server_ms(stage: str) -> list[float]:
+            return [1e3 * (d.server[stage] - d.sent) for d in drags if stage in d.server]
+
+        plot = self.plot("forward (m)")
+        return {
+            "drags": len(drags),
+            "decoded_ms": ms("decoded"),
+            "first_motion_ms": ms("first_motion"),
+            "replay_ms": ms("replayed"),
+            "decoded_server_ms": server_ms("decoded"),
+            "replay_server_ms": server_ms("replayed"),
+            "delivery_p95_ms": 1e3 * float(np.percentile(self.delivery_s, 95))
+            if self.delivery_s
+            else float("nan"),
+            "bytes": self.bytes,
+            "frames": self.frames,
+            "final_values": list(self.values),
+            "readout_values": list(self.readout[0]) if self.readout[0] is not None else None,
+            "readout_state": self.readout[1],
+            "generated": plot[1].tolist() if plot and len(plot) > 1 else None,
+            "simulated": plot[2].tolist() if plot and len(plot) > 2 else None,
+        }
+
+
+def stream_problems(s: dict) -> list[str]:
+    """What a client's stream says is stale after its last drag settled: the readout for other
+    slider values, or no replay state for them."""
+    problems = []
+    if s["readout_values"] is None or not np.allclose(s["readout_values"], s["final_values"], atol=5e-5):
+        problems.append(
+            f"the last readout is for sliders {s['readout_values']}, the client sent {s['final_values']}"
+        )
+    elif s["readout_state"] not in DONE_STATES:
+        problems.append(
+            f"the last readout for the final sliders says {s['readout_state']!r}, not done or failed"
+        )
+    if s["generated"] is None:
+        problems.append("no generated path was received")
+    return problems
+
+
+async def _run(url: str, seeds: list[int], seconds: float, dwell: float, settle_s: float, done=None) -> dict:
+    """Join ``len(seeds)`` clients, drag for ``seconds``, wait for each last drag's replay; returns the
+    clients' summaries and the cores this process used while they dragged. ``done``: a coroutine
+    function awaited, clients still connected and reading, before they leave (the caller checks the
+    server's tabs meanwhile)."""
+    clients = [ProtocolClient(url, seed) for seed in seeds]
+    await asyncio.gather(*(c.join() for c in clients))
+    bytes_before = [c.bytes for c in clients]
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    await asyncio.gather(*(c.drag_for(seconds, dwell) for c in clients))
+    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    moved = [c.bytes - b for c, b in zip(clients, bytes_before, strict=True)]
+
+    def settled(c: ProtocolClient) -> bool:
+        values, state = c.readout
+        return state in DONE_STATES and values is not None and np.allclose(values, c.values, atol=5e-5)
+
+    await asyncio.gather(*(c.wait_for(lambda c=c: settled(c), settle_s) for c in clients))
+    result = {
+        "clients": [c.summary() | {"bytes_dragging": m} for c, m in zip(clients, moved, strict=True)],
+        "driver_cores": cpu / wall if wall > 0 else float("nan"),
+        "wall_s": wall,
+    }
+    if done is not None:
+        await done(result)
+    for c in clients:
+        await c.close()
+    return result
+
+
+def main(conn, url: str, seeds: list[int], seconds: float, dwell: float, nice: int, settle_s: float) -> None:
+    """Process entry (``bench load``): run the clients, send ``("ok", result)`` (or ``("error",
+    message)``), and keep them connected until the benchmark sends anything back."""
+    import traceback
+
+    if nice and hasattr(os, "nice"):
+        os.nice(nice)
+
+    async def done(result: dict) -> None:
+        conn.send(("ok", result))
+        await asyncio.get_running_loop().run_in_executor(None, conn.poll, 600.0)
+
+    try:
+        asyncio.run(_run(url, seeds, seconds, dwell, settle_s, done))
+    except Exception as exc:
+        conn.send(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=4)}"))
+    finally:
+        conn.close()

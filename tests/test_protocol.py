@@ -1,0 +1,92 @@
+"""`bench load`'s protocol clients against a served designer: they join as a page does, drag, read the
+decoded view and the replay off the wire, and report a stale stream; a client that stops reading
+does not hold up the others."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+from snakeloco.app.bench.load import replay_problems, wait_until
+from snakeloco.app.bench.load_protocol import server_problems
+from snakeloco.app.bench.protocol import DONE_STATES, ProtocolClient, parse_readout, stream_problems
+from snakeloco.app.readout import Readout, readout_html
+from snakeloco.app.server import DesignerServer
+
+
+def _settled(c: ProtocolClient) -> bool:
+    values, state = c.readout
+    return state in DONE_STATES and values is not None and np.allclose(values, c.values, atol=5e-5)
+
+
+def test_the_readout_says_which_sliders_and_state_it_is_for():
+    colors = dict.fromkeys(("model", "mujoco", "ensemble", "ring"), (0, 0, 0))
+    html = readout_html(Readout(None, None, "streaming", sliders=(0.25, -1.5)), colors)
+    assert parse_readout(html) == ((0.25, -1.5), "streaming")
+    assert parse_readout(readout_html(Readout(None, None, "done"), colors)) == (None, "done")  # a file's gait
+
+
+def test_a_protocol_client_joins_drags_and_reads_the_decoded_view_and_replay(checkpoint):
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+
+    async def run() -> dict:
+        c = ProtocolClient(f"http://127.0.0.1:{srv.port}", seed=1)
+        await c.join()
+        for _ in range(2):
+            await c.drag(dwell=0.2)
+        assert await c.wait_for(lambda: _settled(c), 120), c.readout
+        return c.summary()
+
+    try:
+        s = asyncio.run(run())
+        d = next(iter(srv.clients.values()))
+        # The page's preparations reached the server: playback paused, light rendering on.
+        assert d.controls.light.value is True and not d.playback.playing
+        assert [float(v.value) for v in d.sliders] == pytest.approx(s["final_values"])
+        assert s["drags"] == 2 and len(s["decoded_ms"]) >= 1 and len(s["replay_ms"]) >= 1
+        assert all(0 < ms < 120e3 for ms in s["decoded_ms"] + s["replay_ms"])
+        assert s["bytes"] > 0 and s["frames"] > 0
+        assert stream_problems(s) == []
+        assert server_problems(d, s, replay_problems) == []
+        # A stream whose last readout belongs to other sliders is stale, and so is a generated path
+        # that is not the decode of the final sliders.
+        moved = s | {"final_values": [v + 0.5 for v in s["final_values"]]}
+        assert "the last readout is for sliders" in stream_problems(moved)[0]
+        bad_path = s | {"generated": (np.asarray(s["generated"]) + 0.1).tolist()}
+        assert "not the decode of its final sliders" in server_problems(d, bad_path, replay_problems)[0]
+        unfinished = s | {"readout_state": "streaming"}
+        assert "not done or failed" in stream_problems(unfinished)[0]
+    finally:
+        srv.stop()
+
+
+@pytest.mark.slow
+def test_a_client_that_stops_reading_does_not_stall_the_others_and_is_closed(checkpoint):
+    """The server's send to a client that stops reading waits on that client's socket alone; its
+    pings go unanswered and the websocket library closes it (websockets' 20 s ping interval and
+    20 s timeout)."""
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+
+    async def run() -> tuple[ProtocolClient, float]:
+        stuck, live = (ProtocolClient(f"http://127.0.0.1:{srv.port}", seed=s) for s in (1, 2))
+        await asyncio.gather(stuck.join(), live.join())
+        stuck.reading = False
+        for _ in range(4):  # the stuck tab is sent its own drags' views too: its buffers fill
+            await asyncio.gather(stuck.drag(dwell=0.0), live.drag(dwell=0.5))
+        assert await live.wait_for(lambda: _settled(live), 120), live.readout
+        t0 = time.monotonic()
+        closed = await asyncio.to_thread(wait_until, lambda: len(srv.clients) == 1, 90)
+        assert closed, "the server kept a client that reads nothing for 90 s"
+        return live, time.monotonic() - t0
+
+    try:
+        live, _ = asyncio.run(run())
+        s = live.summary()
+        assert len(s["decoded_ms"]) == 4 and len(s["replay_ms"]) >= 1
+        assert max(s["decoded_ms"]) < 30e3  # served at its own pace, not the stuck client's
+        assert stream_problems(s) == []
+    finally:
+        srv.stop()
