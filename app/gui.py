@@ -10,6 +10,7 @@ import viser
 import viser.uplot as uplot
 
 from snakeloco.app.scene import GEN_COLOR, JOINT_COLORS, LAYERS, LIGHT_RENDERING, SIM_COLOR
+from snakeloco.app.viser_patches import set_plot_data
 from snakeloco.sim import BODY_TIMES, N_JOINTS, RECORD
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
@@ -23,14 +24,19 @@ PATH_PLOTS = {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}
 """Generated-vs-simulated plots: title -> body channel (``sim.BODY_CHANNELS``)."""
 PATH_PLOT_STEP = 2
 """The path plots show every 2nd sample of the 5 Hz body series (250 points over 100 s, in a plot a
-few hundred pixels wide): half the bytes of each of the 2 path updates a slider move sends, which
-leaves room for the readout's."""
+few hundred pixels wide)."""
 PATH_PLOT_TIMES = BODY_TIMES[::PATH_PLOT_STEP]
+PLOT_DTYPE = np.float32
+"""What the plots' series are sent as (``viser_patches.set_plot_data``): float32 is a screen's
+resolution many times over and half of viser's float64."""
 COMMAND_PLOT_STEP = 2
 """The commands plot shows every 2nd sample (10 Hz): above twice the highest excited frequency
-(3 Hz), so no wave is lost, in a plot a few hundred pixels wide; half the bytes of every decoded
-gait's largest message (9 series of float64, which viser sends whatever dtype it is given)."""
-COMMAND_PLOT_TIMES = RECORD.times[::COMMAND_PLOT_STEP]
+(3 Hz), so no wave is lost."""
+COMMAND_PLOT_SECONDS = 20.0
+"""The commands plot shows the first 20 s: one period of the slowest excited frequency (0.05 Hz),
+so every wave of the gait is in it, and as much as a plot a few hundred pixels wide can show of a
+3 Hz wave (100 s of it was 300 cycles in 400 px, and a tenth of a slider move's bytes)."""
+COMMAND_PLOT_TIMES = RECORD.times[: int(COMMAND_PLOT_SECONDS * RECORD.sample_rate) : COMMAND_PLOT_STEP]
 WIDE_PX = 1200
 """A window at least this wide has room for the plots below the readout: they open by default."""
 
@@ -112,11 +118,18 @@ class Controls:
         for name, ch in PATH_PLOTS.items():
             gen = generated[::PATH_PLOT_STEP, ch] if generated is not None else missing
             sim = simulated[::PATH_PLOT_STEP, ch] if simulated is not None else missing
-            self.plots[name].data = (PATH_PLOT_TIMES, gen, sim)
+            set_plot_data(self.plots[name], plot_series(PATH_PLOT_TIMES, gen, sim))
 
     def show_commands(self, commands: np.ndarray) -> None:
-        """Joint commands (2000, 8) rad in the commands plot, every ``COMMAND_PLOT_STEP``-th sample."""
-        self.plots["commands"].data = (COMMAND_PLOT_TIMES, *commands[::COMMAND_PLOT_STEP].T)
+        """Joint commands (2000, 8) rad in the commands plot: the first ``COMMAND_PLOT_SECONDS``, every
+        ``COMMAND_PLOT_STEP``-th sample."""
+        shown = commands[: COMMAND_PLOT_STEP * len(COMMAND_PLOT_TIMES) : COMMAND_PLOT_STEP]
+        set_plot_data(self.plots["commands"], plot_series(COMMAND_PLOT_TIMES, *shown.T))
+
+
+def plot_series(*series: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Series as the plots hold and send them (``PLOT_DTYPE``)."""
+    return tuple(np.ascontiguousarray(s, dtype=PLOT_DTYPE) for s in series)
 
 
 def build_sliders(gui: viser.GuiApi, folder, z_b_dim: int, components: list[str] | None = None):
@@ -239,7 +252,7 @@ def build_controls(
                 ],
             ),
             scales=no_time,
-            title="joint commands (rad)",
+            title=f"joint commands, first {COMMAND_PLOT_SECONDS:.0f} s (rad)",
             aspect=1.5,
         )
     with gui.add_folder("Help", expand_by_default=False):

@@ -55,8 +55,12 @@ family's decoded path is drawn thin, with a ring of that radius around its end w
 likely to end; a family not listed (structured: its records were kept only where physics predicts
 them) is drawn as the line it is."""
 BAND_COLOR = (245, 160, 60)
-FAN_STEP = 2 * BODY_DOWNSAMPLE
-"""The ensemble fan is drawn at 2.5 Hz (thin grey lines; the simulated path at the body's 5 Hz)."""
+PATH_STEP = 2
+"""The paths are drawn at every 2nd sample of the 5 Hz body series (2.5 Hz: 250 points over 100 s;
+a cycle of the fastest gait is 4-5 of them), as the ensemble fan: a third of a slider move's bytes
+were its paths at 5 Hz."""
+FAN_STEP = PATH_STEP * BODY_DOWNSAMPLE
+"""The ensemble fan's and simulated path's step in record samples (2.5 Hz)."""
 
 
 def ring(center: np.ndarray, radius: float, n: int = 72) -> np.ndarray:
@@ -106,7 +110,8 @@ class TabScene:
             batched_wxyzs=np.tile([1.0, 0, 0, 0], (N_LINKS, 1)),
             batched_positions=np.zeros((N_LINKS, 3)),
         )
-        self.gen_path = self.sim_path = self.band = None
+        self.gen_path = self.band = None
+        self.sim_parts: list[viser.LineSegmentsHandle] = []  # the simulated path, one node per part streamed
         self.fan: list[viser.LineSegmentsHandle] = []  # one node per batch of ensemble members
         self._fan_drawn = 0  # ensemble members the fan shows
         self._sim_drawn = 0  # replay samples the simulated path shows
@@ -146,8 +151,8 @@ class TabScene:
             self.gen_path.visible = on["Generated path"]
         if self.band is not None:
             self.band.visible = on["Generated path"] and self.end_spread is not None
-        if self.sim_path is not None:
-            self.sim_path.visible = on["Simulated path"] and simulated
+        for node in self.sim_parts:
+            node.visible = on["Simulated path"] and simulated
         for node in self.fan:
             node.visible = on["Ensemble fan"] and simulated
         for frame in self.shape_frames.values():
@@ -179,28 +184,37 @@ class TabScene:
             for node in (self.gen_path, self.band):
                 if node is not None:
                     node.visible = False
-        if self.sim_path is not None:
-            self.sim_path.visible = False
         self._sim_points = None
-        for node in self.fan:
+        for node in self.sim_parts + self.fan:
             node.remove()
-        self.fan, self._fan_drawn = [], 0
+        self.sim_parts, self.fan, self._fan_drawn = [], [], 0
         self._sim_drawn = 0
         self._measured = None
         self._cloud("decoded", gait.shape)
 
+    @property
+    def sim_path(self) -> viser.LineSegmentsHandle | None:
+        """The newest part of the simulated path (None before a replay)."""
+        return self.sim_parts[-1] if self.sim_parts else None
+
     def _draw_sim_path(self, body: np.ndarray) -> None:
-        """The simulated path at the body series' rate (the decoded path's, ``BODY_DOWNSAMPLE``),
-        unless this many samples of it are drawn already."""
+        """The simulated path at ``FAN_STEP``: the samples not drawn yet, as one more node that
+        starts where the last one ended (a streamed replay sends each part once, not the whole path
+        so far every time); nothing if ``body`` has no new sample."""
         if len(body) <= max(self._sim_drawn, 1):
             return
-        points = path_points(body[::BODY_DOWNSAMPLE], 0.0)
-        if len(body) % BODY_DOWNSAMPLE != 1:  # end where the replay so far ends
-            points = np.concatenate([points, path_points(body[-1:], 0.0)])
+        first = max(self._sim_drawn - 1, 0)
+        index = np.arange(first, len(body), FAN_STEP)
+        if index[-1] != len(body) - 1:  # end where the replay so far ends
+            index = np.append(index, len(body) - 1)
         z0 = float(self.start[0][2])
-        self.sim_path = self._line("simulated", polyline(points), SIM_COLOR, 4.0, "Simulated path", z0)
+        points = path_points(body[index], 0.0)
+        part = self._line(
+            f"simulated/{len(self.sim_parts)}", polyline(points), SIM_COLOR, 4.0, "Simulated path", z0
+        )
+        self.sim_parts.append(part)
         self._sim_drawn = len(body)
-        self._sim_points = points
+        self._sim_points = points if self._sim_points is None else np.concatenate([self._sim_points, points])
 
     def draw_streaming(self, body: np.ndarray, qpos0: np.ndarray) -> None:
         """The simulated path so far (a streamed replay's first samples)."""
@@ -226,7 +240,9 @@ class TabScene:
     def _draw_generated(self, body: np.ndarray, z0: float) -> None:
         """The decoded path: the line it is, or, for a family in ``END_SPREAD``, a thin mean path and
         a ring where the replay is likely to end."""
-        points = path_points(body, 0.0)
+        points = path_points(body[::PATH_STEP], 0.0)
+        if (len(body) - 1) % PATH_STEP:
+            points = np.concatenate([points, path_points(body[-1:], 0.0)])
         self._gen_points = points
         thickness = 4.0 if self.end_spread is None else 1.5
         self.gen_path = self._line("generated", polyline(points), GEN_COLOR, thickness, "Generated path", z0)

@@ -58,22 +58,40 @@ def grid_lines(step: int, skip: int | None = None, half: int = GRID_HALF_M) -> n
     return np.concatenate([xs, ys])
 
 
-def ring_lines(radii=RINGS_M, n: int = 96) -> np.ndarray:
-    """(len(radii) n, 2, 2) segments of circles around the start."""
+def ring_strips(width: float, radii=RINGS_M, n: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Rings around the start as closed strips ``width`` wide: vertices (2 len(radii) (n + 1), 3)
+    (inner and outer edge, shared by neighbouring quads) and faces (2 len(radii) n, 3), facing up."""
     a = np.linspace(0.0, 2 * np.pi, n + 1)
-    circles = [np.stack([r * np.cos(a), r * np.sin(a)], -1) for r in radii]
-    return np.concatenate([np.stack([c[:-1], c[1:]], 1) for c in circles])
+    vertices, faces = [], []
+    for i, r in enumerate(radii):
+        inner = np.stack([(r - width / 2) * np.cos(a), (r - width / 2) * np.sin(a)], -1)
+        outer = np.stack([(r + width / 2) * np.cos(a), (r + width / 2) * np.sin(a)], -1)
+        vertices.append(np.concatenate([inner, outer]))
+        k = 2 * (n + 1) * i + np.arange(n)[:, None]  # quad k: inner k, k+1 and outer k, k+1
+        o = n + 1
+        faces += [k + np.array([0, o, o + 1]), k + np.array([0, o + 1, 1])]
+    xy = np.concatenate(vertices)
+    lifted = np.concatenate([xy, np.full((len(xy), 1), GRID_LIFT_M)], 1)
+    return lifted.astype(np.float32), np.concatenate(faces).astype(np.uint32)
+
+
+def width_scale(distance: float) -> float:
+    """The camera distance the grid's line widths are made for: ``distance`` rounded to a power of
+    2, so that framing a similar view again sends nothing (a redraw is ~25 kB)."""
+    return float(2.0 ** np.round(np.log2(max(distance, 0.25))))
 
 
 class MetreGrid:
     """The metre grid (1 m lines, every 5 m darker), the labelled distance rings and the start
-    marker of one tab."""
+    marker of one tab. One set of meshes per width scale (``width_scale``), made the first time a
+    framing needs it and shown or hidden after that: going back and forth between a decode's and a
+    replay's framing sends two visibility flags, not 28 kB of mesh."""
 
     def __init__(self, scene: viser.SceneApi) -> None:
         self.scene = scene
-        self._lines = {"minor": grid_lines(1, skip=5), "major": grid_lines(5), "rings": ring_lines()}
-        self.meshes: dict[str, viser.MeshHandle] = {}
-        self.distance = 0.0
+        self._lines = {"minor": grid_lines(1, skip=5), "major": grid_lines(5)}
+        self.sets: dict[float, list[viser.MeshHandle]] = {}
+        self.distance = 0.0  # the width scale shown
         self.labels = [scene.add_label("/metres/start", "start", position=(0.0, 0.0, 0.02))] + [
             # Where the rings cross the start's right rear (where paths rarely run).
             scene.add_label(f"/metres/ring_{r:g}", f"{r:g} m", position=(-r * 0.7071, -r * 0.7071, 0.02))
@@ -82,16 +100,12 @@ class MetreGrid:
         self._visible = True
         self.fit(float(np.linalg.norm([-2.5, -3.5, 2.5])))  # the tab's first view
 
-    def fit(self, distance: float) -> None:
-        """Line widths for a camera ``distance`` m from what it looks at; redrawn only when that
-        changed by more than a quarter (a few kB)."""
-        if self.distance and 0.8 < distance / self.distance < 1.25:
-            return
-        self.distance = distance
-        for name, segments in self._lines.items():
-            vertices, faces = ground_quads(segments, GRID_WIDTHS[name] * distance)
-            self.meshes[name] = self.scene.add_mesh_simple(
-                f"/metres/{name}",
+    def _make(self, scale: float) -> list[viser.MeshHandle]:
+        meshes = {name: ground_quads(lines, GRID_WIDTHS[name] * scale) for name, lines in self._lines.items()}
+        meshes["rings"] = ring_strips(GRID_WIDTHS["rings"] * scale)
+        return [
+            self.scene.add_mesh_simple(
+                f"/metres/{scale:g}/{name}",
                 vertices,
                 faces,
                 color=GRID_COLORS[name],
@@ -99,6 +113,27 @@ class MetreGrid:
                 receive_shadow=False,
                 visible=self._visible,
             )
+            for name, (vertices, faces) in meshes.items()
+        ]
+
+    def fit(self, distance: float) -> None:
+        """Show the line widths for a camera ``distance`` m from what it looks at."""
+        scale = width_scale(distance)
+        if scale == self.distance:
+            return
+        for node in self.sets.get(self.distance, []):
+            node.visible = False
+        self.distance = scale
+        if scale in self.sets:
+            for node in self.sets[scale]:
+                node.visible = self._visible
+        else:
+            self.sets[scale] = self._make(scale)
+
+    @property
+    def meshes(self) -> list[viser.MeshHandle]:
+        """The meshes shown (at the current width scale)."""
+        return self.sets[self.distance]
 
     @property
     def visible(self) -> bool:
@@ -107,7 +142,7 @@ class MetreGrid:
     @visible.setter
     def visible(self, on: bool) -> None:
         self._visible = on
-        for node in [*self.meshes.values(), *self.labels]:
+        for node in [*self.meshes, *self.labels]:
             node.visible = on
 
 

@@ -84,6 +84,20 @@ def set_arrays(handle, **values: np.ndarray) -> None:
         api._queue_scene_message(_messages.SceneNodeUpdateMessage(impl.name, updates))
 
 
+def set_plot_data(handle, data: tuple[np.ndarray, ...]) -> None:
+    """Replace a uPlot's series with ``data`` in the arrays' own dtype (float32 here). viser casts
+    a plot's data to float64 whatever it is given; uPlot draws typed arrays of any float width, and
+    the page's decoder makes a Float32Array of a ``<f4`` buffer, so float32 halves every plot update
+    (the plots were half of a slider move's bytes). Where the internals differ, viser's setter runs."""
+    impl = getattr(handle, "_impl", None)
+    props = getattr(impl, "props", None)
+    if props is None or not hasattr(handle, "_queue_update") or getattr(impl, "removed", False):
+        handle.data = data
+        return
+    props.data = data
+    handle._queue_update("data", data)
+
+
 def run_javascript(client: viser.ClientHandle, source: str) -> bool:
     """Run ``source`` once in ``client``'s page (viser's own message for plotly's set-up); whether
     it was sent."""

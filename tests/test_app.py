@@ -73,7 +73,9 @@ def test_slider_change_decodes_replays_and_draws(server):
         # The table ends before the next line (markdown would draw that line as a fifth row).
         assert re.search(r"\|\n\nxy-path R²", d.controls.panel.content)
         # The drawn simulated path is this gait's replay.
-        np.testing.assert_allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::8, 1])
+        np.testing.assert_array_equal(
+            d.controls.plots["forward (m)"].data[2], d.simulated.body[::8, 1].astype(np.float32)
+        )
     finally:
         client.close()
 
@@ -349,7 +351,9 @@ def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server
         assert [n for z, n in parts if z == 1.0] in ([], [first_n])
         assert [n for z, n in parts if z == 1.6] == [*range(first_n, 2000, chunk), 2000]
         assert not np.isfinite(first.replayed) and np.isfinite(d.timings[-1].ensembled)
-        np.testing.assert_allclose(d.controls.plots["forward (m)"].data[2], d.simulated.body[::8, 1])
+        np.testing.assert_array_equal(
+            d.controls.plots["forward (m)"].data[2], d.simulated.body[::8, 1].astype(np.float32)
+        )
         assert d.decoded.latents.z_b[0] == 1.6
     finally:
         client.close()
@@ -482,7 +486,7 @@ def test_light_rendering_drops_shadows_environment_and_grid_and_full_brings_them
 
 
 def test_the_metre_grid_is_thin_quads_on_the_ground_one_per_line():
-    from snakeloco.app.view import GRID_HALF_M, GRID_LIFT_M, RINGS_M, grid_lines, ground_quads, ring_lines
+    from snakeloco.app.view import GRID_HALF_M, GRID_LIFT_M, RINGS_M, grid_lines, ground_quads, ring_strips
 
     lines = grid_lines(1, skip=5)
     assert len(lines) == 2 * (2 * GRID_HALF_M + 1 - (2 * GRID_HALF_M // 5 + 1))  # 5 m lines left out
@@ -495,6 +499,9 @@ def test_the_metre_grid_is_thin_quads_on_the_ground_one_per_line():
     a, b, c = (vertices[faces[:, i], :2].astype(np.float64) for i in range(3))
     cross = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
     assert np.all(cross > 0)
-    rings = ring_lines(n=96)
-    radii = np.linalg.norm(rings.reshape(-1, 2), axis=1).reshape(len(RINGS_M), -1)
-    assert np.allclose(radii, np.array(RINGS_M)[:, None])
+    vertices, faces = ring_strips(0.1, n=64)  # inner and outer edges 0.1 m apart around each radius
+    radii = np.linalg.norm(vertices[:, :2], axis=1).reshape(len(RINGS_M), 2, 65)
+    assert np.allclose(radii.mean(axis=1), np.array(RINGS_M)[:, None], atol=1e-5)
+    assert np.allclose(radii[:, 1] - radii[:, 0], 0.1, atol=1e-5)
+    a, b, c = (vertices[faces[:, i], :2].astype(np.float64) for i in range(3))
+    assert np.all((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0] > 0)  # facing up

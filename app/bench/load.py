@@ -52,7 +52,7 @@ from snakeloco.app.bench.processes import (
     split_cpus,
 )
 from snakeloco.app.gait_csv import read_gait_csv
-from snakeloco.app.gui import PATH_PLOT_STEP
+from snakeloco.app.gui import PATH_PLOT_STEP, plot_series
 from snakeloco.app.server import DesignerServer, tune_process
 from snakeloco.app.tab import DesignerClient
 from snakeloco.sim import BODY_DOWNSAMPLE
@@ -209,7 +209,7 @@ def replay_problems(d: DesignerClient) -> list[str]:
     physics refused the gait (thrown, diverged), the panel saying so for that gait."""
     if d.simulated is not None:
         drawn = d.controls.plots["forward (m)"].data[2]
-        if np.allclose(drawn, d.simulated.body[:: BODY_DOWNSAMPLE * PATH_PLOT_STEP, 1], atol=1e-12):
+        if np.array_equal(drawn, plot_series(d.simulated.body[:: BODY_DOWNSAMPLE * PATH_PLOT_STEP, 1])[0]):
             return []
         return ["drawn simulated path is not the final replay"]
     last = d.timings[-1] if d.timings else None
@@ -242,7 +242,9 @@ def _check_final_state(browser: _Browser, d: DesignerClient, tmp: Path, index: i
     else:
         shape, body = d.model.decode(z_b)
         commands = d.model.commands(shape[0])
-    if not np.allclose(d.controls.plots["forward (m)"].data[1], body[0, ::PATH_PLOT_STEP, 1], atol=1e-9):
+    if not np.array_equal(
+        d.controls.plots["forward (m)"].data[1], plot_series(body[0, ::PATH_PLOT_STEP, 1])[0]
+    ):
         problems.append("drawn generated path is not the decode of the final sliders")
     problems += replay_problems(d)
     path = tmp / f"client{index}.csv"
