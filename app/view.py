@@ -24,9 +24,9 @@ GRID_HALF_M = 40
 """The metre grid spans +/- this many metres around the start (the fastest gaits go ~33 m in 100 s)."""
 RINGS_M = (1.0, 2.0, 5.0, 10.0, 20.0, 30.0)
 """Distance rings around the start (m), each labelled: 1 m and 10 m read differently at any zoom."""
-GRID_WIDTHS = {"minor": 0.0012, "major": 0.0025, "rings": 0.003}
-"""Line width (m) per metre of camera distance: about 1, 2.5 and 3 px at 950 px and viser's 50 deg
-field of view."""
+GRID_WIDTHS = {"minor": 0.001, "major": 0.002, "rings": 0.002}
+"""Line width (m) per metre of camera distance: about 1, 2 and 2 px where the camera looks, at 950 px
+and viser's 50 deg field of view (nearer lines are wider: perspective)."""
 GRID_COLORS = {"minor": (200, 200, 200), "major": (150, 150, 150), "rings": (110, 110, 110)}
 GRID_LIFT_M = 0.002
 """The grid's height above the ground, so that viser's shaded grid (at 0) does not fight it."""

@@ -472,8 +472,10 @@ def bench_load(
         "stale_details": [c["stale"] for ph in phases.values() for c in ph["clients"] if c["stale"]]
         + [p["stale"] for p in pages_checked if p["stale"]],
         "browser_page": pages_checked[0] if pages_checked else None,
-        # Protocol driver: bytes each client received while dragging, per decoded view the server
-        # drew for it and per drag; cores the load generators' process used.
+        # Protocol driver: bytes each client received for one slider move (the median of its last
+        # MOVES moves, each once the previous replay was done), and while dragging per decoded view
+        # the server drew for it and per drag; cores the load generators' process used.
+        "kb_per_view": [c.get("kb_per_view", float("nan")) for c in multi["clients"]],
         "kb_per_move": [c.get("kb_per_move", float("nan")) for c in multi["clients"]],
         "single_kb_per_move": single.get("kb_per_move", float("nan")),
         "kb_per_drag": [c.get("kb_per_drag", float("nan")) for c in multi["clients"]],

@@ -147,7 +147,8 @@ def protocol_phase(
                     "draw_p95_ms": _p([1e3 * (t.decoded - t.started) - t.decode_ms for t in drawn], 95),
                     "drags": s["drags"],
                     "kb_per_drag": s["bytes_dragging"] / 1e3 / max(1, s["drags"]),
-                    "kb_per_move": s["bytes_dragging"] / 1e3 / views,
+                    "kb_per_view": s["bytes_dragging"] / 1e3 / views,
+                    "kb_per_move": float(np.median(s["bytes_per_move"])) / 1e3,
                     "mouse_moves": 0,
                     "stalls": 0,
                     "slowest_move_s": float("nan"),
@@ -160,7 +161,7 @@ def protocol_phase(
                 log(
                     f"  client {i + 1}/{n}: {c['drags']} drags, {c['replays_drawn']} replays ready, decoded "
                     f"p95 {c['decoded_p95_ms']:.0f} ms, replay p95 {c['replay_p95_ms']:.0f} ms, "
-                    f"{c['kb_per_move']:.0f} kB per decoded view"
+                    f"{c['kb_per_move']:.0f} kB per slider move ({c['kb_per_view']:.0f} per decoded view dragging)"
                 )
         conn.send("close")  # the clients may leave now
         process.join(60)

@@ -59,6 +59,9 @@ CAMERA = {
 _SLIDERS = re.compile(r'data-sliders="([^"]*)"')
 _STATE = re.compile(r'data-state="([^"]*)"')
 DONE_STATES = ("done", "failed")
+MOVES = 3
+"""Single moves each client makes after its drags, each once the last one's replay is done: the
+bytes of one slider move (decoded view, streamed replay, ensemble)."""
 
 
 def subprotocol() -> str:
@@ -265,6 +268,26 @@ class ProtocolClient:
         await asyncio.sleep(dwell)
         return drag
 
+    async def move(self, settle_s: float = 60.0, after_s: float = 0.5) -> int:
+        """One slider to one new value (a click on the track), waiting for its replay and
+        ``after_s`` more: the bytes that move cost this client (its decoded view, streamed replay,
+        ensemble; playback is paused)."""
+        uuids = self.sliders()
+        i = int(self.rng.integers(len(uuids)))
+        props = self.gui[uuids[i]]["props"]
+        value = round(float(self.rng.uniform(props["min"], props["max"])) / props["step"]) * props["step"]
+        self.values[i] = round(value, 6)
+        before = self.bytes
+        await self.send(uuids[i], self.values[i])
+
+        def done() -> bool:
+            values, state = self.readout
+            return state in DONE_STATES and values is not None and np.allclose(values, self.values, atol=5e-5)
+
+        await self.wait_for(done, settle_s)
+        await asyncio.sleep(after_s)
+        return self.bytes - before
+
     async def drag_for(self, seconds: float, dwell: float) -> None:
         end = time.perf_counter() + seconds
         while time.perf_counter() < end:
@@ -341,8 +364,16 @@ async def _run(url: str, seeds: list[int], seconds: float, dwell: float, settle_
         return state in DONE_STATES and values is not None and np.allclose(values, c.values, atol=5e-5)
 
     await asyncio.gather(*(c.wait_for(lambda c=c: settled(c), settle_s) for c in clients))
+
+    async def moves(c: ProtocolClient) -> list[int]:
+        return [await c.move(settle_s) for _ in range(MOVES)]
+
+    per_move = await asyncio.gather(*(moves(c) for c in clients))
     result = {
-        "clients": [c.summary() | {"bytes_dragging": m} for c, m in zip(clients, moved, strict=True)],
+        "clients": [
+            c.summary() | {"bytes_dragging": m, "bytes_per_move": b}
+            for c, m, b in zip(clients, moved, per_move, strict=True)
+        ],
         "driver_cores": cpu / wall if wall > 0 else float("nan"),
         "wall_s": wall,
     }
