@@ -226,6 +226,11 @@ class DesignerClient(GaitFiles, LatentMoves, TabReadout):
             worker.submit((self._version, request))
             return self._version
 
+    @property
+    def version(self) -> int:
+        """This tab's newest request (a decode, a load); tests and benchmarks wait on it."""
+        return self._version
+
     def is_current(self, version: int) -> bool:
         """Whether ``version`` is still this tab's newest request (only then may it be drawn)."""
         return version == self._version and not self._closed.is_set()

@@ -49,3 +49,14 @@ def connect_headless(srv):
             return client, designer
         time.sleep(0.05)
     raise AssertionError("the server never registered the client")
+
+
+def apply(d, control, value, timeout: float = 60.0) -> bool:
+    """Set a GUI control of tab ``d`` as a user would and wait, on the tab's request version and not
+    a clock, until the request it caused is the tab's newest and every job of it finished. False if
+    no request came within 10 s (the control changed nothing) or it did not finish."""
+    from snakeloco.app.bench.load import wait_until
+
+    before = d.version
+    control.value = value
+    return wait_until(lambda: d.version > before, 10.0) and d.wait_idle(timeout)

@@ -16,7 +16,7 @@ from snakeloco.app.server import DesignerServer
 from snakeloco.app.session import Latents, LatestWorker
 from snakeloco.sim import replay
 
-from helpers import connect_headless
+from helpers import apply, connect_headless
 
 
 @pytest.fixture
@@ -48,9 +48,7 @@ def test_slider_change_decodes_replays_and_draws(server):
     try:
         first = d.timings[-1]
         assert np.isfinite([first.decoded, first.replayed, first.ensembled]).all()
-        d.sliders[0].value = 1.5
-        time.sleep(0.2)
-        assert d.wait_idle(60)
+        assert apply(d, d.sliders[0], 1.5, 60)
         assert d.decoded.latents.z_b[0] == 1.5
         last = d.timings[-1]
         assert (
@@ -84,9 +82,7 @@ def test_slider_change_decodes_replays_and_draws(server):
 def test_export_import_export_round_trips_exactly(server):
     client, d = connect_headless(server)
     try:
-        d.sliders[1].value = -0.8
-        time.sleep(0.2)
-        assert d.wait_idle(60)
+        assert apply(d, d.sliders[1], -0.8, 60)
         first = d.export_text()
         assert first.startswith("# snakeloco gait") and "# z_B: [0.0000, -0.8000" in first
         rows = _data_rows(first)
@@ -106,9 +102,7 @@ def test_export_import_export_round_trips_exactly(server):
         np.testing.assert_array_equal(d.simulated.joint_angles, expected.joint_angles)
         np.testing.assert_array_equal(d.simulated.body, expected.body)
         # Moving a slider afterwards replaces the imported gait with a decoded one.
-        d.sliders[0].value = 0.5
-        time.sleep(0.2)
-        assert d.wait_idle(60)
+        assert apply(d, d.sliders[0], 0.5, 60)
         assert d.decoded.source == "model"
     finally:
         client.close()
@@ -175,9 +169,7 @@ def test_two_clients_are_independent(server):
     c2, d2 = connect_headless(server)
     try:
         assert d1 is not d2
-        d1.sliders[0].value = 2.0
-        time.sleep(0.2)
-        assert d1.wait_idle(60) and d2.wait_idle(60)
+        assert apply(d1, d1.sliders[0], 2.0, 60) and d2.wait_idle(60)
         assert d1.decoded.latents.z_b[0] == 2.0
         assert d2.decoded.latents.z_b[0] == 0.0 and d2.sliders[0].value == 0.0
         assert not np.array_equal(d1.decoded.commands, d2.decoded.commands)
@@ -238,9 +230,12 @@ def test_bench_app_json(checkpoint, capsys):
     assert result["moves"] >= 1
     assert 0 < result["decoded_p50_ms"] <= result["first_motion_p50_ms"] <= result["replay_ready_p50_ms"]
     assert result["first_motion_p95_ms"] >= result["first_motion_p50_ms"]
-    assert result["replay_ratio"] > 0 and result["ensemble_ratio"] > 0
-    # An animating tab gets a pose a frame (~200 B of arrays each at 20 Hz); a move, its paths and plots.
-    assert 2e3 < result["animating_bytes_per_s"] < 1e5 and result["bytes_per_move"] > 5e4
+    # The server's replay and ensemble against bare MuJoCo on the same steps: within a few times.
+    assert 0.3 < result["replay_ratio"] < 10 and 0.1 < result["ensemble_ratio"] < 10, result
+    # An animating tab gets a pose a frame (~200 B of arrays each at 20 Hz); a move, its paths and
+    # plots at a screen's resolution (issue 34's budget: 60 kB; a first framing at a new scale adds
+    # a metre-grid set once).
+    assert 2e3 < result["animating_bytes_per_s"] < 1e5 and 1e4 < result["bytes_per_move"] < 8e4, result
 
 
 def _square_wave_csv() -> bytes:
@@ -260,9 +255,7 @@ def test_diverging_import_is_reported_and_the_server_keeps_serving(server):
         assert notes and "not loaded" in notes[-1][0] and "thrown into the air" in notes[-1][1]
         np.testing.assert_array_equal(d.decoded.commands, before)  # the current gait stays
         # The same tab still designs gaits, and nothing was counted as a server exception.
-        d.sliders[2].value = 0.7
-        time.sleep(0.2)
-        assert d.wait_idle(60)
+        assert apply(d, d.sliders[2], 0.7, 60)
         assert d.decoded.latents.z_b[2] == 0.7 and d.simulated is not None
         assert server.errors == []
     finally:
@@ -281,9 +274,7 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
             return gait
 
         d.session.decode = decode_to_wild
-        d.sliders[0].value = -1.0
-        time.sleep(0.2)
-        assert d.wait_idle(60)
+        assert apply(d, d.sliders[0], -1.0, 60)
         assert d.simulated is None and d.scene.gen_path is not None
         assert (
             "Replay failed" in d.controls.panel.content and "thrown into the air" in d.controls.panel.content
@@ -301,14 +292,11 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
         assert "does not say so" in replay_problems(d)[0]
         d.controls.panel.content = shown
         mode = d.controls.zk_mode.value
-        d.controls.zk_mode.value = "sampled"  # a sampled gait that breaks gets told what to try
-        time.sleep(0.2)
-        assert d.wait_idle(60)
+        # a sampled gait that breaks gets told what to try
+        assert apply(d, d.controls.zk_mode, "sampled", 60)
         assert "Replay failed" in d.controls.panel.content and "Resample z_k" in d.controls.panel.content
         d.session.decode, d.controls.zk_mode.value = decode, mode  # ... a replay drawn is the current gait's
-        d.sliders[0].value = 0.5
-        time.sleep(0.2)
-        assert d.wait_idle(60) and d.simulated is not None and replay_problems(d) == []
+        assert apply(d, d.sliders[0], 0.5, 60) and d.simulated is not None and replay_problems(d) == []
         d.simulated = d.session.replay(d.session.decode(Latents(z_b=(0.0,) * d.model.z_b_dim)))
         assert replay_problems(d) == ["drawn simulated path is not the final replay"]
     finally:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import re
 import signal
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from snakeloco.app.bench.headless import HeadlessClient
+from snakeloco.app.bench.protocol import ProtocolClient
 from snakeloco.app.cli import main
 from snakeloco.sim import load_dataset
 
@@ -103,9 +104,10 @@ def test_bench_sim_json(capsys):
     main(["bench", "sim", "--json", "--samples", "2", "--repeats", "1"])
     last = capsys.readouterr().out.strip().splitlines()[-1]
     result = json.loads(last)
-    for key in ("raw_steps_per_s", "generator_steps_per_s", "ratio", "replay_ratio"):
-        assert result[key] > 0
-    assert 0.3 < result["ratio"] < 3.0
+    # MuJoCo steps this snake at 1e4-1e6 steps/s on one core of any machine this runs on.
+    for key in ("raw_steps_per_s", "generator_steps_per_s"):
+        assert 1e3 < result[key] < 1e8, (key, result[key])
+    assert 0.3 < result["ratio"] < 3.0 and 0.3 < result["replay_ratio"] < 3.0, result
 
 
 def test_unknown_subcommand_exits_with_usage(capsys):
@@ -210,6 +212,9 @@ def test_serve_stops_cleanly_on_signals(tmp_path, checkpoint, sig):
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        # Ctrl-C as a terminal delivers it: a test run started in the background (`cmd &` in a
+        # script) inherits SIGINT ignored, and a Python started so never raises KeyboardInterrupt.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         deadline = time.monotonic() + 120
@@ -220,11 +225,17 @@ def test_serve_stops_cleanly_on_signals(tmp_path, checkpoint, sig):
             time.sleep(0.2)
         else:
             raise AssertionError("the server never listened")
-        client = HeadlessClient(port)  # a connected tab with its workers running
-        time.sleep(2.0)
-        proc.send_signal(sig)
-        out, _ = proc.communicate(timeout=60)
-        client.close()
+
+        async def stop_with_a_tab_open() -> str:
+            # A page that joined and saw its first gait replayed: its tab's workers have all run.
+            client = ProtocolClient(f"http://127.0.0.1:{port}", seed=0)
+            await client.join(timeout=90)
+            proc.send_signal(sig)
+            out, _ = await asyncio.to_thread(proc.communicate, timeout=60)
+            await client.close()
+            return out
+
+        out = asyncio.run(stop_with_a_tab_open())
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -3,8 +3,6 @@ model's z_B), another tab keeps its own, and each family's decoded path is drawn
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -13,7 +11,7 @@ from snakeloco.app.server import DesignerServer
 from snakeloco.model import TrainConfig, load_pretrained, train
 from snakeloco.sim import GenerateConfig, generate_dataset
 
-from helpers import SMALL, connect_headless
+from helpers import SMALL, apply, connect_headless
 
 
 @pytest.fixture(scope="module")
@@ -26,11 +24,6 @@ def structured_checkpoint(tmp_path_factory):
     cfg = TrainConfig(epochs=2, batch_size=2, val_fraction=0.34)
     train(data, work / "ckpt", cfg, SMALL.model_copy(update={"z_b_dim": 2}), log=None, progress=False)
     return work / "ckpt"
-
-
-def _settle(d) -> None:
-    time.sleep(0.3)
-    assert d.wait_idle(60)
 
 
 @pytest.mark.slow
@@ -48,8 +41,7 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
         assert d1.controls.family.options == ("paper", "structured") and d1.controls.family.value == "paper"
         assert len(d1.sliders) == 3 and d1.scene.band is not None and d1.scene.band.visible  # a mean + a ring
 
-        d1.controls.family.value = "structured"
-        _settle(d1)
+        assert apply(d1, d1.controls.family, "structured")
         assert d1.model is srv.models["structured"] and d1.session.model is d1.model
         assert len(d1.sliders) == 2 and d1.decoded.latents.z_b == (0.0, 0.0)
         assert not d1.scene.band.visible  # drawn as the line it is
@@ -57,12 +49,12 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
         assert d2.model is srv.models["paper"] and len(d2.sliders) == 3  # the other tab keeps its family
 
         # Sliders, export/import and design all work for the new family's z_B.
-        d1.sliders[1].value = 0.5
-        _settle(d1)
+        assert apply(d1, d1.sliders[1], 0.5)
         assert d1.decoded.latents.z_b == (0.0, 0.5) and d1.simulated is not None
         text = d1.export_text()
+        before = d1.version
         assert d1.import_bytes("again.csv", text.encode()) is not None
-        _settle(d1)
+        assert d1.version > before and d1.wait_idle(60)
         assert d1.decoded.source == "import: again.csv" and len(d1.sliders) == 2
         np.testing.assert_array_equal(
             d1.decoded.commands, read_gait_csv(text).commands
@@ -73,8 +65,9 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
         d1.design.request()
         assert d1.design.worker.wait_idle(120) and len(d1.design.candidates[0].z_b) == 2
 
+        before = d1.version
         assert d1.switch_family("paper") is not None
-        _settle(d1)
+        assert d1.version > before and d1.wait_idle(60)
         assert len(d1.sliders) == 3 and d1.decoded.latents.z_b == (0.0, 0.0, 0.0)
         assert d1.design.candidates == []  # the other model's candidates are gone
         assert srv.errors == []

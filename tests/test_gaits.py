@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from pydantic import ValidationError
@@ -14,7 +12,7 @@ from snakeloco.app.gait_csv import read_gait_csv
 from snakeloco.sim import RECORD, Simulator, joint_shape, replay
 from snakeloco.sim.gaits import PRESETS, GaitEquation, measure_gait
 
-from helpers import connect_headless
+from helpers import apply, connect_headless
 
 
 def test_gait_equation_is_a_joint_shape_on_one_excited_bin():
@@ -91,9 +89,7 @@ def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
     srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
     client, d = connect_headless(srv)
     try:
-        d.controls.baseline.value = "undulate"
-        time.sleep(0.3)
-        assert d.wait_idle(120)
+        assert apply(d, d.controls.baseline, "undulate", 120)
         commands = PRESETS["undulate"].gait.commands()
         assert d.decoded.source == "library: undulate"
         np.testing.assert_array_equal(d.decoded.commands, commands)
@@ -104,13 +100,9 @@ def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
         assert "# z_B (encoded)" in d.export_text()  # the sliders sit where it encodes
         # A slider move replaces it with a decoded gait and clears the dropdown, so the library gait
         # can be picked again.
-        d.sliders[0].value = 0.4
-        time.sleep(0.3)
-        assert d.wait_idle(120)
+        assert apply(d, d.sliders[0], 0.4, 120)
         assert d.decoded.source == "model" and d.controls.baseline.value == "none"
-        d.controls.baseline.value = "undulate"
-        time.sleep(0.3)
-        assert d.wait_idle(120)
+        assert apply(d, d.controls.baseline, "undulate", 120)
         assert d.decoded.source == "library: undulate"
     finally:
         client.close()

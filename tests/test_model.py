@@ -468,7 +468,8 @@ def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
         z = m.sample_z_b(64, seed=11)
         assert m.off_data(z).mean() < 0.1 and m.off_data(np.full((1, m.z_b_dim), 6.0))[0]
     main(["bench", "model", "--checkpoint", "paper", "--calls", "3", "--json"])
-    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["decode_p50_ms"] > 0
+    bench = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert 0 < bench["decode_p50_ms"] <= bench["decode_p95_ms"] < 5e3, bench
     # A directory of that name here is what the user means; a name that is neither says what is shipped.
     monkeypatch.chdir(tmp_path)
     (tmp_path / "paper").mkdir()
