@@ -92,21 +92,35 @@ def outputs_problem(cmd: Command) -> str | None:
     return None
 
 
-def _progress_bar(total: int, desc: str, unit: str = "gait"):
-    """A callback that opens a tqdm bar on its first call (after the inputs are checked) and closes
-    it when ``total`` is reached, and the bar's holder (``holder[0]``, None before the first call)."""
-    from tqdm import tqdm
+class Progress:
+    """A progress callback with a tqdm bar that opens on its first call (after the inputs are
+    checked: a refused command prints no empty bar) and closes when ``total`` is reached (before
+    the log lines that follow) or when its ``with`` block ends, however it ends."""
 
-    holder = [None]
+    def __init__(self, total: int, desc: str, unit: str = "gait") -> None:
+        self.total, self.desc, self.unit = total, desc, unit
+        self.bar = None
 
-    def progress(k: int) -> None:
-        if holder[0] is None:
-            holder[0] = tqdm(total=total, unit=unit, desc=desc)
-        holder[0].update(k)
-        if holder[0].n >= holder[0].total:
-            holder[0].close()  # before the log lines that follow
+    @property
+    def n(self) -> int:
+        """Steps done so far."""
+        return self.bar.n if self.bar is not None else 0
 
-    return progress, holder
+    def __call__(self, k: int) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None:
+            self.bar = tqdm(total=self.total, unit=self.unit, desc=self.desc)
+        self.bar.update(k)
+        if self.bar.n >= self.bar.total:
+            self.bar.close()
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def run_generate(cmd: Generate) -> Path:
@@ -121,21 +135,20 @@ def run_generate(cmd: Generate) -> Path:
             raise OptionError(f"--structured-preset {cmd.structured_preset} needs --family structured")
         cfg = cfg.model_copy(update={"structured": STRUCTURED_PRESETS[cmd.structured_preset]})
     t0 = time.perf_counter()
-    progress, bar = _progress_bar(cfg.num_samples, "generate", unit="sample")
+    progress = Progress(cfg.num_samples, "generate", unit="sample")
     try:
-        path = generate_dataset(
-            cfg,
-            cmd.out,
-            workers=cmd.workers,
-            progress=progress,
-            screened=cmd.screened,
-            backend=cmd.backend,
-        )
+        with progress:
+            path = generate_dataset(
+                cfg,
+                cmd.out,
+                workers=cmd.workers,
+                progress=progress,
+                screened=cmd.screened,
+                backend=cmd.backend,
+            )
     except KeyboardInterrupt:
         partial = cmd.out.with_name(cmd.out.name + ".partial")
-        done = bar[0].n if bar[0] is not None else 0
-        if bar[0] is not None:
-            bar[0].close()
+        done = progress.n
         kept = f": {done} of {cfg.num_samples} records are kept in {partial}; the same command resumes from there"
         print(
             "snakeloco: interrupted"
@@ -143,9 +156,6 @@ def run_generate(cmd: Generate) -> Path:
             file=sys.stderr,
         )
         raise SystemExit(130) from None
-    finally:
-        if bar[0] is not None:
-            bar[0].close()
     size = _size(path) / 2**20
     print(f"wrote {path} ({cfg.num_samples} samples, {size:.1f} MiB) in {time.perf_counter() - t0:.1f} s")
     return path
@@ -194,8 +204,7 @@ def run_evaluate(cmd: Evaluate) -> dict:
     """Evaluate and print the report."""
     from snakeloco.model.evaluate import ZK_MODES, evaluate, format_report
 
-    progress, bar = _progress_bar(len(ZK_MODES) * cmd.prior_samples, "consistency")
-    try:
+    with Progress(len(ZK_MODES) * cmd.prior_samples, "consistency") as progress:
         report = evaluate(
             cmd.checkpoint,
             cmd.data,
@@ -209,9 +218,6 @@ def run_evaluate(cmd: Evaluate) -> dict:
             floor_records=cmd.floor_records,
             positions=cmd.positions,
         )
-    finally:
-        if bar[0] is not None:
-            bar[0].close()
     print(format_report(report))
     if cmd.report is not None:
         cmd.report.parent.mkdir(parents=True, exist_ok=True)
@@ -243,8 +249,7 @@ def run_calibrate(cmd: Calibrate) -> dict:
         )
     else:
         total, label, run, cfg = cmd.config.gait_count, "replay prior gaits", calibrate, cmd.config
-    progress, bar = _progress_bar(total, label)
-    try:
+    with Progress(total, label) as progress:
         return run(
             cmd.checkpoint,
             cmd.data,
@@ -255,9 +260,6 @@ def run_calibrate(cmd: Calibrate) -> dict:
             progress=progress,
             gaits_path=cmd.gaits,
         )
-    finally:
-        if bar[0] is not None:
-            bar[0].close()
 
 
 def run_figures(cmd: Figures) -> list[Path]:

@@ -1,4 +1,4 @@
-"""Predictability and consistency of body paths (DESIGN.md, "Predictability").
+"""Predictability and consistency of body paths (docs/evaluation.md: the consistency promise against the physics' own spread).
 
 Random-phase multisine gaits can be chaotic: a 1e-3 relative perturbation of the commands can move
 the 100 s final position by about the distance travelled. So every comparison of a predicted body

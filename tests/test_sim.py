@@ -1,4 +1,4 @@
-"""Simulator, excitation, spectra and the command rule: the contract of DESIGN.md (Robot .. Topological joint shape)."""
+"""Simulator, excitation, spectra and the command rule: the contract of docs/robot.md (robot .. topological joint shape)."""
 
 from __future__ import annotations
 

@@ -482,6 +482,12 @@ def bench_load(
         "driver_cores": multi.get("driver_cores", multi["cores"]["browsers"]),
         "single_driver_cores": phases[1].get("driver_cores", phases[1]["cores"]["browsers"]),
         "delivery_p95_ms": [c.get("delivery_p95_ms", float("nan")) for c in multi["clients"]],
+        # Protocol driver: each stage's p95 per minute of the multi-client phase (all clients' drags),
+        # and the last minute's over the first's.
+        "minute_p95_ms": multi.get("minutes", {}),
+        "last_over_first_minute": {
+            k: v[-1] / v[0] if v and v[0] > 0 else float("nan") for k, v in multi.get("minutes", {}).items()
+        },
         "multi_decoded_server_p95_ms": [
             c.get("decoded_server_p95_ms", float("nan")) for c in multi["clients"]
         ],

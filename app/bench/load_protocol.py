@@ -32,6 +32,22 @@ def _p(values, q: float) -> float:
     return float(np.percentile(v, q)) if v.size else float("nan")
 
 
+def by_minute(summaries: list[dict]) -> dict[str, list[float]]:
+    """p95 (ms) of decoded view, first motion and replay ready over all clients' drags, per minute of
+    the run (by when each drag's last value went out): whether a long run slows down."""
+    sent = np.concatenate([s["sent"] for s in summaries]) if summaries else np.zeros(0)
+    if not sent.size:
+        return {}
+    stages = np.concatenate([np.asarray(s["stages_ms"], np.float64).reshape(-1, 3) for s in summaries])
+    minute = ((sent - sent.min()) // 60).astype(int)
+    out = {}
+    for i, name in enumerate(("decoded", "first_motion", "replay")):
+        out[name] = [
+            _p(stages[(minute == m) & np.isfinite(stages[:, i]), i], 95) for m in range(minute.max() + 1)
+        ]
+    return out
+
+
 def server_problems(d: DesignerClient, s: dict, replay_problems) -> list[str]:
     """What the server shows a protocol client that is not of its final sliders (``s``: the
     client's summary)."""
@@ -173,6 +189,7 @@ def protocol_phase(
             }
         return {
             "clients": clients,
+            "minutes": by_minute(result["clients"]),
             "page": page,
             "server_exceptions": server.errors[errors_before:],
             "page_errors": browser.call("errors") if browser is not None else [],

@@ -33,41 +33,31 @@ def pin_process(cpus) -> None:
 
 
 def rss_mb() -> float:
-    """Resident set size of this process (MB), from /proc (Linux) or the peak from getrusage."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    import resource
+    """Resident set size of this process (MB)."""
+    import psutil
 
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return psutil.Process().memory_info().rss / 2**20
 
 
 def descendants(root: int) -> list[int]:
-    """Process ids of every process descended from ``root`` (Linux /proc)."""
-    parent = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-            parent[int(stat.parent.name)] = int(fields[1])
-        except (OSError, ValueError, IndexError):
-            continue
-    found, frontier = set(), {root}
-    while frontier:
-        frontier = {pid for pid, pp in parent.items() if pp in frontier} - found
-        found |= frontier
-    return sorted(found)
+    """Process ids of every process descended from ``root``."""
+    import psutil
 
-
-def cpu_seconds(pid: int | str = "self") -> float:
-    """User plus system CPU time of a process so far (s), from /proc; NaN where unknown."""
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
+        return sorted(p.pid for p in psutil.Process(root).children(recursive=True))
+    except psutil.NoSuchProcess:
+        return []
+
+
+def cpu_seconds(pid: int | None = None) -> float:
+    """User plus system CPU time of a process so far (s; None: this one); NaN where it is gone."""
+    import psutil
+
+    try:
+        t = psutil.Process(pid).cpu_times()
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
         return float("nan")
+    return t.user + t.system
 
 
 class CpuSplit:

@@ -311,6 +311,12 @@ class ProtocolClient:
         plot = self.plot("forward (m)")
         return {
             "drags": len(drags),
+            # When each drag's last value went out (client perf_counter): the long run's per-minute figures.
+            "sent": [d.sent for d in drags],
+            "stages_ms": [
+                [1e3 * (getattr(d, k) - d.sent) for k in ("decoded", "first_motion", "replayed")]
+                for d in drags
+            ],
             "decoded_ms": ms("decoded"),
             "first_motion_ms": ms("first_motion"),
             "replay_ms": ms("replayed"),

@@ -166,6 +166,16 @@ def load(cmd) -> dict:
                 else ""
             )
         )
+    if r.get("minute_p95_ms"):
+        print(
+            "per minute of the multi-client phase, p95 (ms): "
+            + "; ".join(
+                f"{k} "
+                + "/".join(f"{v:.0f}" for v in vals)
+                + f" (last / first {r['last_over_first_minute'][k]:.2f})"
+                for k, vals in r["minute_p95_ms"].items()
+            )
+        )
     for details in r["stale_details"]:
         print("stale:", "; ".join(details))
     for message in r["exception_messages"]:
