@@ -14,7 +14,7 @@ import viser
 from snakeloco.app.session import DecodedGait, SimulatedGait
 from snakeloco.app.view import Framer, MetreGrid
 from snakeloco.app.viser_patches import set_arrays
-from snakeloco.sim import BODY_DOWNSAMPLE, LINK_LENGTH, LINK_RADIUS, N_LINKS, LinkPoses
+from snakeloco.sim import BODY_DOWNSAMPLE, N_LINKS, LinkPoses
 
 JOINT_COLORS = np.array(
     [
@@ -102,7 +102,9 @@ class TabScene:
         self.start = (np.zeros(3), 0.0)  # the replay's initial body position (m) and heading (rad), world
         scene = client.scene
         self.grid = scene.add_grid("/grid", 20.0, 20.0, cell_size=0.1, section_size=1.0)
-        capsule = trimesh.creation.capsule(height=LINK_LENGTH, radius=LINK_RADIUS, count=[12, 12])
+        radius, length = self.kinematics.capsule()  # from the MJCF, as the physics has them
+        self.link_radius = radius  # a path drawn before its replay sits at the lying snake's height
+        capsule = trimesh.creation.capsule(height=length, radius=radius, count=[12, 12])
         capsule.visual.vertex_colors = np.array(SNAKE_COLOR, dtype=np.uint8)
         self.snake = scene.add_batched_meshes_trimesh(
             "/snake",
@@ -179,7 +181,7 @@ class TabScene:
     def draw_decoded(self, gait: DecodedGait) -> None:
         """The decoded path and joint shape; the previous replay's nodes are hidden (its fan removed)."""
         if gait.body_ds is not None:
-            self._draw_generated(gait.body_ds, LINK_RADIUS)
+            self._draw_generated(gait.body_ds, self.link_radius)
         else:
             for node in (self.gen_path, self.band):
                 if node is not None:

@@ -2,8 +2,9 @@
 
 The start frame is the one the body channels are expressed in (``sim.body``): the middle link's
 position and heading at t = 0, x forward, y left, z up (metres), with the height kept (so the snake
-lies on the drawn floor). Each link is a capsule of length ``LINK_LENGTH`` between its joints and
-radius ``LINK_RADIUS``, its axis along the geom frame's z axis, centred on the geom's position.
+lies on the drawn floor). Each link is a capsule, its axis along the geom frame's z axis, centred
+on the geom's position; its radius and length are read from the compiled MJCF (``capsule``), so
+the picture cannot drift from the physics.
 """
 
 from __future__ import annotations
@@ -22,6 +23,16 @@ class LinkPoses:
         self.data = mujoco.MjData(self.model)
         self._geoms = np.array([self.model.geom(name).id for name in LINK_GEOMS])
         self._site = self.model.site(BODY_SITE).id
+
+    def capsule(self) -> tuple[float, float]:
+        """The links' capsule (radius, centre-to-centre length) in m, as MuJoCo compiled them (a
+        capsule geom's size is its radius and half length); ValueError if the links differ (the
+        scene draws every link with one mesh)."""
+        sizes = self.model.geom_size[self._geoms, :2]
+        types = self.model.geom_type[self._geoms]
+        if not (np.all(types == mujoco.mjtGeom.mjGEOM_CAPSULE) and np.allclose(sizes, sizes[0])):
+            raise ValueError("the snake's links are not all the same capsule: the scene cannot draw them")
+        return float(sizes[0, 0]), float(2 * sizes[0, 1])
 
     def start_frame(self, qpos0: np.ndarray) -> tuple[np.ndarray, float]:
         """World position (3,) m and heading (rad) of the body frame for the record's first ``qpos``."""

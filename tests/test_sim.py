@@ -402,3 +402,13 @@ def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_le
     assert str(broken.value) == last.failure
     with pytest.raises(ValueError, match="NaN"):
         next(simulator.stream(np.full((2000, 8), np.nan)))
+
+
+def test_the_scene_draws_the_links_as_the_mjcf_compiles_them():
+    from snakeloco.sim import LINK_LENGTH, LINK_RADIUS, LinkPoses
+
+    poses = LinkPoses()
+    assert poses.capsule() == pytest.approx((LINK_RADIUS, LINK_LENGTH))
+    poses.model.geom_size[poses._geoms[3], 0] *= 1.5  # one fatter link: one mesh cannot draw them all
+    with pytest.raises(ValueError, match="not all the same capsule"):
+        poses.capsule()
