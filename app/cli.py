@@ -126,7 +126,7 @@ class Progress:
 def run_generate(cmd: Generate) -> Path:
     """Generate the dataset with a progress bar; returns the written path. Ctrl-C says what was kept."""
 
-    from snakeloco.sim import generate_dataset
+    from snakeloco.sim.generate import generate_dataset
     from snakeloco.sim.structured import STRUCTURED_PRESETS
 
     cfg = cmd.config

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -20,8 +20,16 @@ import torch
 from snakeloco.model.api import GaitModel
 from snakeloco.model.stats import median_relative_errors
 
-if TYPE_CHECKING:
-    from snakeloco.model.calibrate import CalibrateConfig
+
+class Schedule(Protocol):
+    """How a stage fits (``model.calibrate.CalibrateConfig`` is one; this module does not import
+    it, so calibration sits above fine-tuning and never the other way)."""
+
+    epochs: int
+    lr: float
+    batch_size: int
+    seed: int
+
 
 BATCH = 512
 """Records per forward pass when predicting or scoring whole sets (no gradients)."""
@@ -103,7 +111,7 @@ def fit_head(
     model: GaitModel,
     train: tuple[np.ndarray, np.ndarray],
     held_out: dict[str, tuple[np.ndarray, np.ndarray]],
-    cfg: CalibrateConfig,
+    cfg: Schedule,
     log: Callable[[str], None] | None,
 ) -> dict:
     """Stage 1: fit the statistics head to (joint shapes (N, 8, L, 2) rad, statistics vectors (N, 4))
@@ -152,7 +160,7 @@ def fit_path_decoder(
     records_val: tuple[np.ndarray, np.ndarray],
     gaits: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     gaits_val: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-    cfg: CalibrateConfig,
+    cfg: Schedule,
     log: Callable[[str], None] | None,
 ) -> dict:
     """Stage 2: fit the body decoder to replayed paths.
