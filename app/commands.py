@@ -19,6 +19,7 @@ from snakeloco.app.bench.load_driver import DWELL_S
 from snakeloco.model.calibrate import CalibrateConfig
 from snakeloco.model.config import ModelConfig
 from snakeloco.model.design import DesignConfig, Target
+from snakeloco.model.evaluate import PRIOR_SAMPLES
 from snakeloco.model.sampler import SamplerConfig
 from snakeloco.model.train import PRESETS, TrainConfig
 from snakeloco.sim import GenerateConfig
@@ -84,7 +85,7 @@ class Evaluate(Command):
     """Held-out dataset .npz (generate it with a seed not used for training)."""
     checkpoint: Path | None = None
     """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
-    prior_samples: Annotated[int, Field(ge=0)] = 256
+    prior_samples: Annotated[int, Field(ge=0)] = PRIOR_SAMPLES
     """z_B drawn for the consistency check (0 skips it)."""
     positions: Literal["sampler", "prior"] = "sampler"
     """Where those z_B come from: the checkpoint's sampler (its density over the training posteriors, where the sliders and Random put them) or the N(0, I) prior (what sliders dragged to their edges reach)."""
@@ -213,6 +214,10 @@ class BenchApp(Command):
     """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
     moves: Annotated[int, Field(ge=1)] = 20
     """Slider moves to time."""
+    ensemble: Ensemble = ENSEMBLE_SIZE
+    """Replays per gait (as in `snakeloco serve`)."""
+    seed: Seed = 0
+    """Seed of the slider values moved to."""
 
 
 class BenchLoad(Command):

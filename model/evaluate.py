@@ -118,6 +118,8 @@ def latent_health(model: GaitModel, z_b: np.ndarray, z_j: np.ndarray, shape, bod
     }
 
 
+PRIOR_SAMPLES = 256
+"""z_B the consistency check draws by default (``snakeloco evaluate --prior-samples``)."""
 ZK_MODES: dict[str, float | None] = {"zk_zero": None, "zk_sampled": 1.0}
 """The consistency check's z_k modes (report keys): z_k = 0, and z_k sampled from the learned prior
 at this temperature (``GaitModel.joint_latents``)."""
@@ -129,7 +131,7 @@ the sliders and Random put them) or N(0, I) (what dragging sliders to their edge
 
 def consistency(
     model: GaitModel,
-    n_prior: int = 256,
+    n_prior: int = PRIOR_SAMPLES,
     ensemble: int = ENSEMBLE_SIZE,
     seed: int = 0,
     workers: int | None = None,
@@ -279,7 +281,7 @@ def physics_floor(commands: np.ndarray, body_ds: np.ndarray, runner, seed: int =
 def evaluate(
     checkpoint: str | Path | None,
     data: str | Path,
-    n_prior: int = 256,
+    n_prior: int = PRIOR_SAMPLES,
     ensemble: int = ENSEMBLE_SIZE,
     seed: int = 0,
     workers: int | None = None,

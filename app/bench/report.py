@@ -46,7 +46,7 @@ def app(cmd) -> dict:
     """One client's latency through a real designer server (``bench/app.py``)."""
     from snakeloco.app.bench.app import bench_app
 
-    r = bench_app(cmd.checkpoint, cmd.moves)
+    r = bench_app(cmd.checkpoint, cmd.moves, cmd.ensemble, cmd.seed)
     print(
         f"{r['moves']} slider moves: decoded view p50 {r['decoded_p50_ms']:.1f} ms, p95 {r['decoded_p95_ms']:.1f} ms; "
         f"first motion p50 {r['first_motion_p50_ms']:.0f} ms, p95 {r['first_motion_p95_ms']:.0f} ms; "
