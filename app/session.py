@@ -19,7 +19,8 @@ from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, BODY_RATE, SimulationError, Simulator, joint_shape
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, compare, perturbed_commands
 from snakeloco.sim.members import Member
-from snakeloco.sim.physics import StreamedReplay, replay_runner
+from snakeloco.sim.physics import StreamedReplay
+from snakeloco.sim.threads import replay_runner
 
 ZkMode = Literal["zero", "sampled"]
 

@@ -49,7 +49,7 @@ SETTLED_S = 0.5
 """A slider value the tab has held this long (no newer one) is one the user has let go of."""
 PHYSICS_NICE = 15
 """Nice increment of the threads that run a tab's ensemble rollouts (a server shares one set of them
-at this priority; ``sim.physics.RolloutThreads``). They hold the GIL only to enter and leave a
+at this priority; ``sim.threads.RolloutThreads``). They hold the GIL only to enter and leave a
 rollout."""
 
 

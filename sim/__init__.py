@@ -45,7 +45,7 @@ _NEEDS_MUJOCO = {
     "ReplayResult": "snakeloco.sim.physics",
     "Simulator": "snakeloco.sim.physics",
     "replay": "snakeloco.sim.physics",
-    "resolve_workers": "snakeloco.sim.physics",
+    "resolve_workers": "snakeloco.sim.threads",
     "generate_dataset": "snakeloco.sim.generate",
     "LinkPoses": "snakeloco.sim.kinematics",
 }

@@ -75,7 +75,8 @@ class LocalBackend:
     name = "local"
 
     def __init__(self, workers: int | None, excitation: ExcitationConfig, sim: SimConfig) -> None:
-        from snakeloco.sim.physics import Simulator, resolve_workers
+        from snakeloco.sim.physics import Simulator
+        from snakeloco.sim.threads import resolve_workers
 
         self.workers = resolve_workers(workers)
         self.simulator = Simulator(self.workers, excitation, sim)

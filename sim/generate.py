@@ -28,10 +28,11 @@ from snakeloco.sim.dataset import (
     GenerateConfig,
 )
 from snakeloco.sim.excitation import RECORD, multisine, random_phases
-from snakeloco.sim.physics import Simulator, resolve_workers
+from snakeloco.sim.physics import Simulator
 from snakeloco.sim.robot import N_JOINTS, load_model, mjcf_sha256
 from snakeloco.sim.spectra import joint_shape, shape_to_commands
 from snakeloco.sim.structured import draw_structured, perturbed_shapes
+from snakeloco.sim.threads import resolve_workers
 from snakeloco.sim.writer import open_writer, read_progress, write_rows
 
 MEMORY_BUDGET = 512 * 2**20

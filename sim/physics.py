@@ -7,10 +7,9 @@ as broken (``SimConfig`` holds the limits) and is named, never returned as data.
 
 from __future__ import annotations
 
-import os
 import threading
 from collections.abc import Callable, Iterator
-from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED
 from concurrent.futures import wait as wait_futures
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -23,6 +22,7 @@ from snakeloco.sim.body import body_states
 from snakeloco.sim.command_rule import SimConfig, SimulationError, expand_commands
 from snakeloco.sim.excitation import ExcitationConfig
 from snakeloco.sim.robot import BODY_SITE, N_JOINTS, load_model
+from snakeloco.sim.threads import RolloutThreads, _FifoLock, resolve_workers
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
 
@@ -82,138 +82,6 @@ class BatchResult:
     body: np.ndarray  # (B, T, 6)
     failures: list[str | None]
     qpos: np.ndarray  # (B, T, nq) at the sample times
-
-
-def set_thread_nice(value: int | None) -> int | None:
-    """Set the calling thread's nice value (Linux: per thread; threads and processes it starts
-    inherit it); returns the previous value, or None where that is not possible."""
-    if value is None or not hasattr(os, "setpriority"):
-        return None
-    tid = threading.get_native_id()
-    try:
-        previous = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, value)
-    except OSError:
-        return None
-    return previous
-
-
-def lower_thread_priority(increment: int) -> int | None:
-    """Raise the calling thread's nice value by ``increment``; returns the previous value or None."""
-    if not hasattr(os, "getpriority"):
-        return None
-    return set_thread_nice(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + increment)
-
-
-class _FifoLock:
-    """A lock granted in request order (``threading.Lock`` lets a thread that just released it win
-    again): tabs sharing one simulator each get their turn between the others' batches."""
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition(threading.Lock())
-        self._next_ticket = 0
-        self._serving = 0
-
-    def __enter__(self) -> None:
-        with self._cond:
-            ticket = self._next_ticket
-            self._next_ticket += 1
-            self._cond.wait_for(lambda: self._serving == ticket)
-
-    def __exit__(self, *exc) -> None:
-        with self._cond:
-            self._serving += 1
-            self._cond.notify_all()
-
-
-class RolloutThreads:
-    """``n`` Python threads, ``nice`` below their creator, that run MuJoCo rollouts one record each.
-
-    Why not ``mujoco.rollout.Rollout(nthread=n)``: its caller waits for the pool by spinning
-    (``std::this_thread::yield``) at the caller's own priority, so a server thread waiting for a
-    niced ensemble burnt a core at full priority for the whole batch (measured: the waiting thread
-    used 0.82 s of CPU in a 0.82 s rollout). Here each thread calls a pool-less rollout, which runs
-    on that thread with the GIL released, and the caller blocks on a future without using the CPU.
-    The threads take the GIL only to enter and leave a rollout. Rows are independent (each from its
-    own initial state and warm start), so the results do not depend on which thread ran them.
-    """
-
-    def __init__(self, n: int, nice: int = 0, name: str = "rollout") -> None:
-        self.n = max(1, int(n))
-        self._local = threading.local()
-        self._executor = ThreadPoolExecutor(
-            self.n, thread_name_prefix=name, initializer=self._start_thread, initargs=(int(nice),)
-        )
-        started = threading.Barrier(self.n + 1)  # all threads now (an executor starts them lazily)
-        for _ in range(self.n):
-            self._executor.submit(started.wait)
-        started.wait()
-
-    @staticmethod
-    def _start_thread(nice: int) -> None:
-        if nice > 0:  # lowering needs no privilege; the creator's priority is untouched
-            lower_thread_priority(nice)
-
-    def _one(self, model: mujoco.MjModel, data: mujoco.MjData | None, **arrays) -> None:
-        local = self._local
-        if not hasattr(local, "runner"):
-            local.runner = mj_rollout.Rollout(nthread=0)  # no pool: runs on this thread
-            local.data = {}
-        if data is None:  # this thread's own MjData for the model (rollout sets its whole state)
-            data = local.data.get(id(model))
-            if data is None:
-                data = local.data[id(model)] = mujoco.MjData(model)
-        local.runner.rollout(model, data, **arrays)
-
-    def rollout(
-        self,
-        model: mujoco.MjModel,
-        initial: np.ndarray,
-        ctrl: np.ndarray,
-        warm: np.ndarray,
-        state: np.ndarray,
-        sensordata: np.ndarray,
-        data: mujoco.MjData | None = None,
-        wait: bool = True,
-    ) -> list[Future]:
-        """Roll out rows ``initial`` (B, nstate), ``ctrl`` (B, nstep, nu) from ``warm`` (B, nv) into
-        ``state`` (B, nstep, nstate) and ``sensordata`` (B, nstep, nsensordata), one row per task;
-        ``data``: the MjData to use (one row only: a stream keeps its own). Blocks until all are in,
-        unless not ``wait``: then returns the rows' futures at once."""
-        if data is not None and len(ctrl) != 1:
-            raise ValueError("a given MjData serves one row at a time")
-        futures = [
-            self._executor.submit(
-                self._one,
-                model,
-                data,
-                initial_state=initial[i : i + 1],
-                control=ctrl[i : i + 1],
-                initial_warmstart=warm[i : i + 1],
-                state=state[i : i + 1],
-                sensordata=sensordata[i : i + 1],
-            )
-            for i in range(len(ctrl))
-        ]
-        if wait:
-            for f in futures:
-                f.result()
-        return futures
-
-    def close(self) -> None:
-        """Finish the rollouts in progress and stop the threads."""
-        self._executor.shutdown(wait=True, cancel_futures=True)
-
-
-def replay_runner(nice: int) -> RolloutThreads:
-    """One rollout thread at ``nice`` below the caller, for ``Simulator.stream`` (close it when
-    done): a server runs its tabs' replays below its own threads and above its ensembles."""
-    return RolloutThreads(1, nice, name="replay")
-
-
-def resolve_workers(workers: int | None) -> int:
-    """Simulation threads to use: ``workers``, or one per core of this machine where it is None."""
-    return max(1, int(workers)) if workers is not None else (os.cpu_count() or 1)
 
 
 class Simulator:

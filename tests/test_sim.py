@@ -222,7 +222,7 @@ def test_low_priority_pool_gives_the_same_physics_and_leaves_the_caller_alone(ti
 
 
 def test_callers_sharing_a_simulator_roll_out_in_the_order_they_came():
-    from snakeloco.sim.physics import _FifoLock
+    from snakeloco.sim.threads import _FifoLock
 
     lock, order, threads = _FifoLock(), [], []
     with lock:
@@ -347,7 +347,8 @@ def test_servo_lag_compensation_brings_the_measured_shape_to_the_target(tiny_dat
 
 def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_left():
     from snakeloco.sim.gaits import PRESETS
-    from snakeloco.sim.physics import STREAM_FIRST, replay_runner
+    from snakeloco.sim.physics import STREAM_FIRST
+    from snakeloco.sim.threads import replay_runner
 
     simulator = Simulator(workers=1)
     commands = PRESETS["sidewind"].gait.commands()

@@ -107,7 +107,7 @@ def bench_scale(
     log=print,
 ) -> dict:
     """Run the three measurements in one go (see the module docstring); returns the figures."""
-    from snakeloco.sim.physics import resolve_workers
+    from snakeloco.sim.threads import resolve_workers
 
     workers = resolve_workers(workers)
     cfg = GenerateConfig(num_samples=records, seed=seed, family=family)
