@@ -344,7 +344,7 @@ def main(args: list[str] | None = None) -> None:
     breaks the simulation in every phase draw ends the command with a one-line message naming the
     problem and exit status 2, not a traceback.
     """
-    from snakeloco.app.bench.load import MissingBrowserError
+    from snakeloco.app.bench.load_browser import MissingBrowserError
     from snakeloco.model.checkpoint import CheckpointError
     from snakeloco.model.figures import ReportError
     from snakeloco.model.train import TrainingError

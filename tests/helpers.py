@@ -55,7 +55,7 @@ def apply(d, control, value, timeout: float = 60.0) -> bool:
     """Set a GUI control of tab ``d`` as a user would and wait, on the tab's request version and not
     a clock, until the request it caused is the tab's newest and every job of it finished. False if
     no request came within 10 s (the control changed nothing) or it did not finish."""
-    from snakeloco.app.bench.load import wait_until
+    from snakeloco.app.bench.load_driver import wait_until
 
     before = d.version
     control.value = value

@@ -284,7 +284,7 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
         assert "replay failed" in d.controls.readout.content and d.readout.gap_m is None
         assert d.timings[-1].failed and server.errors == []
         # The load benchmark's check: a refused replay shown as such is not a stale draw ...
-        from snakeloco.app.bench.load import replay_problems
+        from snakeloco.app.bench.load_browser import replay_problems
 
         assert replay_problems(d) == []
         shown = d.controls.panel.content

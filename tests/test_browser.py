@@ -10,7 +10,7 @@ import threading
 import numpy as np
 import pytest
 
-from snakeloco.app.bench.load import CHROMIUM, CHROMIUM_ARGS, wait_until
+from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.gait_csv import read_gait_csv
 from snakeloco.app.server import DesignerServer
 

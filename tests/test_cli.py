@@ -94,9 +94,9 @@ def test_out_of_range_options_are_refused_before_any_work(argv, says, capsys, tm
 
 
 def test_bench_load_without_chromium_says_what_to_install(capsys, monkeypatch, tmp_path):
-    import snakeloco.app.bench.load
+    import snakeloco.app.bench.load_browser
 
-    monkeypatch.setattr(snakeloco.app.bench.load, "CHROMIUM", str(tmp_path / "no-chromium"))
+    monkeypatch.setattr(snakeloco.app.bench.load_browser, "CHROMIUM", str(tmp_path / "no-chromium"))
     _refused(capsys, ["bench", "load", "--clients", "1", "--seconds", "1"], "apt-get install -y chromium")
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from snakeloco.app.bench.load import CHROMIUM, CHROMIUM_ARGS, wait_until
+from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.readout import READOUT_ID
 from snakeloco.app.scene import path_points
 from snakeloco.app.server import DesignerServer

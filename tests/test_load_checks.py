@@ -6,7 +6,7 @@ import threading
 import time
 from types import SimpleNamespace
 
-import snakeloco.app.bench.load as load
+import snakeloco.app.bench.load_browser as load
 
 
 class _Tab:
@@ -29,7 +29,7 @@ def test_wait_quiet_waits_for_a_late_slider_message():
     t = threading.Thread(target=late_message)
     start = time.monotonic()
     t.start()
-    assert load._wait_quiet([tab], quiet_s=0.6, timeout_s=10)
+    assert load.wait_quiet([tab], quiet_s=0.6, timeout_s=10)
     t.join()
     assert time.monotonic() - start >= 0.4 + 0.6  # quiet counted from the late message, not the start
 
@@ -46,26 +46,26 @@ def test_wait_quiet_gives_up_on_sliders_that_never_settle():
     t = threading.Thread(target=keep_moving)
     t.start()
     try:
-        assert not load._wait_quiet([tab], quiet_s=0.5, timeout_s=1.0)
+        assert not load.wait_quiet([tab], quiet_s=0.5, timeout_s=1.0)
     finally:
         stop.set()
         t.join()
 
 
 def test_stale_checks_recheck_a_state_that_moved_but_report_real_mismatches(monkeypatch):
-    monkeypatch.setattr(load, "_wait_quiet", lambda designers: True)
+    monkeypatch.setattr(load, "wait_quiet", lambda designers: True)
     results = iter(
         [["exported commands are not those of the final sliders", f"{load.MOVED}: [0] -> [1]"], []]
     )
-    monkeypatch.setattr(load, "_check_final_state", lambda *a: next(results))
-    assert load._stale_checks(None, None, None, 0) == []  # the second look, at the final values, is clean
+    monkeypatch.setattr(load, "check_final_state", lambda *a: next(results))
+    assert load.stale_checks(None, None, None, 0) == []  # the second look, at the final values, is clean
 
     real = ["drawn generated path is not the decode of the final sliders"]
-    monkeypatch.setattr(load, "_check_final_state", lambda *a: list(real))
-    assert load._stale_checks(None, None, None, 0) == real  # no movement: a stale draw is reported as such
+    monkeypatch.setattr(load, "check_final_state", lambda *a: list(real))
+    assert load.stale_checks(None, None, None, 0) == real  # no movement: a stale draw is reported as such
 
     moving = ["x", f"{load.MOVED}: [0] -> [1]"]
     calls = []
-    monkeypatch.setattr(load, "_check_final_state", lambda *a: calls.append(1) or list(moving))
-    assert load._stale_checks(None, None, None, 0, attempts=3) == moving  # never settles: reported
+    monkeypatch.setattr(load, "check_final_state", lambda *a: calls.append(1) or list(moving))
+    assert load.stale_checks(None, None, None, 0, attempts=3) == moving  # never settles: reported
     assert len(calls) == 3

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from snakeloco.app.bench.load import replay_problems, wait_until
+from snakeloco.app.bench.load_browser import replay_problems, wait_until
 from snakeloco.app.bench.load_protocol import server_problems
 from snakeloco.app.bench.protocol import DONE_STATES, ProtocolClient, parse_readout, stream_problems
 from snakeloco.app.readout import Readout, readout_html

@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from snakeloco.app.bench import protocol
+from snakeloco.app.bench.load_browser import Browser, replay_problems, stale_checks, wait_quiet
+from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.bench.processes import CpuSplit, rss_mb
 from snakeloco.app.gui import PATH_PLOT_STEP, plot_series
 from snakeloco.app.server import DesignerServer
@@ -83,7 +85,6 @@ def protocol_phase(
 ) -> dict:
     """``n`` protocol clients drag for ``seconds`` (plus, ``with_page``, one Chromium page); the
     phase in ``bench_load``'s form."""
-    from snakeloco.app.bench.load import _Browser, _stale_checks, _wait_quiet, replay_problems
 
     before = set(server.clients)
     browser, page_tab, process = None, None, None
@@ -93,10 +94,8 @@ def protocol_phase(
     errors_before = len(server.errors)
     try:
         if with_page:
-            browser = _Browser(f"http://127.0.0.1:{server.port}", pages)
+            browser = Browser(f"http://127.0.0.1:{server.port}", pages)
             browser.call("open", timeout=180)
-            from snakeloco.app.bench.load import wait_until
-
             if not wait_until(lambda: set(server.clients) - before, 90):
                 raise RuntimeError("the Chromium page never connected to the designer")
             page_tab = server.clients[(set(server.clients) - before).pop()]
@@ -131,7 +130,7 @@ def protocol_phase(
         cores = cpu.stop()
         t_end = time.monotonic()
         tabs = [d for k, d in server.clients.items() if k in seen and d is not page_tab]
-        settled = _wait_quiet(tabs + ([page_tab] if page_tab else []))
+        settled = wait_quiet(tabs + ([page_tab] if page_tab else []))
         rss_idle_after = rss_mb()
         clients = []
         matched = _match(
@@ -185,7 +184,7 @@ def protocol_phase(
         if browser is not None:
             page = {
                 **page_moves,
-                "stale": _stale_checks(browser, page_tab, tmp, 0) if settled else ["did not settle"],
+                "stale": stale_checks(browser, page_tab, tmp, 0) if settled else ["did not settle"],
             }
         return {
             "clients": clients,

@@ -35,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.bench.load import CHROMIUM, CHROMIUM_ARGS, require_browser, wait_until
+from snakeloco.app.bench.load_browser import require_browser
+from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.bench.processes import BrowserNice, RssSampler
 from snakeloco.app.gait_csv import read_gait_csv
 from snakeloco.app.server import DesignerServer, tune_process
