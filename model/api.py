@@ -24,7 +24,7 @@ from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoin
 from snakeloco.model.member_path import MemberPathHead, member_inputs
 from snakeloco.model.network import HierarchicalVAE
 from snakeloco.model.stats import stats_dict
-from snakeloco.model.tracing import trace_single
+from snakeloco.model.tracing import trace_one_arg, trace_single
 from snakeloco.sim.members import Member, project_many
 
 
@@ -157,8 +157,10 @@ class GaitModel:
         if self.member_head is None:
             raise ValueError("this checkpoint has no member path head")
         x = member_inputs(np.stack([m.shape() for m in members]), np.asarray(self.config.member_head.support))
+        x = torch.as_tensor(x, dtype=torch.float32)
+        head = self._single_input("member_head", self.member_head, "forward", x) if len(x) == 1 else None
         with self._lock, torch.inference_mode():
-            body = self.member_head(torch.as_tensor(x, dtype=torch.float32)).numpy().astype(np.float64)
+            body = (head or self.member_head)(x).numpy().astype(np.float64)
         return body * self._body_std + self._body_mean
 
     def decode_members(
@@ -319,6 +321,16 @@ class GaitModel:
                 self._traced[method] = None
         return self._traced[method]
 
+    def _single_input(self, name: str, module, method: str, example: torch.Tensor):
+        """The traced one-input graph of ``module.<method>`` for one example (``tracing.trace_one_arg``),
+        or None where this torch cannot trace (the eager call gives the same numbers)."""
+        if name not in self._traced:
+            try:
+                self._traced[name] = trace_one_arg(module, method, example)
+            except Exception:
+                self._traced[name] = None
+        return self._traced[name]
+
     def _generate(self, z_b: torch.Tensor, z_j: torch.Tensor | None):
         """``net.generate``; one z_B (the slider path) runs the traced graph."""
         traced = self._single("generate") if z_b.shape[0] == 1 else None
@@ -331,8 +343,10 @@ class GaitModel:
     def predict_stats(self, shape: np.ndarray) -> dict[str, np.ndarray]:
         """Body statistics the model predicts for the gaits of joint shapes (B, 8, L, 2) rad."""
         shape = self._check_shape(shape)
+        x = self.normalize_shape(shape)
+        traced = self._single_input("predict_stats", self.net, "predict_stats", x) if len(x) == 1 else None
         with self._lock, torch.inference_mode():
-            v = self.net.predict_stats(self.normalize_shape(shape))
+            v = traced(x) if traced is not None else self.net.predict_stats(x)
         return self.stats_from_network(v.numpy())
 
     def sample_joint_latents(

@@ -35,3 +35,23 @@ def trace_single(net: HierarchicalVAE, method: str = "generate") -> torch.jit.Sc
     with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the deprecation notice, and the constant signal_ready check
         return torch.jit.freeze(torch.jit.trace(_Method(net, method).eval(), (zb, zj), check_trace=False))
+
+
+class _OneArg(nn.Module):
+    def __init__(self, module: nn.Module, method: str) -> None:
+        super().__init__()
+        self.module, self.method = module, method
+
+    def forward(self, x: torch.Tensor):
+        return getattr(self.module, self.method)(x)
+
+
+def trace_one_arg(module: nn.Module, method: str, example: torch.Tensor) -> torch.jit.ScriptModule:
+    """``module.<method>(x)`` for inputs shaped like ``example`` as a frozen TorchScript graph (the
+    member path head and the statistics head on one decoded member: the same GIL reasons as
+    ``trace_single``)."""
+    import warnings
+
+    with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return torch.jit.freeze(torch.jit.trace(_OneArg(module, method).eval(), (example,), check_trace=False))

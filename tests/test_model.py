@@ -447,6 +447,21 @@ def test_single_z_decode_runs_traced_and_matches_eager_exactly(checkpoint):
     np.testing.assert_array_equal(sampled[0], eager.numpy().astype(np.float64)[0])
 
 
+def test_one_members_path_and_statistics_run_traced_and_match_eager_exactly():
+    from snakeloco.model.member_path import member_inputs
+
+    m = load_pretrained("structured")  # the shipped checkpoint with a member path head
+    members, _, measured, body, stats = m.decode_members(m.sample_z_b(1, seed=4))
+    assert m._traced["member_head"] is not None and m._traced["predict_stats"] is not None
+    x = member_inputs(np.stack([q.shape() for q in members]), np.asarray(m.config.member_head.support))
+    with torch.inference_mode():
+        eager_body = m.member_head(torch.as_tensor(x, dtype=torch.float32)).numpy().astype(np.float64)
+        eager_stats = m.stats_from_network(m.net.predict_stats(m.normalize_shape(measured)).numpy())
+    np.testing.assert_array_equal(body, eager_body * m._body_std + m._body_mean)
+    for k, v in eager_stats.items():
+        np.testing.assert_array_equal(stats[k], v)
+
+
 def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
     from snakeloco.app.cli import main
     from snakeloco.model.checkpoint import PRETRAINED_DIR, SHIPPED, STRUCTURED_DIR
