@@ -54,4 +54,6 @@ def trace_one_arg(module: nn.Module, method: str, example: torch.Tensor) -> torc
 
     with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return torch.jit.freeze(torch.jit.trace(_OneArg(module, method).eval(), (example,), check_trace=False))
+        return torch.jit.freeze(
+            torch.jit.trace(_OneArg(module, method).eval(), (example,), check_trace=False)
+        )
