@@ -1,31 +1,18 @@
-"""Designer users without a browser: viser's wire protocol spoken from asyncio (``snakeloco bench
-load --driver protocol``).
+"""Designer users without a browser: viser's wire protocol from asyncio (``bench load --driver
+protocol``). A Chromium per user on the benchmark machine competes with the server it measures; a
+protocol client costs next to nothing, as a load tool's clients should. Against viser 1.1.x it does
+what a page does on the wire: joins with the subprotocol ``viser-v{version}`` and a
+``ViewerCameraMessage`` (no client exists until one arrives) and keeps reading; keeps the GUI it is
+sent (creation messages by uuid, ``GuiUpdateMessage`` merges) and finds controls by label; pauses
+playback and turns light rendering on; drags as viser's slider does (a value every 50 ms and a
+trailing one), then rests.
 
-A user's browser runs on the user's machine; on a benchmark machine a Chromium per user competes
-with the server it measures (four software-WebGL pages on 2 cores: 6.7 runnable browser threads on
-average). A protocol client costs next to nothing, as a load tool's clients should. Against viser
-1.1.x it does what a page does on the wire:
-
-- joins with the websocket subprotocol ``viser-v{version}`` and sends a ``ViewerCameraMessage``
-  (no client exists on the server until one arrives), then keeps reading every frame;
-- keeps the GUI it is sent (creation messages by uuid, then ``GuiUpdateMessage`` merges) and finds
-  controls by label, as a person does;
-- pauses playback and turns on light rendering, as the browser driver's pages do;
-- drags a slider as viser's slider does: a value every 50 ms and a trailing one, then rests.
-
-Frames from the server are two little-endian u64 lengths, a zstd msgpack body (``messages``,
-``timestampSec`` from the server's ``perf_counter``, ``binaryBufferLengths``) and 8-byte aligned
-binary buffers that the body's ``{"__binary_index", "dtype"}`` placeholders point to.
-``perf_counter`` is the system's monotonic clock, so a frame's timestamp splits a latency measured
-here into server time (until the frame was made) and delivery (until it was read).
-
-A drag is matched to what it caused by the readout (``app.readout``): it carries the slider values
-its gait was decoded from and the replay's state, so the decoded view, first motion and replay
-ready of a drag are the first readouts for its final values with state simulating, streaming and
-done (or failed).
-
-This module imports numpy, msgspec, zstandard and websockets only (all of them viser's own
-dependencies): the process that runs the clients starts fast and stays small.
+Server frames: two little-endian u64 lengths, a zstd msgpack body (``messages``, ``timestampSec``
+from the server's ``perf_counter``, the system's monotonic clock, ``binaryBufferLengths``) and
+8-byte aligned buffers its ``{"__binary_index", "dtype"}`` placeholders point to. The timestamp
+splits a latency into server time and delivery. A drag is matched to what it caused by the readout
+(``app.readout``), which carries its gait's slider values and the replay's state. Imports numpy,
+msgspec, zstandard and websockets only (viser's own dependencies): the clients' process stays small.
 """
 
 from __future__ import annotations
