@@ -225,7 +225,7 @@ def test_gait_csv_round_trip():
 def test_bench_app_json(checkpoint, capsys):
     from snakeloco.app.cli import main
 
-    main(["bench", "app", "--json", "--checkpoint", str(checkpoint), "--moves", "2"])
+    main(["bench", "app", "--json", "--checkpoint", str(checkpoint), "--moves", "2", "--ensemble", "2"])
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["moves"] >= 1
     assert 0 < result["decoded_p50_ms"] <= result["first_motion_p50_ms"] <= result["replay_ready_p50_ms"]
@@ -233,9 +233,10 @@ def test_bench_app_json(checkpoint, capsys):
     # The server's replay and ensemble against bare MuJoCo on the same steps: within a few times.
     assert 0.3 < result["replay_ratio"] < 10 and 0.1 < result["ensemble_ratio"] < 10, result
     # An animating tab gets a pose a frame (~200 B of arrays each at 20 Hz); a move, its paths and
-    # plots at a screen's resolution (issue 34's budget: 60 kB; a first framing at a new scale adds
-    # a metre-grid set once).
-    assert 2e3 < result["animating_bytes_per_s"] < 1e5 and 1e4 < result["bytes_per_move"] < 8e4, result
+    # plots at a screen's resolution (issue 34's budget for the decoded view and its replay: 60 kB;
+    # here also one ensemble member's fan line, and a first framing at a new scale adds a metre-grid
+    # set once; before the light updates a move was 260 kB).
+    assert 2e3 < result["animating_bytes_per_s"] < 1e5 and 1e4 < result["bytes_per_move"] < 1e5, result
 
 
 def _square_wave_csv() -> bytes:
