@@ -263,8 +263,9 @@ def test_bench_design_compares_with_the_same_physics_budget(checkpoint, tiny_dat
     # baseline replays as many prior draws.
     assert r["targets"] == 2 and r["rounds"] == 2 and all(b in (4, 5) for b in r["physics_budget_replays"])
     for name in ("design", "design_first_round", "baseline"):
-        # A miss of exactly 0 m or a heading error outside 0-180 deg would be a broken measurement.
-        assert 0 < r[name]["error_rel_median"] < 100 and 0 <= r[name]["heading_error_deg_median"] <= 180
+        # A miss of exactly 0 m, or no finite heading error (of the whole heading change, unwrapped:
+        # a gait that spins turns many times), would be a broken measurement.
+        assert 0 < r[name]["error_rel_median"] < 100 and 0 <= r[name]["heading_error_deg_median"] < 1e5
         assert 0 <= r[name]["met_share"] <= 1
     assert r["design"]["error_rel_median"] <= r["design_first_round"]["error_rel_median"]
     assert r["seconds_p95"] >= r["seconds_p50"] > 0

@@ -26,6 +26,8 @@ def test_bench_load_two_tabs(checkpoint, capsys):
         [
             "bench",
             "load",
+            "--driver",
+            "browser",
             "--clients",
             "2",
             "--seconds",
@@ -65,6 +67,41 @@ def test_bench_load_two_tabs(checkpoint, capsys):
         assert not set(r["server_cpus"]) & set(r["browser_cpus"])
     if cpus is not None:
         assert os.sched_getaffinity(0) == cpus  # and this process got all of its CPUs back
+
+
+def test_bench_load_protocol_clients_with_a_page_beside_them(checkpoint, capsys):
+    pytest.importorskip("playwright.sync_api")
+    from snakeloco.app.cli import main
+
+    main(
+        [
+            "bench",
+            "load",
+            "--clients",
+            "2",
+            "--seconds",
+            "6",
+            "--single-seconds",
+            "4",
+            "--ensemble",
+            "2",
+            "--json",
+            "--checkpoint",
+            str(checkpoint),
+        ]
+    )
+    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert r["driver"] == "protocol"
+    assert r["server_exceptions"] == 0 and r["page_errors"] == 0, r["exception_messages"]
+    assert r["stale_draws"] == 0, r["stale_details"]
+    assert r["browser_page"] is not None and r["browser_page"]["stale"] == []  # the Chromium page checked too
+    # Each protocol client dragged, had its decoded views timed off the wire, and moved 3 times
+    # after the drags; the clients' process is light.
+    assert (
+        min(r["updates"]) > 0 and np.isfinite([r["single_decoded_p95_ms"], *r["multi_decoded_p95_ms"]]).all()
+    )
+    assert all(5 < kb < 500 for kb in [r["single_kb_per_move"], *r["kb_per_move"]]), r["kb_per_move"]
+    assert 0 <= r["driver_cores"] < 1.0 and np.isfinite(r["delivery_p95_ms"]).all()
 
 
 def test_bench_tabs_two_rendering_tabs_in_one_browser(checkpoint, capsys):
