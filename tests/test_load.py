@@ -17,31 +17,19 @@ from helpers import BROWSER
 pytestmark = [*BROWSER, pytest.mark.load]
 
 
-def test_bench_load_two_tabs(checkpoint, capsys):
+def _bench_load(capsys, checkpoint, *extra: str) -> dict:
+    """``snakeloco bench load`` with 2 users for 6 s (4 s alone) and ``extra`` flags: its JSON."""
     pytest.importorskip("playwright.sync_api")
     from snakeloco.app.cli import main
 
+    short = ["--clients", "2", "--seconds", "6", "--single-seconds", "4", "--ensemble", "2"]
+    main(["bench", "load", *short, "--json", "--checkpoint", str(checkpoint), *extra])
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_bench_load_two_tabs(checkpoint, capsys):
     cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
-    main(
-        [
-            "bench",
-            "load",
-            "--driver",
-            "browser",
-            "--clients",
-            "2",
-            "--seconds",
-            "6",
-            "--single-seconds",
-            "4",
-            "--ensemble",
-            "2",
-            "--json",
-            "--checkpoint",
-            str(checkpoint),
-        ]
-    )
-    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    r = _bench_load(capsys, checkpoint, "--driver", "browser")
     assert r["server_exceptions"] == 0, r["exception_messages"]
     assert r["page_errors"] == 0
     assert r["stale_draws"] == 0, r["stale_details"]
@@ -70,27 +58,7 @@ def test_bench_load_two_tabs(checkpoint, capsys):
 
 
 def test_bench_load_protocol_clients_with_a_page_beside_them(checkpoint, capsys):
-    pytest.importorskip("playwright.sync_api")
-    from snakeloco.app.cli import main
-
-    main(
-        [
-            "bench",
-            "load",
-            "--clients",
-            "2",
-            "--seconds",
-            "6",
-            "--single-seconds",
-            "4",
-            "--ensemble",
-            "2",
-            "--json",
-            "--checkpoint",
-            str(checkpoint),
-        ]
-    )
-    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    r = _bench_load(capsys, checkpoint)
     assert r["driver"] == "protocol"
     assert r["server_exceptions"] == 0 and r["page_errors"] == 0, r["exception_messages"]
     assert r["stale_draws"] == 0, r["stale_details"]
