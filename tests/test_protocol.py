@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from snakeloco.app.bench.load_browser import replay_problems, wait_until
+from snakeloco.app.bench.load_browser import wait_until
 from snakeloco.app.bench.load_protocol import server_problems
 from snakeloco.app.bench.protocol import DONE_STATES, ProtocolClient, parse_readout, stream_problems
 from snakeloco.app.readout import Readout, readout_html
@@ -50,13 +50,13 @@ def test_a_protocol_client_joins_drags_and_reads_the_decoded_view_and_replay(che
         assert all(0 < ms < 120e3 for ms in s["decoded_ms"] + s["replay_ms"])
         assert s["bytes"] > 0 and s["frames"] > 0
         assert stream_problems(s) == []
-        assert server_problems(d, s, replay_problems) == []
+        assert server_problems(d, s) == []
         # A stream whose last readout belongs to other sliders is stale, and so is a generated path
         # that is not the decode of the final sliders.
         moved = s | {"final_values": [v + 0.5 for v in s["final_values"]]}
         assert "the last readout is for sliders" in stream_problems(moved)[0]
         bad_path = s | {"generated": (np.asarray(s["generated"]) + 0.1).tolist()}
-        assert "not the decode of its final sliders" in server_problems(d, bad_path, replay_problems)[0]
+        assert "not the decode of its final sliders" in server_problems(d, bad_path)[0]
         unfinished = s | {"readout_state": "streaming"}
         assert "not done or failed" in stream_problems(unfinished)[0]
     finally:

@@ -57,8 +57,20 @@ def require_browser(what: str) -> None:
         )
 
 
-def _p(values: np.ndarray, q: float) -> float:
-    return float(np.percentile(values, q)) if values.size else float("nan")
+def percentile(values, q: float) -> float:
+    """The q-th percentile of ``values`` (a list or array); NaN for none."""
+    v = np.asarray(values, np.float64)
+    return float(np.percentile(v, q)) if v.size else float("nan")
+
+
+def breakdown_p95(timings) -> dict[str, float]:
+    """Where a tab's decoded views went (p95, ms): waiting for its decode worker, decoding, drawing."""
+    drawn = [t for t in timings if np.isfinite(t.decoded) and np.isfinite(t.started)]
+    return {
+        "wait_p95_ms": percentile([1e3 * (t.started - t.submitted) for t in drawn], 95),
+        "decode_p95_ms": percentile([t.decode_ms for t in drawn], 95),
+        "draw_p95_ms": percentile([1e3 * (t.decoded - t.started) - t.decode_ms for t in drawn], 95),
+    }
 
 
 class Browser:
@@ -258,11 +270,6 @@ def _drive(
         dec = np.array([1e3 * (t.decoded - t.submitted) for t in ts if np.isfinite(t.decoded)])
         rep = np.array([1e3 * (t.replayed - t.submitted) for t in ts if np.isfinite(t.replayed)])
         motion = np.array([1e3 * (t.first_motion - t.submitted) for t in ts if np.isfinite(t.first_motion)])
-        drawn = [t for t in ts if np.isfinite(t.decoded) and np.isfinite(t.started)]
-        # Where a decoded view's latency goes: waiting for the decode worker, decoding, drawing.
-        wait = np.array([1e3 * (t.started - t.submitted) for t in drawn])
-        work = np.array([t.decode_ms for t in drawn])
-        draw = np.array([1e3 * (t.decoded - t.started) - t.decode_ms for t in drawn])
         stale = stale_checks(browser, d, tmp, i) if settled else ["did not settle within 180 s"]
         clients.append(
             {
@@ -270,15 +277,13 @@ def _drive(
                 "updates": len(ts),
                 "decoded_drawn": int(dec.size),
                 "replays_drawn": int(rep.size),
-                "decoded_p50_ms": _p(dec, 50),
-                "decoded_p95_ms": _p(dec, 95),
-                "wait_p95_ms": _p(wait, 95),
-                "decode_p95_ms": _p(work, 95),
-                "draw_p95_ms": _p(draw, 95),
-                "replay_p50_ms": _p(rep, 50),
-                "replay_p95_ms": _p(rep, 95),
-                "first_motion_p50_ms": _p(motion, 50),
-                "first_motion_p95_ms": _p(motion, 95),
+                "decoded_p50_ms": percentile(dec, 50),
+                "decoded_p95_ms": percentile(dec, 95),
+                **breakdown_p95(ts),
+                "replay_p50_ms": percentile(rep, 50),
+                "replay_p95_ms": percentile(rep, 95),
+                "first_motion_p50_ms": percentile(motion, 50),
+                "first_motion_p95_ms": percentile(motion, 95),
                 "stale": stale,
             }
         )

@@ -18,7 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from snakeloco.app.bench import protocol
-from snakeloco.app.bench.load_browser import Browser, replay_problems, stale_checks, wait_quiet
+from snakeloco.app.bench.load_browser import (
+    Browser,
+    breakdown_p95,
+    percentile,
+    replay_problems,
+    stale_checks,
+    wait_quiet,
+)
 from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.bench.processes import CpuSplit, rss_mb
 from snakeloco.app.gui import PATH_PLOT_STEP, plot_series
@@ -27,11 +34,6 @@ from snakeloco.app.tab import DesignerClient
 
 SETTLE_S = 120.0
 """How long a client waits, after its last drag, for that drag's replay to be done."""
-
-
-def _p(values, q: float) -> float:
-    v = np.asarray(values, np.float64)
-    return float(np.percentile(v, q)) if v.size else float("nan")
 
 
 def by_minute(summaries: list[dict]) -> dict[str, list[float]]:
@@ -45,12 +47,13 @@ def by_minute(summaries: list[dict]) -> dict[str, list[float]]:
     out = {}
     for i, name in enumerate(("decoded", "first_motion", "replay")):
         out[name] = [
-            _p(stages[(minute == m) & np.isfinite(stages[:, i]), i], 95) for m in range(minute.max() + 1)
+            percentile(stages[(minute == m) & np.isfinite(stages[:, i]), i], 95)
+            for m in range(minute.max() + 1)
         ]
     return out
 
 
-def server_problems(d: DesignerClient, s: dict, replay_problems) -> list[str]:
+def server_problems(d: DesignerClient, s: dict) -> list[str]:
     """What the server shows a protocol client that is not of its final sliders (``s``: the
     client's summary)."""
     z = [float(v.value) for v in d.sliders]
@@ -138,28 +141,23 @@ def protocol_phase(
         )
         for i, (s, d) in enumerate(zip(result["clients"], matched, strict=True)):
             stale = protocol.stream_problems(s)
-            stale += (
-                server_problems(d, s, replay_problems) if d is not None else ["no server tab at its values"]
-            )
-            drawn = [t for t in (d.timings if d else []) if np.isfinite(t.decoded) and np.isfinite(t.started)]
+            stale += server_problems(d, s) if d is not None else ["no server tab at its values"]
             views = max(1, sum(1 for t in (d.timings if d else []) if np.isfinite(t.decoded)))
             clients.append(
                 {
                     "updates": len(d.timings) if d else 0,
                     "decoded_drawn": len(s["decoded_ms"]),
                     "replays_drawn": len(s["replay_ms"]),
-                    "decoded_p50_ms": _p(s["decoded_ms"], 50),
-                    "decoded_p95_ms": _p(s["decoded_ms"], 95),
-                    "decoded_server_p95_ms": _p(s["decoded_server_ms"], 95),
-                    "replay_p50_ms": _p(s["replay_ms"], 50),
-                    "replay_p95_ms": _p(s["replay_ms"], 95),
-                    "replay_server_p95_ms": _p(s["replay_server_ms"], 95),
-                    "first_motion_p50_ms": _p(s["first_motion_ms"], 50),
-                    "first_motion_p95_ms": _p(s["first_motion_ms"], 95),
+                    "decoded_p50_ms": percentile(s["decoded_ms"], 50),
+                    "decoded_p95_ms": percentile(s["decoded_ms"], 95),
+                    "decoded_server_p95_ms": percentile(s["decoded_server_ms"], 95),
+                    "replay_p50_ms": percentile(s["replay_ms"], 50),
+                    "replay_p95_ms": percentile(s["replay_ms"], 95),
+                    "replay_server_p95_ms": percentile(s["replay_server_ms"], 95),
+                    "first_motion_p50_ms": percentile(s["first_motion_ms"], 50),
+                    "first_motion_p95_ms": percentile(s["first_motion_ms"], 95),
                     "delivery_p95_ms": s["delivery_p95_ms"],
-                    "wait_p95_ms": _p([1e3 * (t.started - t.submitted) for t in drawn], 95),
-                    "decode_p95_ms": _p([t.decode_ms for t in drawn], 95),
-                    "draw_p95_ms": _p([1e3 * (t.decoded - t.started) - t.decode_ms for t in drawn], 95),
+                    **breakdown_p95(d.timings if d else []),
                     "drags": s["drags"],
                     "kb_per_drag": s["bytes_dragging"] / 1e3 / max(1, s["drags"]),
                     "kb_per_view": s["bytes_dragging"] / 1e3 / views,

@@ -106,7 +106,6 @@ class Drag:
     first_motion: float = float("nan")
     replayed: float = float("nan")
     server: dict[str, float] = field(default_factory=dict)  # the same stages' frame timestamps
-    failed: bool = False
 
     def stage(self, state: str, now: float, stamp: float) -> None:
         for name, states in (
@@ -117,7 +116,6 @@ class Drag:
             if state in states and not np.isfinite(getattr(self, name)):
                 setattr(self, name, now)
                 self.server[name] = stamp
-        self.failed = self.failed or state == "failed"
 
 
 class ProtocolClient:

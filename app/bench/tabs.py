@@ -33,9 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
-from snakeloco.app.bench.load_browser import require_browser
+from snakeloco.app.bench.load_browser import percentile, require_browser
 from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.bench.processes import BrowserNice, RssSampler
 from snakeloco.app.gait_csv import read_gait_csv
@@ -58,10 +56,6 @@ def _changed(read, old: float, timeout: float) -> bool:
             return True
         time.sleep(0.002)
     return False
-
-
-def _p(values: list[float], q: float) -> float:
-    return float(np.percentile(values, q)) if values else float("nan")
 
 
 def bench_tabs(
@@ -188,10 +182,10 @@ def bench_tabs(
         "rendering": rendering,
         "light_rendering": light,
         "cpus": len(os.sched_getaffinity(0)),
-        "press_to_server_p50_ms": [_p(v, 50) for v in press_server],
-        "press_to_server_p95_ms": [_p(v, 95) for v in press_server],
-        "press_to_server_p95_all_ms": _p(every, 95),
-        "press_call_p95_ms": [_p(v, 95) for v in press_call],
+        "press_to_server_p50_ms": [percentile(v, 50) for v in press_server],
+        "press_to_server_p95_ms": [percentile(v, 95) for v in press_server],
+        "press_to_server_p95_all_ms": percentile(every, 95),
+        "press_call_p95_ms": [percentile(v, 95) for v in press_call],
         "lost_presses": lost,
         "export_s": exports,
         "export_ok": export_ok,
