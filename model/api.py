@@ -314,22 +314,21 @@ class GaitModel:
     def _single(self, method: str):
         """The traced one-z_B graph of ``net.<method>`` (``tracing.trace_single``), or None where
         this torch cannot trace (then the eager method gives the same numbers)."""
-        if method not in self._traced:
+        return self._trace(method, lambda: trace_single(self.net, method))
+
+    def _trace(self, name: str, make):
+        """``make()``'s graph, made once and kept under ``name`` (None where tracing failed)."""
+        if name not in self._traced:
             try:
-                self._traced[method] = trace_single(self.net, method)
+                self._traced[name] = make()
             except Exception:
-                self._traced[method] = None
-        return self._traced[method]
+                self._traced[name] = None
+        return self._traced[name]
 
     def _single_input(self, name: str, module, method: str, example: torch.Tensor):
         """The traced one-input graph of ``module.<method>`` for one example (``tracing.trace_one_arg``),
         or None where this torch cannot trace (the eager call gives the same numbers)."""
-        if name not in self._traced:
-            try:
-                self._traced[name] = trace_one_arg(module, method, example)
-            except Exception:
-                self._traced[name] = None
-        return self._traced[name]
+        return self._trace(name, lambda: trace_one_arg(module, method, example))
 
     def _generate(self, z_b: torch.Tensor, z_j: torch.Tensor | None):
         """``net.generate``; one z_B (the slider path) runs the traced graph."""
