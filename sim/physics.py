@@ -75,6 +75,29 @@ pose (100 samples took ~55 ms)."""
 
 
 @dataclass(frozen=True)
+class Paused:
+    """Where a batch's rollouts stopped (``Simulator.simulate`` with ``samples``): enough to carry
+    on to the same numbers as one uninterrupted rollout (the state and the solver's warm start)."""
+
+    samples: int  # record samples measured so far
+    state: np.ndarray  # (B, nstate) after the last step simulated
+    warm: np.ndarray  # (B, nv)
+    measured: tuple[np.ndarray, ...]  # joint angles, body position, quaternion, qpos so far (B, samples, .)
+    failures: list[str | None]
+
+    def rows(self, index: slice | list[int] | np.ndarray) -> Paused:
+        """The paused rows ``index`` (to carry on with only some of them)."""
+        rows = np.arange(len(self.state))[index]
+        return Paused(
+            self.samples,
+            self.state[rows],
+            self.warm[rows],
+            tuple(a[rows] for a in self.measured),
+            [self.failures[r] for r in rows],
+        )
+
+
+@dataclass(frozen=True)
 class BatchResult:
     """Measurements of a batch; rows whose ``failures`` entry is not None are invalid."""
 
@@ -82,6 +105,7 @@ class BatchResult:
     body: np.ndarray  # (B, T, 6)
     failures: list[str | None]
     qpos: np.ndarray  # (B, T, nq) at the sample times
+    paused: Paused | None = None  # where the rollouts stopped, when they stopped before the end
 
 
 class Simulator:
@@ -134,19 +158,28 @@ class Simulator:
         assert self.model.site(BODY_SITE).id >= 0
 
     def rollout(
-        self, ctrl: np.ndarray, wanted: Callable[[], bool] | None = None
+        self,
+        ctrl: np.ndarray,
+        wanted: Callable[[], bool] | None = None,
+        start: Paused | None = None,
+        warm_out: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Raw rollouts from the resting state: ctrl (B, n_steps, 8) -> (state, sensordata).
+        """Raw rollouts from the resting state (or from ``start``): ctrl (B, n_steps, 8) -> (state,
+        sensordata).
 
         state is (B, n_steps, nstate) after each step; sensordata (B, n_steps, nsensordata) is
         measured at the start of each step (about 16 MB per record: callers keep only samples).
         ``wanted``: asked when the batch gets its turn; False: nothing is rolled out (None).
+        ``warm_out`` (B, nv): filled with each row's warm start after its last step.
         """
         batch = ctrl.shape[0]
-        initial = np.broadcast_to(self.initial_state, (batch, self.initial_state.size))
-        # A zero warm start for every rollout, as mj_resetData leaves it: results then do not depend
-        # on which thread ran the previous rollout.
-        warm = np.zeros((batch, self.model.nv))
+        if start is None:
+            initial = np.broadcast_to(self.initial_state, (batch, self.initial_state.size))
+            # A zero warm start for every rollout, as mj_resetData leaves it: results then do not
+            # depend on which thread ran the previous rollout.
+            warm = np.zeros((batch, self.model.nv))
+        else:
+            initial, warm = start.state, start.warm
         m, n_steps = self.model, ctrl.shape[1]
         state = np.empty((batch, n_steps, mujoco.mj_stateSize(m, _STATE_SPEC)))
         sens = np.empty((batch, n_steps, m.nsensordata))
@@ -155,12 +188,24 @@ class Simulator:
                 raise SimulationError("the simulator was closed (the server is stopping)")
             if wanted is not None and not wanted():
                 return None  # left while it waited for the callers before it
-            if self._pool is None:
+            if self._pool is None and warm_out is None:
                 mj_rollout.rollout(
                     m, self._data, initial, ctrl, initial_warmstart=warm, state=state, sensordata=sens
                 )
+            elif self._pool is None:  # one row at a time, each one's final warm start kept
+                for i in range(batch):
+                    mj_rollout.rollout(
+                        m,
+                        self._data,
+                        initial[i : i + 1],
+                        ctrl[i : i + 1],
+                        initial_warmstart=warm[i : i + 1],
+                        state=state[i : i + 1],
+                        sensordata=sens[i : i + 1],
+                    )
+                    warm_out[i] = self._data.qacc_warmstart
             else:
-                self._pool.rollout(m, initial, ctrl, warm, state, sens)
+                self._pool.rollout(m, initial, ctrl, warm, state, sens, warm_out=warm_out)
         return state, sens
 
     def close(self) -> None:
@@ -170,11 +215,23 @@ class Simulator:
             if self._pool is not None:
                 self._pool.close()
 
-    def simulate(self, commands: np.ndarray, wanted: Callable[[], bool] | None = None) -> BatchResult | None:
+    def simulate(
+        self,
+        commands: np.ndarray,
+        wanted: Callable[[], bool] | None = None,
+        samples: int | None = None,
+        resume: Paused | None = None,
+    ) -> BatchResult | None:
         """Simulate a batch of records under the command rule and measure them.
 
         Args:
             commands: (B, T, 8) rad.
+            samples: simulate only the lead-in and the record's first this many samples (None: all
+                T); the results are then (B, samples, ...), the prefixes of the whole records',
+                and ``paused`` says where the rollouts stopped.
+            resume: carry on from an earlier call's ``paused`` (same commands, same rows) to
+                ``samples``: the results are the whole series from the record's start, bit-identical
+                to one uninterrupted call's (tested); only the steps after the pause are simulated.
             wanted: asked each time a part of the batch gets its turn (callers sharing the
                 simulator roll out first come, first served); False: the rest is not simulated
                 and None is returned (a batch whose gait was left while it waited in line).
@@ -189,43 +246,83 @@ class Simulator:
         expected = (self.excitation.n_samples, N_JOINTS)
         if commands.ndim != 3 or commands.shape[1:] != expected:
             raise ValueError(f"expected (B, {expected[0]}, {expected[1]}) commands, got {commands.shape}")
+        samples = expected[0] if samples is None else int(samples)
+        first = 0 if resume is None else resume.samples
+        if not first < samples <= expected[0]:
+            raise ValueError(f"samples must be {first + 1}-{expected[0]}, got {samples}")
+        if resume is not None and len(resume.state) != len(commands):
+            raise ValueError(f"resuming {len(resume.state)} paused rollouts with {len(commands)} records")
         parts = []
         for i in range(0, len(commands), self.max_batch):
-            parts.append(self._simulate(commands[i : i + self.max_batch], wanted))
+            rows = slice(i, i + self.max_batch)
+            start = None if resume is None else resume.rows(rows)
+            parts.append(self._simulate(commands[rows], wanted, samples, start))
             if parts[-1] is None:
                 return None
         if len(parts) == 1:
             return parts[0]
+        paused = None
+        if samples < expected[0]:
+            paused = Paused(
+                samples,
+                np.concatenate([r.paused.state for r in parts]),
+                np.concatenate([r.paused.warm for r in parts]),
+                tuple(np.concatenate(a) for a in zip(*(r.paused.measured for r in parts), strict=True)),
+                [f for r in parts for f in r.paused.failures],
+            )
         return BatchResult(
             joint_angles=np.concatenate([r.joint_angles for r in parts]),
             body=np.concatenate([r.body for r in parts]),
             failures=[f for r in parts for f in r.failures],
             qpos=np.concatenate([r.qpos for r in parts]),
+            paused=paused,
         )
 
-    def _simulate(self, commands: np.ndarray, wanted: Callable[[], bool] | None = None) -> BatchResult | None:
-        expected = (self.excitation.n_samples, N_JOINTS)
+    def _simulate(
+        self, commands: np.ndarray, wanted: Callable[[], bool] | None, samples: int, start: Paused | None
+    ) -> BatchResult | None:
         ctrl = expand_commands(commands, self.substeps, self.config)
-        rolled = self.rollout(ctrl, wanted)
+        first = 0 if start is None else start.samples
+        # Steps [begin, end): a resumed rollout starts where the paused one stopped.
+        begin = 0 if start is None else (self.config.lead_in + first) * self.substeps
+        end = (self.config.lead_in + samples) * self.substeps
+        pause = samples < self.excitation.n_samples
+        warm_out = np.empty((len(commands), self.model.nv)) if pause else None
+        rolled = self.rollout(ctrl[:, begin:end], wanted, start, warm_out)
         if rolled is None:
             return None
         state, sens = rolled
-        failures = self._diagnose(state, sens)
-        record = self.config.lead_in * self.substeps + self.substeps * np.arange(expected[0])
+        failures = self._diagnose(state, sens, first=begin)
+        # Sample n is measured at the start of step record[n]; rows here are steps from `begin`.
+        record = self.config.lead_in * self.substeps + self.substeps * np.arange(first, samples) - begin
         sampled = sens[:, record]  # (B, T, nsensordata), measured at the start of step `record`
-        qpos = state[:, record - 1, 1 : 1 + self.model.nq]  # state after step record-1: same instant
+        # The state after step record-1: the same instant (the paused state where record is 0).
+        before = state[:, np.maximum(record - 1, 0)]
+        if start is not None:
+            before[:, record == 0] = start.state[:, None]
+        qpos = before[..., 1 : 1 + self.model.nq]
         joint_angles = sampled[..., self._q_cols]
+        pos = sampled[..., self._pos_cols]
         quat = sampled[..., self._quat_cols]
         quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True).clip(min=1e-12)
+        if start is not None:  # the whole series from the record's start: its frame, its unwrapping
+            joint_angles, pos, quat, qpos = (
+                np.concatenate([a, b], axis=1)
+                for a, b in zip(start.measured, (joint_angles, pos, quat, qpos), strict=True)
+            )
+            failures = [f or g for f, g in zip(start.failures, failures, strict=True)]
         with np.errstate(invalid="ignore"):
-            body = body_states(sampled[..., self._pos_cols], quat)
-        return BatchResult(joint_angles=joint_angles, body=body, failures=failures, qpos=qpos)
+            body = body_states(pos, quat)
+        paused = None
+        if pause:
+            paused = Paused(samples, state[:, -1].copy(), warm_out, (joint_angles, pos, quat, qpos), failures)
+        return BatchResult(joint_angles=joint_angles, body=body, failures=failures, qpos=qpos, paused=paused)
 
-    def _diagnose(self, state: np.ndarray, sens: np.ndarray) -> list[str | None]:
+    def _diagnose(self, state: np.ndarray, sens: np.ndarray, first: int = 0) -> list[str | None]:
         dt = self.model.opt.timestep
         failures: list[str | None] = []
         for b in range(state.shape[0]):
-            failures.append(self._diagnose_one(state[b], sens[b], dt))
+            failures.append(self._diagnose_one(state[b], sens[b], dt, first))
         return failures
 
     def _diagnose_one(self, state: np.ndarray, sens: np.ndarray, dt: float, first: int = 0) -> str | None:

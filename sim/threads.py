@@ -85,7 +85,9 @@ class RolloutThreads:
         if nice > 0:  # lowering needs no privilege; the creator's priority is untouched
             lower_thread_priority(nice)
 
-    def _one(self, model: mujoco.MjModel, data: mujoco.MjData | None, **arrays) -> None:
+    def _one(
+        self, model: mujoco.MjModel, data: mujoco.MjData | None, warm_out: np.ndarray | None, **arrays
+    ) -> None:
         local = self._local
         if not hasattr(local, "runner"):
             local.runner = mj_rollout.Rollout(nthread=0)  # no pool: runs on this thread
@@ -95,6 +97,8 @@ class RolloutThreads:
             if data is None:
                 data = local.data[id(model)] = mujoco.MjData(model)
         local.runner.rollout(model, data, **arrays)
+        if warm_out is not None:  # the solver's warm start after the last step: to carry on from
+            warm_out[:] = data.qacc_warmstart
 
     def rollout(
         self,
@@ -106,11 +110,13 @@ class RolloutThreads:
         sensordata: np.ndarray,
         data: mujoco.MjData | None = None,
         wait: bool = True,
+        warm_out: np.ndarray | None = None,
     ) -> list[Future]:
         """Roll out rows ``initial`` (B, nstate), ``ctrl`` (B, nstep, nu) from ``warm`` (B, nv) into
         ``state`` (B, nstep, nstate) and ``sensordata`` (B, nstep, nsensordata), one row per task;
-        ``data``: the MjData to use (one row only: a stream keeps its own). Blocks until all are in,
-        unless not ``wait``: then returns the rows' futures at once."""
+        ``data``: the MjData to use (one row only: a stream keeps its own); ``warm_out`` (B, nv):
+        where to put each row's warm start after its last step. Blocks until all are in, unless not
+        ``wait``: then returns the rows' futures at once."""
         if data is not None and len(ctrl) != 1:
             raise ValueError("a given MjData serves one row at a time")
         futures = [
@@ -118,6 +124,7 @@ class RolloutThreads:
                 self._one,
                 model,
                 data,
+                None if warm_out is None else warm_out[i],
                 initial_state=initial[i : i + 1],
                 control=ctrl[i : i + 1],
                 initial_warmstart=warm[i : i + 1],

@@ -178,6 +178,30 @@ def test_large_batches_roll_out_in_chunks_with_the_same_results(tiny_dataset):
     assert chunked.failures == whole.failures == [None] * 3
 
 
+def test_a_paused_batch_carries_on_to_the_numbers_of_one_uninterrupted_rollout(tiny_dataset):
+    """The structured screen pauses its first replays at 20 s and carries on with the survivors only:
+    the records it keeps must be exactly the ones a single rollout gives (state and warm start carried)."""
+    commands = tiny_dataset.commands[:3].astype(np.float64)
+    for workers in (1, 2):  # the calling thread's rollout and the thread pool's
+        sim = Simulator(workers=workers, max_batch=2)  # two batches: the pause is per row
+        whole = sim.simulate(commands)
+        assert whole.paused is None
+        early = sim.simulate(commands, samples=400)
+        assert early.paused.samples == 400 and early.body.shape == (3, 400, 6)
+        np.testing.assert_array_equal(early.body, whole.body[:, :400])
+        middle = sim.simulate(commands[[0, 2]], samples=1000, resume=early.paused.rows([0, 2]))
+        rest = sim.simulate(commands[[2]], resume=middle.paused.rows([1]))
+        for name in ("joint_angles", "body", "qpos"):
+            np.testing.assert_array_equal(getattr(middle, name), getattr(whole, name)[[0, 2], :1000])
+            np.testing.assert_array_equal(getattr(rest, name), getattr(whole, name)[[2]], err_msg=name)
+        assert rest.paused is None and rest.failures == [None]
+        with pytest.raises(ValueError, match="samples must be 401"):
+            sim.simulate(commands, samples=300, resume=early.paused)
+        with pytest.raises(ValueError, match="resuming 3 paused"):
+            sim.simulate(commands[:2], resume=early.paused)
+        sim.close()
+
+
 def test_replay_matches_generation_exactly(tiny_dataset):
     i = 2
     result = replay(tiny_dataset.commands[i])
