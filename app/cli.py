@@ -25,6 +25,7 @@ from snakeloco.app.commands import (
     BenchLoad,
     BenchModel,
     BenchScale,
+    BenchScreen,
     BenchSim,
     BenchTabs,
     Calibrate,
@@ -127,13 +128,15 @@ def run_generate(cmd: Generate) -> Path:
     """Generate the dataset with a progress bar; returns the written path. Ctrl-C says what was kept."""
 
     from snakeloco.sim.generate import generate_dataset
-    from snakeloco.sim.structured import STRUCTURED_PRESETS
+    from snakeloco.sim.structured import DEFAULT_PRESET, STRUCTURED_PRESETS
 
     cfg = cmd.config
-    if cmd.structured_preset != "mixed":
-        if cfg.family != "structured":
-            raise OptionError(f"--structured-preset {cmd.structured_preset} needs --family structured")
-        cfg = cfg.model_copy(update={"structured": STRUCTURED_PRESETS[cmd.structured_preset]})
+    if cmd.structured_preset is not None and cfg.family != "structured":
+        raise OptionError(f"--structured-preset {cmd.structured_preset} needs --family structured")
+    if cfg.family == "structured":
+        cfg = cfg.model_copy(
+            update={"structured": STRUCTURED_PRESETS[cmd.structured_preset or DEFAULT_PRESET]}
+        )
     t0 = time.perf_counter()
     progress = Progress(cfg.num_samples, "generate", unit="sample")
     try:
@@ -290,6 +293,7 @@ def run_bench(cmd: Command) -> dict:
         BenchTabs: report.tabs,
         BenchScale: report.scale,
         BenchDesign: report.design,
+        BenchScreen: report.screen,
     }
     result = runs[type(cmd)](cmd)
     if cmd.json:

@@ -99,7 +99,14 @@ class GenerateConfig(BaseModel):
         meta = self.model_dump(mode="json", exclude={"family", "structured"} if paper else None)
         if not paper:  # undulation ranges at their defaults are left out the same way (older files)
             default = StructuredConfig()
-            for name in ("undulate_amplitude", "undulate_wavenumber"):
+            for name in (
+                "undulate_amplitude",
+                "undulate_wavenumber",
+                "amplitude_scale",
+                "early_seconds",
+                "early_max_spread",
+                "sure_spread",
+            ):
                 if getattr(self.structured, name) == getattr(default, name):
                     meta["structured"].pop(name)
         return meta

@@ -176,18 +176,24 @@ def _ensemble(cfg: GenerateConfig, index: int, attempt: int, commands: np.ndarra
 def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray) -> _Chunk:
     """Draw, screen and measure structured-family records ``indices`` (``sim.structured``).
 
-    Each draw is replayed with ``screen_members`` - 1 noisy copies; one whose final spread exceeds
-    ``max_spread`` (or any of whose replays breaks) is redrawn at once. A draw that passes gets the
-    rest of its ``members`` and is kept only if the whole ensemble's spread is within the bound too.
-    A kept record stores its unperturbed replay. Every rejection is logged as a failure.
+    Each draw is replayed with ``screen_members`` - 1 noisy copies (the first check). Where
+    ``early_seconds`` is set, those replays pause there and a draw whose spread already exceeds
+    ``early_max_spread`` is redrawn at once; the rest carry on from where they paused (the same
+    numbers as one replay). A draw whose 100 s spread exceeds ``max_spread`` (or any of whose
+    replays breaks) is redrawn; one whose spread is within ``sure_spread`` is kept as it is; the
+    rest get the remaining ``members`` and are kept only if the whole ensemble's spread is within
+    ``max_spread`` too. A kept record stores its unperturbed replay. Every rejection is logged as a
+    failure, and the seconds of physics simulated as ``replayed_s``.
     """
-    sc = cfg.structured
+    sc, rate = cfg.structured, cfg.excitation.sample_rate
     chunk = _Chunk.empty(cfg, len(indices))
     spreads = np.zeros(len(indices))
     drawn: list[dict] = [{} for _ in indices]
     todo = list(range(len(indices)))
     attempt = np.zeros(len(indices), np.int64)
-    draws = 0
+    draws, replayed = 0, 0.0
+    record_s = cfg.excitation.n_samples / rate
+    k = sc.screen_members
     while todo:
         commands = {}
         for j in todo:
@@ -195,28 +201,48 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
         draws += len(todo)
         ensembles = {
             j: _ensemble(cfg, int(indices[j]), int(attempt[j]), commands[j]) for j in todo
-        }  # (members, T, 8) each; the screen is its first screen_members
+        }  # (members, T, 8) each; the first check is its first screen_members
         rejected: dict[int, str] = {}
-        screen = simulator.simulate(np.concatenate([ensembles[j][: sc.screen_members] for j in todo]))
+        first = np.concatenate([ensembles[j][:k] for j in todo])
+        rows = {j: list(range(n * k, (n + 1) * k)) for n, j in enumerate(todo)}
+        if sc.early_seconds > 0:
+            n_early = round(sc.early_seconds * rate)
+            early = simulator.simulate(first, samples=n_early)
+            replayed += len(first) * n_early / rate
+            for j in todo:
+                spread, broken = _spread(early.body[rows[j]], [early.failures[r] for r in rows[j]])
+                if broken or spread > sc.early_max_spread:
+                    rejected[j] = broken or (
+                        f"final spread {spread:.3f} > {sc.early_max_spread} at {sc.early_seconds:g} s"
+                    )
+            going = [j for j in todo if j not in rejected]
+            carry = [r for j in going for r in rows[j]]
+            screen = simulator.simulate(first[carry], resume=early.paused.rows(carry)) if carry else None
+            replayed += len(carry) * (record_s - n_early / rate)
+            rows = {j: list(range(n * k, (n + 1) * k)) for n, j in enumerate(going)}
+        else:
+            going = list(todo)
+            screen = simulator.simulate(first)
+            replayed += len(first) * record_s
         passed = []
-        for n, j in enumerate(todo):
-            rows = list(range(n * sc.screen_members, (n + 1) * sc.screen_members))
-            spread, broken = _spread(screen.body[rows], [screen.failures[r] for r in rows])
+        for j in going:
+            spread, broken = _spread(screen.body[rows[j]], [screen.failures[r] for r in rows[j]])
             if broken or spread > sc.max_spread:
                 rejected[j] = broken or f"final spread {spread:.3f} > {sc.max_spread} in the first check"
+                continue
+            chunk.joint_angles[j] = screen.joint_angles[rows[j][0]]
+            chunk.body[j] = screen.body[rows[j][0]]
+            if spread <= sc.sure_spread or sc.members == k:  # no second check: this is its spread
+                spreads[j] = spread
             else:
-                passed.append((j, n, spread))
-                chunk.joint_angles[j] = screen.joint_angles[rows[0]]
-                chunk.body[j] = screen.body[rows[0]]
-        extra = sc.members - sc.screen_members
-        if passed and extra > 0:
-            rest = simulator.simulate(
-                np.concatenate([ensembles[j][sc.screen_members :] for j, _, _ in passed])
-            )
-            for m, (j, n, _) in enumerate(passed):
-                rows = list(range(n * sc.screen_members, (n + 1) * sc.screen_members))
-                body = np.concatenate([screen.body[rows], rest.body[m * extra : (m + 1) * extra]])
-                failures = [screen.failures[r] for r in rows] + rest.failures[m * extra : (m + 1) * extra]
+                passed.append(j)
+        extra = sc.members - k
+        if passed:
+            rest = simulator.simulate(np.concatenate([ensembles[j][k:] for j in passed]))
+            replayed += len(passed) * extra * record_s
+            for m, j in enumerate(passed):
+                body = np.concatenate([screen.body[rows[j]], rest.body[m * extra : (m + 1) * extra]])
+                failures = [screen.failures[r] for r in rows[j]] + rest.failures[m * extra : (m + 1) * extra]
                 spread, broken = _spread(body, failures)
                 if broken or spread > sc.max_spread:
                     rejected[j] = (
@@ -224,9 +250,6 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
                     )
                 else:
                     spreads[j] = spread
-        elif passed:  # no second check: the screen's spread is the record's
-            for j, _, spread in passed:
-                spreads[j] = spread
         for j in todo:
             chunk.attempts[j] = attempt[j] + 1
             if j in rejected:
@@ -245,6 +268,8 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
                 f"last reasons: {[rejected[j] for j in stuck]}"
             )
     chunk.log = {"spreads": spreads.tolist(), "drawn": drawn, "draws": draws}
+    if sc.early_seconds > 0 or sc.sure_spread > 0:  # older families' logs stay as they were
+        chunk.log["replayed_s"] = replayed
     return chunk
 
 
@@ -369,6 +394,8 @@ def generate_dataset(
                     "spreads": [s for log in logs for s in log["spreads"]],
                     "drawn": [d for log in logs for d in log["drawn"]],
                 }
+                if all("replayed_s" in log for log in logs):
+                    meta["replayed_s"] = sum(log["replayed_s"] for log in logs)
             return writer.finish(meta)
     finally:
         runner.close()

@@ -32,7 +32,7 @@ from snakeloco.sim.excitation import RECORD
 from snakeloco.sim.gaits import MODULES, PITCH, GaitEquation
 from snakeloco.sim.robot import COMMAND_LIMIT
 from snakeloco.sim.spectra import shape_to_commands
-from snakeloco.sim.structured import KINDS, StructuredConfig
+from snakeloco.sim.structured import KINDS, NU_RANGES, StructuredConfig
 
 STEERING_BIN = 0
 """The steering wave runs at the lowest excited frequency (0.05 Hz: 20 s periods)."""
@@ -45,22 +45,6 @@ FREQS = RECORD.freqs
 GRID = 721
 """Spatial-frequency grid points per fit before Newton's polish (0.003 rad per module apart on the
 widest range): fine enough that the grid's best lies in the basin of the global optimum."""
-NU_RANGES: dict[str, tuple[float, float]] = {
-    "sidewind": (0.4, 1.4),
-    "roll": (0.0, 1.2),
-    "turn_pitch": (0.0, 2.0),
-    "turn_yaw": (0.0, 1.6),
-}
-"""|Spatial frequency| ranges (rad per module) of the kinds ``draw_wave`` draws, other than
-undulation's (``StructuredConfig.undulate_wavenumber``)."""
-AMPLITUDE_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
-    "sidewind": ((0.1, 0.6), (0.5, 1.2)),
-    "roll": ((0.2, 1.0), (0.2, 1.0)),
-    "turn": ((0.05, 0.5), (0.4, 1.2)),
-}
-"""(pitch, yaw) amplitude ranges (rad) of ``draw_wave``'s kinds other than undulation."""
-
-
 class Member(BaseModel):
     """One gait of the structured family, by its parameters (rad, rad per module, Hz)."""
 
@@ -204,18 +188,19 @@ def _fit_wave(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig)
         lo, hi = cfg.undulate_wavenumber
         nu = _best_nu([(zy, ky, False)], lo, hi)
         a, _ = _amplitude(zy, ky, nu, False)
-        a = float(np.clip(a, *cfg.undulate_amplitude))
+        a = float(np.clip(a, *cfg.amplitude_ranges(kind)[1]))
         return GaitEquation(a_yaw=a, nu_yaw=nu, frequency=frequency)
     if kind == "turn":  # independent waves: two separate fits
         nu_p = _best_nu([(zp, kp, False)], *NU_RANGES["turn_pitch"])
         nu_y = _best_nu([(zy, ky, True)], *NU_RANGES["turn_yaw"])
-        nu_p, nu_y = float(np.clip(nu_p, -2.0, 2.0)), float(np.clip(nu_y, -1.6, 1.6))
+        nu_p = float(np.clip(nu_p, -NU_RANGES["turn_pitch"][1], NU_RANGES["turn_pitch"][1]))
+        nu_y = float(np.clip(nu_y, -NU_RANGES["turn_yaw"][1], NU_RANGES["turn_yaw"][1]))
     else:
         nu = _best_nu([(zp, kp, False), (zy, ky, True)], *NU_RANGES[kind], shared=kind == "roll")
         nu_p = nu_y = nu
     a_p, _ = _amplitude(zp, kp, nu_p, False)
     a_y, delta = _amplitude(zy, ky, nu_y, True)
-    (p_lo, p_hi), (y_lo, y_hi) = AMPLITUDE_RANGES[kind]
+    (p_lo, p_hi), (y_lo, y_hi) = cfg.amplitude_ranges(kind)
     if kind == "roll":  # one amplitude for both groups: the least-squares one
         a_p = a_y = float(np.clip((4 * a_p + 4 * a_y) / 8, p_lo, p_hi))
     a_p, a_y = float(np.clip(a_p, p_lo, p_hi)), float(np.clip(a_y, y_lo, y_hi))

@@ -27,6 +27,21 @@ from snakeloco.sim.spectra import shape_to_commands
 
 KINDS = ("undulate", "sidewind", "roll", "turn")
 """The kinds of travelling wave a record's main wave is drawn from (``draw_wave``)."""
+NU_RANGES: dict[str, tuple[float, float]] = {
+    "sidewind": (0.4, 1.4),
+    "roll": (0.0, 1.2),
+    "turn_pitch": (0.0, 2.0),
+    "turn_yaw": (0.0, 1.6),
+}
+"""|Spatial frequency| ranges (rad per module) ``draw_wave`` draws for the kinds other than undulation
+(``StructuredConfig.undulate_wavenumber``); a turning wave's pitch and yaw waves have their own."""
+AMPLITUDE_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
+    "sidewind": ((0.1, 0.6), (0.5, 1.2)),
+    "roll": ((0.2, 1.0), (0.2, 1.0)),
+    "turn": ((0.05, 0.5), (0.4, 1.2)),
+}
+"""(pitch, yaw) amplitude ranges (rad) ``draw_wave`` draws for the kinds other than undulation
+(``StructuredConfig.undulate_amplitude``), before ``StructuredConfig.amplitude_scale``."""
 
 
 class StructuredConfig(BaseModel):
@@ -86,9 +101,55 @@ class StructuredConfig(BaseModel):
         description="Range of a lateral undulation's |spatial frequency| (rad per module; either sign, "
         "forward or backward).",
     )
+    amplitude_scale: tuple[float, float] = Field(
+        (1.0, 1.0),
+        description="Range of a factor on the main wave's amplitudes (drawn per record where the range "
+        "is not (1, 1)): slow gaits as well as fast ones, the waves' shapes unchanged.",
+    )
+    early_seconds: float = Field(
+        0.0,
+        ge=0,
+        lt=100,
+        description="Pause the first check's replays after this many seconds (0: no pause) and redraw "
+        "a draw whose spread there already exceeds early_max_spread; the others carry on to 100 s "
+        "from where they paused (docs/gaits.md: how often this early verdict differs from the 100 s one).",
+    )
+    early_max_spread: float = Field(
+        0.3, gt=0, description="Largest spread at early_seconds of a draw that carries on."
+    )
+    sure_spread: float = Field(
+        0.0,
+        ge=0,
+        description="A draw whose first check's 100 s spread is at most this is kept without the rest "
+        "of its members (0: every kept draw gets all of them).",
+    )
+
+    def amplitude_ranges(self, kind: str) -> tuple[tuple[float, float], tuple[float, float]]:
+        """(pitch, yaw) amplitude ranges (rad) of a ``kind`` member of this family: what
+        ``draw_wave`` draws times ``amplitude_scale`` (before the command-limit scale)."""
+        s_lo, s_hi = self.amplitude_scale
+        (p_lo, p_hi), (y_lo, y_hi) = (
+            ((0.0, 0.0), self.undulate_amplitude) if kind == "undulate" else AMPLITUDE_RANGES[kind]
+        )
+        return (p_lo * s_lo, p_hi * s_hi), (y_lo * s_lo, y_hi * s_hi)
 
 
 STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
+    "every": StructuredConfig(
+        kind_weights=(1.0, 1.5, 1.0, 1.0),
+        frequencies={
+            "undulate": (0.29, 0.52, 0.93),
+            "sidewind": (0.52,),
+            "roll": (0.29, 0.52),
+            "turn": (0.29, 0.52),
+        },
+        second_wave=0.0,
+        amplitude_scale=(0.35, 1.0),
+        max_draws=80,
+        early_seconds=20.0,
+        early_max_spread=0.3,
+        sure_spread=0.07,
+    ),
     "mixed": StructuredConfig(),
     "undulate": StructuredConfig(
         kind_weights=(1.0, 0.0, 0.0, 0.0),
@@ -102,10 +163,18 @@ STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
     ),
 }
 """Named structured families (``snakeloco generate --family structured --structured-preset NAME``).
-mixed: every kind of wave, screened against command noise (the default; docs/gaits.md). undulate:
+every (the default): one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.52 Hz only: 11 of 28
+draws at 0.93 Hz passed the screen, 23 of 33 at 0.52 Hz) and 0.35-1 of its amplitude range (slow
+to fast, forward, backward, sideways, rolling, turning), with steering in 30% of the draws, screened
+against command noise by the cheap screen (a pause at 20 s, a 2-replay verdict where it is clear;
+docs/gaits.md). mixed: every kind with second waves, screened in full (the first structured
+dataset's). undulate:
 lateral undulation at 0.52 Hz, forward or backward, with slow steering in half the draws, each kept
 only if it also survives 10% errors on its joint shape (a model's decoding error): the family whose
 decoded gaits replay as decoded, used for inverse design (docs/design.md)."""
+DEFAULT_PRESET = "every"
+"""What ``snakeloco generate --family structured`` draws with no preset flag: the family the shipped
+structured checkpoint is trained on."""
 
 
 def draw_wave(
@@ -124,25 +193,28 @@ def draw_wave(
             a_yaw=rng.uniform(a_lo, a_hi), nu_yaw=sign * rng.uniform(nu_lo, nu_hi), frequency=f
         )
     if kind == "sidewind":
-        nu = rng.uniform(0.4, 1.4)
+        nu = rng.uniform(*NU_RANGES["sidewind"])
+        (p_lo, p_hi), (y_lo, y_hi) = AMPLITUDE_RANGES["sidewind"]
         return GaitEquation(
-            a_pitch=rng.uniform(0.1, 0.6),
-            a_yaw=rng.uniform(0.5, 1.2),
+            a_pitch=rng.uniform(p_lo, p_hi),
+            a_yaw=rng.uniform(y_lo, y_hi),
             nu_pitch=nu,
             nu_yaw=nu,
             delta=sign * rng.uniform(np.pi / 8, np.pi / 2),
             frequency=f,
         )
     if kind == "roll":
-        a, nu = rng.uniform(0.2, 1.0), rng.uniform(0.0, 1.2)
+        a, nu = rng.uniform(*AMPLITUDE_RANGES["roll"][0]), rng.uniform(*NU_RANGES["roll"])
         delta = sign * np.pi / 2 + rng.uniform(-0.4, 0.4)
         return GaitEquation(a_pitch=a, a_yaw=a, nu_pitch=nu, nu_yaw=nu, delta=delta, frequency=f)
     if kind == "turn":
+        (p_lo, p_hi), (y_lo, y_hi) = AMPLITUDE_RANGES["turn"]
+        nu_p, nu_y = NU_RANGES["turn_pitch"][1], NU_RANGES["turn_yaw"][1]
         return GaitEquation(
-            a_pitch=rng.uniform(0.05, 0.5),
-            a_yaw=rng.uniform(0.4, 1.2),
-            nu_pitch=rng.uniform(-2.0, 2.0),
-            nu_yaw=rng.uniform(-1.6, 1.6),
+            a_pitch=rng.uniform(p_lo, p_hi),
+            a_yaw=rng.uniform(y_lo, y_hi),
+            nu_pitch=rng.uniform(-nu_p, nu_p),
+            nu_yaw=rng.uniform(-nu_y, nu_y),
             delta=rng.uniform(-np.pi, np.pi),
             frequency=f,
         )
@@ -157,6 +229,9 @@ def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) 
     kind = str(rng.choice(KINDS, p=weights / weights.sum()))
     undulation = (cfg.undulate_amplitude, cfg.undulate_wavenumber)
     main = draw_wave(kind, rng, cfg.frequencies[kind], undulation)
+    if cfg.amplitude_scale != (1.0, 1.0):  # no draw at (1, 1): older families' streams unchanged
+        s = rng.uniform(*cfg.amplitude_scale)
+        main = main.model_copy(update={"a_pitch": s * main.a_pitch, "a_yaw": s * main.a_yaw})
     shape = main.shape()
     drawn: dict = {"kind": kind, "wave": main.model_dump()}
     if rng.random() < cfg.second_wave:

@@ -22,6 +22,7 @@ from snakeloco.model import TrainConfig, train
 from snakeloco.sim import GenerateConfig, generate_dataset, load_dataset
 from snakeloco.sim.backend import RAY_MISSING, BackendConfig
 from snakeloco.sim.dataset import ZARR_MISSING, DatasetError
+from snakeloco.sim.structured import DEFAULT_PRESET, STRUCTURED_PRESETS
 
 from helpers import SMALL
 
@@ -109,7 +110,10 @@ def test_ray_generation_is_bit_identical_to_local_for_both_families(tmp_path, ti
     assert_same(
         load_dataset(generate_dataset(TINY, tmp_path / "p.zarr", backend=RAY, workers=2)), tiny_dataset
     )
-    structured = GenerateConfig(num_samples=2, seed=3, family="structured")
+    # The default structured family: its screen pauses replays at 20 s and carries on from there.
+    structured = GenerateConfig(
+        num_samples=2, seed=3, family="structured", structured=STRUCTURED_PRESETS[DEFAULT_PRESET]
+    )
     local = load_dataset(generate_dataset(structured, tmp_path / "s.npz", workers=2))
     assert_same(
         load_dataset(generate_dataset(structured, tmp_path / "s.zarr", backend=RAY, workers=2)), local

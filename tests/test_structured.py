@@ -18,7 +18,11 @@ from snakeloco.sim import (
     joint_shape,
     load_dataset,
 )
+from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
 from snakeloco.sim.dataset import DatasetError
+from snakeloco.sim.gaits import GaitEquation
+from snakeloco.sim.generate import simulate_structured
+from snakeloco.sim.members import Member, project
 from snakeloco.sim.structured import (
     KINDS,
     STRUCTURED_PRESETS,
@@ -27,7 +31,29 @@ from snakeloco.sim.structured import (
     perturbed_shapes,
 )
 
-CFG = GenerateConfig(num_samples=3, seed=3, family="structured")
+CFG = GenerateConfig(num_samples=3, seed=3, family="structured", structured=STRUCTURED_PRESETS["every"])
+"""The default structured family (``snakeloco generate --family structured``)."""
+SAMPLE_SEED = 99
+"""Draws (99, i, 0) of the every family were replayed as 4-member ensembles over 100 s (docs/gaits.md,
+"The every family"); the tests below name draws of that sample by their index."""
+
+
+def _screen(sc: StructuredConfig, indices: list[int]):
+    """Screen draws (SAMPLE_SEED, i, 0) once each: the kept chunk, or the SimulationError naming why
+    the first of them was rejected."""
+    cfg = GenerateConfig(
+        num_samples=max(indices) + 1,
+        seed=SAMPLE_SEED,
+        family="structured",
+        structured=sc.model_copy(update={"max_draws": 1}),
+    )
+    simulator = Simulator(workers=2)
+    try:
+        return simulate_structured(cfg, simulator, np.array(indices))
+    except SimulationError as exc:
+        return exc
+    finally:
+        simulator.close()
 
 
 def test_draws_are_deterministic_joint_shapes_within_the_command_limit():
@@ -216,3 +242,64 @@ def test_the_structured_preset_flag_needs_the_structured_family(tmp_path, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["snakeloco: error: --structured-preset undulate needs --family structured"]
     assert not list(tmp_path.iterdir())
+
+
+KIND_EXAMPLES = [  # (kind, a_pitch, a_yaw, nu_pitch, nu_yaw, delta, Hz, steering, its phase; heading or yaw way)
+    ("undulate", 0.0, 0.515, 0.0, 0.787, 0.0, 0.52, 0.0, 0.0, -10),  # forward: the wave runs to the tail
+    ("undulate", 0.0, 0.482, 0.0, -0.496, 0.0, 0.52, 0.136, 0.200, -165),  # backward, steered
+    ("sidewind", 0.164, 0.231, 0.740, 0.740, 0.532, 0.52, 0.0, 0.0, 81),  # to the left
+    ("sidewind", 0.098, 0.587, 1.194, 1.194, -1.459, 0.52, 0.390, 2.362, -59),  # to the right
+    ("roll", 0.440, 0.440, 0.964, 0.964, 1.862, 0.29, 0.0, 0.0, -101),  # rolling right (delta > 0)
+    ("roll", 0.418, 0.418, 0.975, 0.975, -1.337, 0.29, 0.0, 0.0, 109),  # rolling left (delta < 0)
+    ("turn", 0.230, 0.808, 1.228, 0.848, -1.635, 0.29, 0.0, 0.0, "left"),  # in place, ccw (15 rad)
+    ("turn", 0.129, 0.927, -1.310, 0.656, -3.005, 0.29, 0.0, 0.0, "right"),  # in place, cw (-9.6 rad)
+]
+"""Members of the default family kept by its screen in the sample docs/gaits.md tabulates, one of
+each kind each way, with where they go (heading of the final position, deg; or the way they turn)."""
+
+
+@pytest.mark.slow
+def test_each_kind_replays_to_its_documented_direction_within_the_spread():
+    every = STRUCTURED_PRESETS["every"]
+    members = []
+    for kind, a_p, a_y, nu_p, nu_y, delta, f, s, psi, _ in KIND_EXAMPLES:
+        wave = GaitEquation(a_pitch=a_p, a_yaw=a_y, nu_pitch=nu_p, nu_yaw=nu_y, delta=delta, frequency=f)
+        member = Member(kind=kind, wave=wave, steering_amplitude=s, steering_phase=psi)
+        again, r = project(member.shape(), every)  # a member of the family, kind and all
+        assert r < 1e-9 and again.kind == kind
+        members.append(member)
+    ensembles = np.concatenate(
+        [perturbed_commands(m.commands(), every.members, seed=i) for i, m in enumerate(members)]
+    )
+    simulator = Simulator(workers=2)
+    result = simulator.simulate(ensembles)
+    simulator.close()
+    assert result.failures == [None] * len(ensembles)
+    body = result.body.reshape(len(members), every.members, *result.body.shape[1:])
+    for (kind, *_, way), ensemble in zip(KIND_EXAMPLES, body, strict=True):
+        spread = ensemble_spread(ensemble, 20.0)["final_spread"]
+        assert spread <= every.max_spread, kind
+        final = ensemble[0, -1]
+        if isinstance(way, str):  # turning in place: more than a turn, that way round
+            assert abs(final[5]) > 2 * np.pi and np.sign(final[5]) == (1 if way == "left" else -1), (
+                kind,
+                final[5],
+            )
+            continue
+        assert np.hypot(final[1], final[2]) > 2.0, kind
+        off = (np.degrees(np.arctan2(final[2], final[1])) - way + 180) % 360 - 180
+        assert abs(off) < 20, (kind, way, off)
+
+
+@pytest.mark.slow
+def test_a_draw_the_early_check_rejects_the_full_screen_rejects_too():
+    """Draws of the sample whose 2-replay spread at 20 s exceeds 0.3 (undulation, rolling): the cheap screen
+    redraws them at 20 s, and the full screen (4 replays over 100 s, no pause, no 2-replay verdict)
+    rejects each of them as well."""
+    every = STRUCTURED_PRESETS["every"]
+    full = every.model_copy(update={"early_seconds": 0.0, "sure_spread": 0.0})
+    for index in (59, 157, 159):
+        early = _screen(every, [index])
+        assert isinstance(early, SimulationError) and "at 20 s" in str(early), (index, early)
+        late = _screen(full, [index])
+        assert isinstance(late, SimulationError) and "final spread" in str(late), (index, late)

@@ -236,3 +236,28 @@ def design(cmd) -> dict:
         f"target: met {u['met']}, closest reached {u['closest_reached_m']} ({u['error_m']:.1f} m off)"
     )
     return r
+
+
+def screen(cmd) -> dict:
+    """The structured family's cheap screen against the full one (``bench/screen.py``)."""
+    from snakeloco.app.bench.screen import bench_screen
+
+    r = bench_screen(cmd.records, cmd.seed, cmd.draws, cmd.workers)
+    for name, f in r["rates"].items():
+        print(
+            f"{name:9s} {f['records']:4d} records: {f['records_per_s']:.3f} records/s, rejection "
+            f"{f['rejection_rate']:.3f} ({f['wall_s']:.0f} s)"
+        )
+    print(
+        f"cheap / full {r['ratio_full']:.2f}x, cheap / undulate {r['ratio_undulate']:.2f}x "
+        f"(goal: >= 0.5 records/s on 2 cores; {r['workers']} threads here)"
+    )
+    a = r["agreement"]
+    if a:
+        print(
+            f"{a['draws']} draws replayed in full: kept cheap {a['cheap_kept']}, full {a['full_kept']}; verdicts "
+            f"differ on {a['disagree']} ({a['cheap_keeps_full_rejects']} kept only by the cheap screen, "
+            f"{a['cheap_rejects_full_keeps']} only by the full one); rejected at "
+            f"{a['early_seconds']:g} s: {a['early_rejects']}, of which the full screen kept {a['early_rejects_full_keeps']}"
+        )
+    return r
