@@ -71,3 +71,42 @@ def expand_commands(commands: np.ndarray, substeps: int, cfg: SimConfig) -> np.n
     frac = (np.arange(substeps) / substeps)[None, None, :, None]  # (1, 1, S, 1)
     ctrl = held[:, :, None] + (nxt - held)[:, :, None] * frac  # (B, lead+T, S, 8)
     return ctrl.reshape(commands.shape[0], -1, N_JOINTS)
+
+
+def why_broken(
+    config: SimConfig,
+    state: np.ndarray,
+    height: np.ndarray,
+    speed: np.ndarray,
+    dt: float,
+    first: int = 0,
+    t0: float = 0.0,
+) -> str | None:
+    """Why a rollout broke, or None: ``state`` (n, nstate) MuJoCo's full physics state after each of
+    steps ``first``, ``first`` + 1, ...; ``height`` and ``speed`` (n,) of the centre of mass at those
+    steps; ``dt`` the timestep; ``t0`` the lead-in's length (record time = simulated time - t0)."""
+
+    def at(step: int) -> str:
+        t = (first + step) * dt - t0
+        return f"t = {t:.2f} s" + (" (in the lead-in before the record)" if t < 0 else "")
+
+    bad = ~np.isfinite(state).all(axis=1)
+    if bad.any():
+        return f"non-finite physics state at {at(int(np.argmax(bad)))}"
+    expected = (np.arange(first + 1, first + state.shape[0] + 1)) * dt
+    off = np.abs(state[:, 0] - expected) > 0.5 * dt  # column 0: simulated time
+    if off.any():
+        return f"MuJoCo reset the unstable simulation (time stopped advancing) at {at(int(np.argmax(off)))}"
+    if height.max() > config.max_com_height:
+        step = int(np.argmax(height > config.max_com_height))
+        return (
+            f"snake thrown into the air: centre of mass {height.max():.2f} m high "
+            f"(limit {config.max_com_height} m) at {at(step)}"
+        )
+    if speed.max() > config.max_com_speed:
+        step = int(np.argmax(speed > config.max_com_speed))
+        return (
+            f"simulation diverged: centre of mass moving at {speed.max():.1f} m/s "
+            f"(limit {config.max_com_speed} m/s) at {at(step)}"
+        )
+    return None

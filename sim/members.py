@@ -45,6 +45,8 @@ FREQS = RECORD.freqs
 GRID = 721
 """Spatial-frequency grid points per fit before Newton's polish (0.003 rad per module apart on the
 widest range): fine enough that the grid's best lies in the basin of the global optimum."""
+
+
 class Member(BaseModel):
     """One gait of the structured family, by its parameters (rad, rad per module, Hz)."""
 

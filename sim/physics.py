@@ -11,101 +11,27 @@ import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED
 from concurrent.futures import wait as wait_futures
-from dataclasses import dataclass, field
-from functools import cached_property
 
 import mujoco
 import numpy as np
 from mujoco import rollout as mj_rollout
 
 from snakeloco.sim.body import body_states
-from snakeloco.sim.command_rule import SimConfig, SimulationError, expand_commands
+from snakeloco.sim.command_rule import SimConfig, SimulationError, expand_commands, why_broken
 from snakeloco.sim.excitation import ExcitationConfig
+from snakeloco.sim.results import (
+    STREAM_CHUNK,
+    STREAM_FIRST,
+    STREAM_POLL_S,
+    BatchResult,
+    Paused,
+    ReplayResult,
+    StreamedReplay,
+)
 from snakeloco.sim.robot import BODY_SITE, N_JOINTS, load_model
 from snakeloco.sim.threads import RolloutThreads, _FifoLock, resolve_workers
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
-
-
-@dataclass(frozen=True)
-class ReplayResult:
-    """Measured response to one record of commands at the command rate."""
-
-    commands: np.ndarray
-    """(T, 8) commands actually applied (rad, float64)."""
-    joint_angles: np.ndarray
-    """(T, 8) measured joint angles (rad)."""
-    body: np.ndarray
-    """(T, 6) body states, channels as in ``BODY_CHANNELS``."""
-    times: np.ndarray
-    """(T,) sample times (s), 0 at the start of the record."""
-    qpos: np.ndarray
-    """(T, nq) MuJoCo qpos at the sample times (world frame; for drawing the robot)."""
-
-
-@dataclass(frozen=True)
-class StreamedReplay:
-    """What a streamed replay (``Simulator.stream``) has measured so far: its first ``samples``
-    record samples (arrays as ``ReplayResult``'s, that long)."""
-
-    samples: int
-    joint_angles: np.ndarray  # (samples, 8) rad
-    qpos: np.ndarray  # (samples, nq)
-    failure: str | None  # why the simulation broke (then the stream ends), or None
-    done: bool  # the whole record is in
-    pos: np.ndarray = field(repr=False)  # (samples, 3) world position of the body frame
-    quat: np.ndarray = field(repr=False)  # (samples, 4) its unit quaternion, wxyz
-
-    @cached_property
-    def body(self) -> np.ndarray:
-        """(samples, 6) body states, computed when first asked for: a consumer that draws the path
-        a few times a second does not pay for it at every chunk (the GIL other tabs wait on)."""
-        with np.errstate(invalid="ignore"):
-            return body_states(self.pos[None], self.quat[None])[0]
-
-
-STREAM_CHUNK = 50
-"""Record samples per chunk of a streamed replay: 2.5 s of record, ~17 ms of physics on one core
-(a superseded replay holds its thread at most that long)."""
-STREAM_POLL_S = 0.002
-"""How often a stream in flight asks whether it is still wanted (``Simulator.stream``'s ``wanted``)."""
-STREAM_FIRST = 20
-"""Record samples in a stream's first chunk, after the 3 s lead-in: ~27 ms of physics to the first
-pose (100 samples took ~55 ms)."""
-
-
-@dataclass(frozen=True)
-class Paused:
-    """Where a batch's rollouts stopped (``Simulator.simulate`` with ``samples``): enough to carry
-    on to the same numbers as one uninterrupted rollout (the state and the solver's warm start)."""
-
-    samples: int  # record samples measured so far
-    state: np.ndarray  # (B, nstate) after the last step simulated
-    warm: np.ndarray  # (B, nv)
-    measured: tuple[np.ndarray, ...]  # joint angles, body position, quaternion, qpos so far (B, samples, .)
-    failures: list[str | None]
-
-    def rows(self, index: slice | list[int] | np.ndarray) -> Paused:
-        """The paused rows ``index`` (to carry on with only some of them)."""
-        rows = np.arange(len(self.state))[index]
-        return Paused(
-            self.samples,
-            self.state[rows],
-            self.warm[rows],
-            tuple(a[rows] for a in self.measured),
-            [self.failures[r] for r in rows],
-        )
-
-
-@dataclass(frozen=True)
-class BatchResult:
-    """Measurements of a batch; rows whose ``failures`` entry is not None are invalid."""
-
-    joint_angles: np.ndarray  # (B, T, 8) rad
-    body: np.ndarray  # (B, T, 6)
-    failures: list[str | None]
-    qpos: np.ndarray  # (B, T, nq) at the sample times
-    paused: Paused | None = None  # where the rollouts stopped, when they stopped before the end
 
 
 class Simulator:
@@ -328,37 +254,15 @@ class Simulator:
     def _diagnose_one(self, state: np.ndarray, sens: np.ndarray, dt: float, first: int = 0) -> str | None:
         """Why a rollout's steps (``state``/``sens`` rows are steps ``first``, ``first`` + 1, ...)
         broke the simulation, or None. A stream checks each chunk's new steps once (``first``)."""
-        t0 = self.config.lead_in / self.excitation.sample_rate  # record time = sim time - t0
-
-        def at(step: int) -> str:
-            t = (first + step) * dt - t0
-            return f"t = {t:.2f} s" + (" (in the lead-in before the record)" if t < 0 else "")
-
-        bad = ~np.isfinite(state).all(axis=1)
-        if bad.any():
-            return f"non-finite physics state at {at(int(np.argmax(bad)))}"
-        time = state[:, 0]
-        expected = (np.arange(first + 1, first + state.shape[0] + 1)) * dt
-        off = np.abs(time - expected) > 0.5 * dt
-        if off.any():
-            return (
-                f"MuJoCo reset the unstable simulation (time stopped advancing) at {at(int(np.argmax(off)))}"
-            )
-        height = sens[:, self._com_cols[2]]
-        if height.max() > self.config.max_com_height:
-            step = int(np.argmax(height > self.config.max_com_height))
-            return (
-                f"snake thrown into the air: centre of mass {height.max():.2f} m high "
-                f"(limit {self.config.max_com_height} m) at {at(step)}"
-            )
-        speed = np.linalg.norm(sens[:, self._vel_cols], axis=1)
-        if speed.max() > self.config.max_com_speed:
-            step = int(np.argmax(speed > self.config.max_com_speed))
-            return (
-                f"simulation diverged: centre of mass moving at {speed.max():.1f} m/s "
-                f"(limit {self.config.max_com_speed} m/s) at {at(step)}"
-            )
-        return None
+        return why_broken(
+            self.config,
+            state,
+            sens[:, self._com_cols[2]],
+            np.linalg.norm(sens[:, self._vel_cols], axis=1),
+            dt,
+            first,
+            t0=self.config.lead_in / self.excitation.sample_rate,
+        )
 
     def stream(
         self,
