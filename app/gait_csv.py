@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import io
 import json
-import math
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
@@ -139,29 +138,37 @@ def read_gait_csv(data: bytes | str) -> GaitTable:
         raise GaitCSVError(f"header only: expected {N_ROWS} data rows")
     if len(rows) != N_ROWS:
         raise GaitCSVError(f"expected {N_ROWS} data rows (100 s at 20 Hz), got {len(rows)}")
-    values = np.empty((N_ROWS, len(HEADER)))
-    for r, (line_no, line) in enumerate(rows):
-        cells = line.split(",")
-        if len(cells) != len(HEADER):
-            raise GaitCSVError(f"line {line_no}: expected {len(HEADER)} values, got {len(cells)}")
-        for c, cell in enumerate(cells):
-            try:
-                v = float(cell)
-            except ValueError:
-                raise GaitCSVError(
-                    f"line {line_no}, column {HEADER[c]}: '{cell.strip()[:30]}' is not a number"
-                ) from None
-            if not math.isfinite(v):
-                raise GaitCSVError(
-                    f"line {line_no}, column {HEADER[c]}: {cell.strip()} is not a finite number"
-                )
-            values[r, c] = v
+    try:  # numpy parses the rows; only a file it refuses is read again, cell by cell, to say where
+        values = np.loadtxt(io.StringIO("\n".join(line for _, line in rows)), delimiter=",", ndmin=2)
+    except ValueError:
+        values = None
+    if values is None or values.shape[1] != len(HEADER):
+        raise GaitCSVError(_first_bad_cell(rows))
+    bad = np.argwhere(~np.isfinite(values))
+    if len(bad):
+        r, c = bad[0]
+        cell = rows[r][1].split(",")[c].strip()
+        raise GaitCSVError(f"line {rows[r][0]}, column {HEADER[c]}: {cell} is not a finite number")
     try:
         return GaitTable(time_s=values[:, 0], commands=values[:, 1:])
     except ValueError as exc:  # pydantic's ValidationError is a ValueError
         errors = getattr(exc, "errors", None)
         msg = "; ".join(e["msg"].removeprefix("Value error, ") for e in errors()) if errors else str(exc)
         raise GaitCSVError(msg) from None
+
+
+def _first_bad_cell(rows: list[tuple[int, str]]) -> str:
+    """What is wrong with the first row or cell that is not a number (``rows``: line number, text)."""
+    for line_no, line in rows:
+        cells = line.split(",")
+        if len(cells) != len(HEADER):
+            return f"line {line_no}: expected {len(HEADER)} values, got {len(cells)}"
+        for column, cell in zip(HEADER, cells, strict=True):
+            try:
+                float(cell)
+            except ValueError:
+                return f"line {line_no}, column {column}: '{cell.strip()[:30]}' is not a number"
+    return "the rows are not a table of numbers"
 
 
 def gait_comments(
