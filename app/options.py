@@ -16,7 +16,6 @@ import dataclasses
 import math
 import threading
 
-import annotated_types
 import tyro
 from pydantic import BaseModel, ValidationError
 from tyro.constructors import ConstructorRegistry, StructConstructorSpec, StructTypeInfo
@@ -31,7 +30,7 @@ class OptionError(Exception):
         """The first bad field of a model's validation error, as its flag with its bounds and value."""
         first = error.errors()[0]
         name = str(first["loc"][0]) if first["loc"] else ""
-        return cls(describe(model, name, first))
+        return cls(describe(name, first))
 
 
 def flag(name: str) -> str:
@@ -39,40 +38,26 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def _bounds(model: type[BaseModel], name: str) -> tuple[float | None, float | None, bool]:
-    """(lower, upper, lower is strict) bounds of a field from its ``Field(ge=..., gt=..., le=...)``."""
-    lo = hi = None
-    strict = False
-    field = model.model_fields.get(name)
-    for m in field.metadata if field is not None else ():
-        if isinstance(m, annotated_types.Ge):
-            lo = m.ge
-        elif isinstance(m, annotated_types.Gt):
-            lo, strict = m.gt, True
-        elif isinstance(m, annotated_types.Le):
-            hi = m.le
-        elif isinstance(m, annotated_types.Lt):
-            hi = m.lt
-    return lo, hi, strict
-
-
-def describe(model: type[BaseModel], name: str, error: dict) -> str:
-    """A pydantic error of field ``name`` of ``model`` as one line naming the flag and its range."""
-    value = error.get("input")
+def describe(name: str, error: dict) -> str:
+    """A pydantic error of field ``name`` as one line naming the flag and the bound it
+    broke (pydantic's error context carries the bound: ``{"ge": 2}``)."""
+    value, ctx = error.get("input"), error.get("ctx") or {}
     what = flag(name)
     if isinstance(value, float) and not math.isfinite(value):
         return f"{what} must be a finite number, got {value}"
-    lo, hi, strict = _bounds(model, name)
-    if strict and isinstance(value, int) and isinstance(lo, int):
-        lo, strict = lo + 1, False  # a whole number above 0 is one of at least 1
-    if isinstance(value, int | float) and (lo is not None or hi is not None):
-        if strict and lo == 0 and hi is None:
+    if isinstance(value, int | float):
+        if "gt" in ctx and isinstance(value, int) and isinstance(ctx["gt"], int):
+            ctx = {"ge": ctx["gt"] + 1}  # a whole number above 0 is one of at least 1
+        if ctx.get("gt") == 0:
             return f"{what} must be positive, got {value:g}"
-        if hi is None:
-            return f"{what} must be {'greater than' if strict else 'at least'} {lo:g}, got {value:g}"
-        if lo is None:
-            return f"{what} must be at most {hi:g}, got {value:g}"
-        return f"{what} must be between {lo:g} and {hi:g}, got {value:g}"
+        for key, words in (
+            ("ge", "at least"),
+            ("gt", "greater than"),
+            ("le", "at most"),
+            ("lt", "less than"),
+        ):
+            if key in ctx:
+                return f"{what} must be {words} {ctx[key]:g}, got {value:g}"
     return f"{what}: {error.get('msg', 'invalid value')}"
 
 

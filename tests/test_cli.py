@@ -72,7 +72,7 @@ def test_train_command_passes_the_loss_weights(tmp_path, tiny_dataset_path, caps
         (["calibrate", "--data", "d.npz", "--out", "c", "--lr", "0"], "--lr must be positive"),
         (["train", "--data", "d.npz", "--out", "t", "--seed", "-1"], "--seed must be at least 0, got -1"),
         (["train", "--data", "d.npz", "--out", "t", "--alpha", "nan"], "--alpha must be a finite number"),
-        (["serve", "--port", "70000"], "--port must be between 0 and 65535, got 70000"),
+        (["serve", "--port", "70000"], "--port must be at most 65535, got 70000"),
         # viser would try port after port on a host it cannot bind, forever and without a word.
         (["serve", "--host", "999.1.1.1", "--port", "0"], "--host 999.1.1.1: not a host name or address"),
         (["serve", "--host", "192.0.2.1", "--port", "0"], "--host 192.0.2.1: cannot serve on it here"),
