@@ -18,10 +18,10 @@ from snakeloco.sim import (
     joint_shape,
     load_dataset,
 )
+from snakeloco.sim.chunks import simulate_structured
 from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
 from snakeloco.sim.dataset import DatasetError
 from snakeloco.sim.gaits import GaitEquation
-from snakeloco.sim.generate import simulate_structured
 from snakeloco.sim.members import Member, project
 from snakeloco.sim.structured import (
     KINDS,
@@ -181,7 +181,7 @@ def test_a_screening_log_rebuilds_the_same_dataset_with_one_replay_per_record(tm
 
 
 def test_coefficient_noise_perturbs_the_shape_of_each_screened_replay():
-    from snakeloco.sim.generate import _ensemble, draw_record
+    from snakeloco.sim.chunks import _ensemble, draw_record
 
     shape, _ = draw_structured(StructuredConfig(), 3, 0, 0)
     copies = perturbed_shapes(shape, 4, 0.1, np.random.default_rng(0))

@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 
+from snakeloco.sim.chunks import _ensemble, draw_record, simulate_structured
 from snakeloco.sim.consistency import ensemble_spread
 from snakeloco.sim.dataset import GenerateConfig
-from snakeloco.sim.generate import _ensemble, draw_record, simulate_structured
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.structured import DEFAULT_PRESET, STRUCTURED_PRESETS, StructuredConfig
 

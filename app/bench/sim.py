@@ -16,7 +16,7 @@ from snakeloco.sim import (
     load_model,
     replay,
 )
-from snakeloco.sim.generate import draw_sample, simulate_samples
+from snakeloco.sim.chunks import draw_sample, simulate_samples
 
 
 def _best(fn, repeats: int) -> float:
