@@ -1,0 +1,141 @@
+"""A tab's jobs, as a mixin of ``DesignerClient``: decode -> draw | replay -> draw -> ensemble -> draw.
+
+Each job runs on its own ``LatestWorker`` thread with the version of the request it serves, and
+draws only while that version is still the tab's newest (``is_current``), under the tab's draw lock.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from snakeloco.app import panel
+from snakeloco.app.readout import STREAM_READOUT_PERIOD_S
+from snakeloco.app.session import DecodedGait, SimulatedGait, Timing
+from snakeloco.sim import SimulationError
+
+SETTLED_S = 0.5
+"""A slider value the tab has held this long (no newer one) is one the user has let go of."""
+STREAM_PATH_PERIOD_S = 0.25
+"""How often a streaming replay's growing path is sent to the browser (the whole path is sent again
+each time; the snake's pose goes every animation frame)."""
+
+
+class TabJobs:
+    """The jobs of a ``DesignerClient`` (its session, workers, scene, controls and draw lock)."""
+
+    def _timing(self, version: int) -> Timing:
+        return self._timing_by_version.get(version) or Timing(version, time.perf_counter())
+
+    def _decode_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, latents = item
+        density = self.model.config.density
+        if (
+            not self.is_current(version)
+            or len(latents.z_b) != self.model.z_b_dim
+            or (
+                latents.component is not None and (density is None or latents.component >= len(density.names))
+            )
+        ):
+            return  # superseded (or sliders of a family this tab has just left)
+        timing = self._timing(version)
+        timing.started = time.perf_counter()
+        decoded = self.session.decode(latents)
+        timing.decode_ms = decoded.decode_ms
+        with self._draw_lock:
+            if not self.is_current(version):
+                return
+            self.decoded, self.simulated, self.streaming = decoded, None, None
+            self._draw_decoded(decoded)
+            timing.decoded = time.perf_counter()
+            self.physics.submit((version, ("gait", decoded)))
+
+    def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, (kind, *payload) = item
+        if not self.is_current(version):
+            return
+        timing = self._timing(version)
+        is_current = lambda: self.is_current(version)  # noqa: E731
+        if kind == "load":
+            self._load_job(*payload, timing, is_current)
+        else:
+            self._simulate(payload[0], timing, is_current)
+
+    def _draw_part(self, part, timing: Timing, is_current) -> bool:
+        """Draw a streamed replay's first samples: the snake moves from t = 0 at once, the simulated
+        path grows. Returns whether the replay is still wanted (else it stops at this chunk)."""
+        with self._draw_lock:
+            if not is_current():
+                return False
+            first = self.streaming is None
+            self.streaming = part
+            now = time.perf_counter()
+            if first or now - self._path_drawn > STREAM_PATH_PERIOD_S:  # the snake moves every frame
+                self._path_drawn = now
+                with self.client.atomic():
+                    self.scene.draw_streaming(part.body, part.qpos[0])
+            if (first or now - self._readout_drawn > STREAM_READOUT_PERIOD_S) and self.decoded is not None:
+                self._readout_drawn = now
+                self.show_readout(self.decoded, "streaming", part.body)
+            if first:
+                self.playback.restart()
+                self._draw_snake(0)
+                timing.first_motion = time.perf_counter()
+        return True
+
+    def _simulate(self, decoded: DecodedGait, timing: Timing, is_current) -> SimulatedGait | None:
+        try:
+            sim = self.session.replay_streamed(
+                decoded,
+                lambda part: self._draw_part(part, timing, is_current),
+                settled=lambda: time.perf_counter() - timing.submitted >= SETTLED_S,
+                wanted=is_current,
+            )
+        except SimulationError as exc:
+            timing.failed = str(exc)
+            with self._draw_lock:
+                if is_current():
+                    self.controls.panel.content = panel.failed_text(decoded, str(exc))
+                    self.show_readout(decoded, "failed", reason=str(exc))
+                    self.client.add_notification(
+                        "Replay failed", str(exc), color="red", auto_close_seconds=8.0
+                    )
+            return None
+        if sim is None:
+            return None  # superseded mid-stream
+        timing.replay_ms = sim.replay_ms
+        with self._draw_lock:
+            if not is_current():
+                return None
+            self.simulated, self.streaming = sim, None
+            self._draw_simulated(decoded, sim, ensemble=False)
+            timing.replayed = time.perf_counter()
+            self.ensembles.submit((timing.version, decoded, sim))
+        return sim
+
+    def _ensemble_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, decoded, sim = item
+        if not self.is_current(version):
+            return
+        timing = self._timing(version)
+        is_current = lambda: self.is_current(version)  # noqa: E731
+        sim = self.session.run_ensemble(
+            decoded, sim, version, lambda b: self._draw_members(b, is_current), wanted=is_current
+        )
+        if sim is None:
+            return  # superseded between batches, or while a batch waited for other tabs' batches
+        timing.ensemble_ms = sim.ensemble_ms
+        with self._draw_lock:
+            if is_current():
+                self._draw_simulated(decoded, sim, ensemble=True)
+                timing.ensembled = time.perf_counter()
+
+    def _draw_members(self, bodies: np.ndarray, is_current) -> bool:
+        """Draw the ensemble members in so far; whether the ensemble is still wanted."""
+        with self._draw_lock:
+            if not is_current():
+                return False
+            with self.client.atomic():
+                self.scene.draw_fan(bodies)
+        return True
