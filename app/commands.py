@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from snakeloco.app.bench.load_driver import DWELL_S
 from snakeloco.model.calibrate import CalibrateConfig
 from snakeloco.model.config import ModelConfig
-from snakeloco.model.design import DesignConfig, Target
+from snakeloco.model.design_config import DesignConfig, Target
 from snakeloco.model.evaluate import PRIOR_SAMPLES
 from snakeloco.model.sampler import SamplerConfig
 from snakeloco.model.train import PRESETS, TrainConfig

@@ -16,7 +16,8 @@ import numpy as np
 
 from snakeloco.app.gui import NO_CANDIDATE, DesignControls
 from snakeloco.app.session import LatestWorker
-from snakeloco.model.design import Candidate, DesignConfig, Target, design
+from snakeloco.model.design import Candidate, design
+from snakeloco.model.design_config import DesignConfig, Target
 from snakeloco.sim.backend import LocalBackend
 
 MARKER_COLOR = (220, 30, 60)

@@ -14,8 +14,6 @@ from snakeloco.model import design as design_module
 from snakeloco.model import load_pretrained
 from snakeloco.model.design import (
     Candidate,
-    DesignConfig,
-    Target,
     corrected,
     design,
     meets,
@@ -23,6 +21,7 @@ from snakeloco.model.design import (
     search,
     verify,
 )
+from snakeloco.model.design_config import DesignConfig, Target
 from snakeloco.sim import replay
 from snakeloco.sim.backend import open_backend
 from snakeloco.sim.dataset import BODY_DOWNSAMPLE

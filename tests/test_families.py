@@ -59,7 +59,7 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
         np.testing.assert_array_equal(
             d1.decoded.commands, read_gait_csv(text).commands
         )  # exactly as exported
-        from snakeloco.model.design import DesignConfig
+        from snakeloco.model.design_config import DesignConfig
 
         d1.design.config = DesignConfig(candidates=1, screen=16, starts=1, generations=3, population=4)
         d1.design.request()

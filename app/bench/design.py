@@ -20,14 +20,13 @@ import numpy as np
 from snakeloco.model import load_pretrained
 from snakeloco.model.design import (
     Candidate,
-    DesignConfig,
-    Target,
     design,
     meets,
     path_end,
     simulated_cost,
     verify,
 )
+from snakeloco.model.design_config import DesignConfig, Target
 from snakeloco.sim import load_dataset
 from snakeloco.sim.backend import open_backend
 
