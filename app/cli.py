@@ -205,7 +205,8 @@ def run_train(cmd: Train):
 
 def run_evaluate(cmd: Evaluate) -> dict:
     """Evaluate and print the report."""
-    from snakeloco.model.evaluate import ZK_MODES, evaluate, format_report
+    from snakeloco.app.evaluate_report import format_report
+    from snakeloco.model.evaluate import ZK_MODES, evaluate
 
     with Progress(len(ZK_MODES) * cmd.prior_samples, "consistency") as progress:
         report = evaluate(

@@ -43,40 +43,12 @@ model/api.py.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 from snakeloco.model.config import ModelConfig
-
-
-class _SeparableConv(nn.Module):
-    def __init__(self, c_in: int, c_out: int, kernel: int) -> None:
-        super().__init__()
-        self.depthwise = nn.Conv1d(c_in, c_in, kernel, padding=kernel // 2, groups=c_in)
-        self.pointwise = nn.Conv1d(c_in, c_out, 1)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.pointwise(self.depthwise(x))
-
-
-def _gaussian_head(d_in: int, d_out: int, hidden: int) -> nn.Module:
-    return nn.Sequential(nn.Linear(d_in, hidden), nn.GELU(), nn.Linear(hidden, 2 * d_out))
-
-
-@dataclass
-class Output:
-    """Everything a forward pass produces (normalised units)."""
-
-    shape: torch.Tensor  # (B, K, L, 2)
-    body: torch.Tensor  # (B, T, C)
-    z_b: torch.Tensor  # (B, Db) sample
-    z_b_mu: torch.Tensor  # (B, Db)
-    z_j: torch.Tensor  # (B, K, Dj) posterior samples
-    z_j_mu: torch.Tensor  # (B, K, Dj) posterior means
-    prior_sample: torch.Tensor  # (B, K, Dj) samples of the learned prior
-    stats: torch.Tensor  # (B, n_stats) normalised body statistics
+from snakeloco.model.layers import Output, SeparableConv, gaussian_head
 
 
 class HierarchicalVAE(nn.Module):
@@ -91,7 +63,7 @@ class HierarchicalVAE(nn.Module):
             c_in += 2 * cfg.n_joints
         pad = cfg.kernel // 2
         self.encoder = nn.Sequential(
-            _SeparableConv(c_in, c1, cfg.kernel),
+            SeparableConv(c_in, c1, cfg.kernel),
             nn.GELU(),
             nn.AvgPool1d(2),
             nn.Conv1d(c1, c2, cfg.kernel, padding=pad),
@@ -131,7 +103,7 @@ class HierarchicalVAE(nn.Module):
             nn.Conv1d(c2, c1, cfg.kernel, padding=pad),
             nn.GELU(),
             nn.Upsample(scale_factor=2),
-            _SeparableConv(c1, cfg.body_channels, cfg.kernel),
+            SeparableConv(c1, cfg.body_channels, cfg.kernel),
         )
         c_sig = cfg.signal_channels
         if cfg.body_sees_signals:
@@ -193,8 +165,8 @@ class HierarchicalVAE(nn.Module):
         )
         self.root_init = nn.Linear(cfg.z_b_dim, cfg.root_hidden)
         self.root = nn.GRUCell(cfg.joint_embed + cfg.z_j_dim + cfg.z_b_dim, cfg.root_hidden)
-        self.prior = _gaussian_head(cfg.root_hidden + cfg.z_b_dim, cfg.z_j_dim, cfg.root_hidden)
-        self.posterior = _gaussian_head(
+        self.prior = gaussian_head(cfg.root_hidden + cfg.z_b_dim, cfg.z_j_dim, cfg.root_hidden)
+        self.posterior = gaussian_head(
             cfg.joint_embed + cfg.root_hidden + cfg.z_b_dim, cfg.z_j_dim, cfg.root_hidden
         )
         d_cond = cfg.root_hidden + cfg.z_b_dim + cfg.z_j_dim

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from snakeloco.app.cli import main
-from snakeloco.model.evaluate import evaluate, format_report, physics_floor
+from snakeloco.app.evaluate_report import format_report
+from snakeloco.model.evaluate import evaluate, physics_floor
 from snakeloco.sim.backend import open_backend
 from snakeloco.sim.consistency import (
     compare,
@@ -272,8 +273,9 @@ def test_consistency_replays_are_written_reused_and_checked(
 
 
 def test_reconstruction_reports_a_bin_the_data_do_not_excite_as_such(checkpoint, tiny_dataset):
+    from snakeloco.app.evaluate_report import format_report
     from snakeloco.model.api import load_pretrained
-    from snakeloco.model.evaluate import format_report, reconstruction
+    from snakeloco.model.evaluate import reconstruction
 
     model = load_pretrained(checkpoint)
     shape, body = tiny_dataset.shape.astype(np.float64), tiny_dataset.body_ds.astype(np.float64)
