@@ -7,11 +7,16 @@ import socket
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from snakeloco.app.bench.headless import HeadlessClient
 from snakeloco.app.bench.load_driver import CHROMIUM
+from snakeloco.model import HierarchicalVAE, ModelConfig
+from snakeloco.model.checkpoint import Normalization
 from snakeloco.model.config import TINY
+from snakeloco.model.train import init_signal_source
+from snakeloco.sim.excitation import RECORD
 
 SMALL = TINY
 """A network small enough to train in seconds on the 4-record test dataset."""
@@ -60,3 +65,22 @@ def apply(d, control, value, timeout: float = 60.0) -> bool:
     before = d.version
     control.value = value
     return wait_until(lambda: d.version > before, 10.0) and d.wait_idle(timeout)
+
+
+def unit_normalization() -> Normalization:
+    """Zero means and unit stds: normalised values equal physical ones."""
+    return Normalization(
+        shape_mean=np.zeros((8, 2)).tolist(),
+        shape_std=np.ones((8, 2)).tolist(),
+        body_mean=[0.0] * 6,
+        body_std=[1.0] * 6,
+        stats_mean=[0.0] * 4,
+        stats_std=[1.0] * 4,
+    )
+
+
+def fresh_net(cfg: ModelConfig = SMALL) -> HierarchicalVAE:
+    """A fresh network whose signal branch uses the standard excitation and unit normalisation."""
+    net = HierarchicalVAE(cfg)
+    init_signal_source(net, RECORD.freqs, unit_normalization())
+    return net

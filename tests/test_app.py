@@ -9,11 +9,11 @@ import time
 
 import numpy as np
 import pytest
+from test_app_parts import bad_gait_files
 
-from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
-from snakeloco.app.panel import spread_text
+from snakeloco.app.gait_csv import read_gait_csv, write_gait_csv
 from snakeloco.app.server import DesignerServer
-from snakeloco.app.session import Latents, LatestWorker
+from snakeloco.app.session import Latents
 from snakeloco.sim import replay
 
 from helpers import apply, connect_headless
@@ -108,49 +108,12 @@ def test_export_import_export_round_trips_exactly(server):
         client.close()
 
 
-def _catalogue() -> dict[str, tuple[bytes, str]]:
-    """Every bad gait file of the robustness catalogue: name -> (bytes, part of the message)."""
-    rng = np.random.default_rng(0)
-    text = write_gait_csv(rng.uniform(-2.2, 2.2, (2000, 8)), {"z_B": "[0.1]"})
-    header = "time_s," + ",".join(f"joint_{k}" for k in range(1, 9))
-    cell = text.splitlines()[5].split(",")[3]
-    return {
-        "empty": (b"", "empty"),
-        "header only": ((header + "\n").encode(), "header only"),
-        "wrong column": (text.replace("joint_8", "joint_9").encode(), "unexpected ['joint_9']"),
-        "missing column": (
-            "\n".join(
-                ",".join(line.split(",")[:-1]) for line in text.splitlines() if not line.startswith("#")
-            ).encode(),
-            "missing ['joint_8']",
-        ),
-        "non-numeric": (text.replace(cell, "abc", 1).encode(), "column joint_3: 'abc' is not a number"),
-        "NaN": (text.replace(cell, "nan", 1).encode(), "column joint_3: nan is not a finite number"),
-        "Inf": (text.replace(cell, "inf", 1).encode(), "column joint_3: inf is not a finite number"),
-        "short row": (text.replace("," + cell, "", 1).encode(), "expected 9 values, got 8"),
-        "out of range": (text.replace(cell, "2.5", 1).encode(), "outside the +/-2.2 rad"),
-        "wrong time step": (text.replace("\n0.05,", "\n0.07,", 1).encode(), "step by 0.05"),
-        "wrong row count": ("\n".join(text.splitlines()[:-1]).encode(), "expected 2000 data rows"),
-        "binary": (bytes(range(256)) * 4, "binary"),
-        "non-UTF-8": ("time_s,caf\u00e9\n".encode("latin-1"), "not UTF-8"),
-        "semicolons": (text.replace(",", ";").encode(), "separated by commas"),
-        "oversized": (b"0" * (3 * 2**20), "at most 2 MiB"),
-    }
-
-
-def test_gait_csv_refuses_every_bad_file_of_the_catalogue():
-    for name, (data, message) in _catalogue().items():
-        with pytest.raises(GaitCSVError, match=re.escape(message)):
-            read_gait_csv(data)
-        assert name
-
-
 def test_bad_import_keeps_the_current_gait(server):
     client, d = connect_headless(server)
     try:
         before = d.decoded.commands.copy()
         notes = _record_notifications(d)
-        for name, (data, message) in _catalogue().items():
+        for name, (data, message) in bad_gait_files().items():
             assert d.import_bytes(f"{name}.csv", data) is None, name
             assert notes[-1][0] == f"Import CSV: {name}.csv rejected" and message in notes[-1][1], (
                 name,
@@ -192,34 +155,6 @@ def test_two_clients_are_independent(server):
         assert d3.wait_idle(60) and d3.simulated is not None
     finally:
         c3.close()
-
-
-def test_latest_worker_runs_only_the_newest_request():
-    gate = threading.Event()
-    ran = []
-
-    def job(version, request, is_current):
-        if request == 0:
-            gate.wait(10)
-        ran.append((request, is_current()))
-
-    worker = LatestWorker(job)
-    worker.submit(0)
-    time.sleep(0.1)
-    for r in range(1, 20):
-        worker.submit(r)
-    gate.set()
-    assert worker.wait_idle(10)
-    worker.close()
-    assert ran == [(0, False), (19, True)]
-
-
-def test_gait_csv_round_trip():
-    rng = np.random.default_rng(0)
-    u = rng.uniform(-2.2, 2.2, (2000, 8))
-    text = write_gait_csv(u, {"z_B": "[0.1]"})
-    np.testing.assert_array_equal(read_gait_csv(text.encode()).commands, u)
-    np.testing.assert_array_equal(read_gait_csv(text.replace("\n", "\r\n").encode()).commands, u)
 
 
 @pytest.mark.slow
@@ -369,23 +304,6 @@ def test_server_stop_leaves_no_threads(checkpoint):
     assert ours() == []
 
 
-def test_large_freed_buffers_go_back_to_the_os_on_glibc():
-    import platform
-
-    from snakeloco.app.server import return_freed_buffers_to_the_os
-
-    on_glibc = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
-    assert return_freed_buffers_to_the_os() is on_glibc
-
-
-def test_panel_spread_is_relative_only_where_the_mean_is_a_scale():
-    assert spread_text(1.0, 0.023) == "±1 (2.3%)"
-    assert spread_text(0.0091, 0.273) == "±0.0091 (27.3%)"
-    # A net roll going both ways: std above the mean's size, so no percentage.
-    assert spread_text(15.0, 7.894) == "±15"
-    assert spread_text(2.0, 1.0) == "±2"
-
-
 def test_the_ensemble_comes_in_batches_equal_to_one_rollout_and_stops_when_left(checkpoint):
     from snakeloco.app.session import GaitSession, Latents
     from snakeloco.model import load_pretrained
@@ -473,25 +391,3 @@ def test_light_rendering_drops_shadows_environment_and_grid_and_full_brings_them
         assert d.controls.layers["Grid"].value is True and d.scene.grid.visible
     finally:
         client.close()
-
-
-def test_the_metre_grid_is_thin_quads_on_the_ground_one_per_line():
-    from snakeloco.app.view import GRID_HALF_M, GRID_LIFT_M, RINGS_M, grid_lines, ground_quads, ring_strips
-
-    lines = grid_lines(1, skip=5)
-    assert len(lines) == 2 * (2 * GRID_HALF_M + 1 - (2 * GRID_HALF_M // 5 + 1))  # 5 m lines left out
-    vertices, faces = ground_quads(lines, 0.02)
-    assert vertices.shape == (4 * len(lines), 3) and faces.shape == (2 * len(lines), 3)
-    assert np.all(vertices[:, 2] == np.float32(GRID_LIFT_M))
-    quad = vertices[:4, :2].astype(np.float64)  # the line x = -40: 2 cm wide, 80 m long
-    assert np.ptp(quad[:, 0]) == pytest.approx(0.02, abs=1e-5) and np.ptp(quad[:, 1]) == pytest.approx(80.0)
-    # Faces face up (counter-clockwise seen from above), so the default front side is drawn.
-    a, b, c = (vertices[faces[:, i], :2].astype(np.float64) for i in range(3))
-    cross = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
-    assert np.all(cross > 0)
-    vertices, faces = ring_strips(0.1, n=64)  # inner and outer edges 0.1 m apart around each radius
-    radii = np.linalg.norm(vertices[:, :2], axis=1).reshape(len(RINGS_M), 2, 65)
-    assert np.allclose(radii.mean(axis=1), np.array(RINGS_M)[:, None], atol=1e-5)
-    assert np.allclose(radii[:, 1] - radii[:, 0], 0.1, atol=1e-5)
-    a, b, c = (vertices[faces[:, i], :2].astype(np.float64) for i in range(3))
-    assert np.all((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0] > 0)  # facing up
