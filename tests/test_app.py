@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from test_app_parts import bad_gait_files
 
+from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.gait_csv import read_gait_csv, write_gait_csv
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.session import Latents
@@ -87,11 +88,11 @@ def test_export_import_export_round_trips_exactly(server):
         assert first.startswith("# snakeloco gait") and "# z_B: [0.0000, -0.8000" in first
         rows = _data_rows(first)
         assert rows[0] == "time_s," + ",".join(f"joint_{k}" for k in range(1, 9)) and len(rows) == 2001
-        assert d.import_bytes("gait.csv", first.encode()) is not None
-        assert d.wait_idle(60)
-        time.sleep(0.3)  # let any slider callbacks of the encoding run: they must not replace the gait
-        assert d.wait_idle(60)
-        assert d.decoded.source == "import: gait.csv"
+        version = d.import_bytes("gait.csv", first.encode())
+        assert version is not None and d.wait_idle(60)
+        # Writing the encoding into the sliders ran their callbacks (viser calls them in the setting
+        # thread): none of them asked for a decode that would replace the imported gait.
+        assert d.version == version and d.decoded.source == "import: gait.csv"
         second = d.export_text()
         assert _data_rows(second) == rows
         np.testing.assert_array_equal(read_gait_csv(second).commands, read_gait_csv(first).commands)
@@ -256,16 +257,19 @@ def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server
                 gait, lambda part: parts.append((gait.latents.z_b[0], part.samples)) or on_part(part), **kw
             )
 
+        def decoded(v: float) -> bool:
+            return d.decoded is not None and d.decoded.latents.z_b[0] == v
+
         d.session.replay_streamed = gated_replay
         d.sliders[0].value = 1.0
-        time.sleep(0.3)
+        assert wait_until(lambda: decoded(1.0), 30)
         first = d.timings[-1]
         assert np.isfinite(first.decoded) and not np.isfinite(first.replayed)  # physics is held
         for v in (1.2, 1.4, 1.6):
             d.sliders[0].value = v
-            time.sleep(0.3)
             # Each new value is decoded and drawn while the first replay is still running.
-            assert d.decoded.latents.z_b[0] == v and np.isfinite(d.timings[-1].decoded)
+            assert wait_until(lambda v=v: decoded(v), 30) and np.isfinite(d.timings[-1].decoded)
+            assert not np.isfinite(first.replayed)
         gate.set()
         assert d.wait_idle(60)
         # The held (stale) replay stopped at its first chunk and was never drawn; the newest one was,
