@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import re
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -53,17 +52,18 @@ def test_gait_csv_refuses_every_bad_file_of_the_catalogue():
 
 
 def test_latest_worker_runs_only_the_newest_request():
-    gate = threading.Event()
+    gate, started = threading.Event(), threading.Event()
     ran = []
 
     def job(version, request, is_current):
         if request == 0:
+            started.set()
             gate.wait(10)
         ran.append((request, is_current()))
 
     worker = LatestWorker(job)
     worker.submit(0)
-    time.sleep(0.1)
+    assert started.wait(10)  # request 0 is running: the next ones queue behind it
     for r in range(1, 20):
         worker.submit(r)
     gate.set()
