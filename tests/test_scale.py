@@ -255,6 +255,8 @@ def test_bench_scale_reports_ratios_measured_side_by_side(capsys):
     main(["bench", "scale", "--records", "4", "--memory-records", "40", "--json"])
     r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert r["identical"] is True and r["same_first_epoch_loss"] is True
-    assert r["ratio"] == pytest.approx(r["local_s"] / r["ray_s"]) and r["ray_startup_s"] > 0
-    for fmt in ("npz", "zarr"):
-        assert r["memory"][fmt]["peak_rss_mib"] >= r["memory"][fmt]["peak_rss_after_write_mib"] > 0
+    # 4 records on 2 CPUs: Ray's start-up (seconds) weighs on its side; a ratio outside these bounds,
+    # or a start-up of no time, is a broken measurement, not a slow machine.
+    assert 0.01 < r["ratio"] < 5 and 0.1 < r["ray_startup_s"] < 120, r
+    for fmt in ("npz", "zarr"):  # a Python process with torch and numpy holds 100s of MiB
+        assert 50 < r["memory"][fmt]["peak_rss_after_write_mib"] <= r["memory"][fmt]["peak_rss_mib"] < 8192
