@@ -276,3 +276,23 @@ def test_calibrate_command_writes_and_reuses_its_gaits(tmp_path, capsys, checkpo
     with pytest.raises(SystemExit) as exc:
         main([*args, "--out", str(tmp_path / "c"), "--head-loss", "mse"])
     assert exc.value.code == 2 and "--head-loss" in capsys.readouterr().err
+
+
+def test_every_bench_option_is_the_parameter_of_its_function():
+    """`snakeloco bench NAME` passes its options to `bench_NAME` by name (report.options): a field
+    without its parameter, or a parameter with no default that no field fills, fails here."""
+    import importlib
+    import inspect
+
+    from snakeloco.app.bench.report import options
+    from snakeloco.app.commands import BENCHES
+
+    for name, command in BENCHES.items():
+        fn = getattr(importlib.import_module(f"snakeloco.app.bench.{name}"), f"bench_{name}")
+        params = inspect.signature(fn).parameters
+        fields = set(command.model_fields) - {"json"}
+        assert fields <= set(params), (name, fields - set(params))
+        unfilled = {p for p, v in params.items() if v.default is inspect.Parameter.empty} - fields
+        assert not unfilled, (name, unfilled)
+        given = command.model_construct(**dict.fromkeys(command.model_fields, 0))  # any value each
+        assert set(options(given)) == fields

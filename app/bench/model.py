@@ -13,15 +13,15 @@ import numpy as np
 from snakeloco.model.api import load_pretrained
 
 
-def bench_model(checkpoint=None, n: int = 200, batch: int = 256) -> dict:
-    """Decode latency for one z_B (p50/p95 over n calls, after warm-up) and batch decodes per second."""
+def bench_model(checkpoint=None, calls: int = 200, batch: int = 256) -> dict:
+    """Decode latency for one z_B (p50/p95 over ``calls`` calls, after warm-up) and batch decodes per second."""
     model = load_pretrained(checkpoint)
     rng = np.random.default_rng(0)
-    z = rng.standard_normal((n, model.z_b_dim))
+    z = rng.standard_normal((calls, model.z_b_dim))
     for w in rng.standard_normal((10, model.z_b_dim)):  # warm-up draws of their own: --calls may be < 10
         model.decode(w[None])
     times, raw = [], []
-    for i in range(n):
+    for i in range(calls):
         t0 = time.perf_counter()
         model.decode(z[i : i + 1])
         times.append(time.perf_counter() - t0)

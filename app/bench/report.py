@@ -7,11 +7,17 @@ prints it as JSON with ``--json``). The benchmarks themselves live beside this f
 from __future__ import annotations
 
 
+def options(cmd) -> dict:
+    """A bench command's options as its function's keyword arguments: each field is the parameter of
+    the same name (tests/test_cli.py checks every pair), all but ``--json``, which is the report's."""
+    return {name: getattr(cmd, name) for name in type(cmd).model_fields if name != "json"}
+
+
 def sim(cmd) -> dict:
     """The simulator against bare MuJoCo (``bench/sim.py``)."""
     from snakeloco.app.bench.sim import bench_sim
 
-    r = bench_sim(samples=cmd.samples, workers=cmd.workers, repeats=cmd.repeats)
+    r = bench_sim(**options(cmd))
     print(
         f"threads {r['workers']}, {r['samples']} records of {r['steps_per_sample']} steps\n"
         f"raw mujoco.rollout   {r['raw_steps_per_s']:12.0f} steps/s\n"
@@ -28,7 +34,7 @@ def model(cmd) -> dict:
     """Decode latency and throughput (``bench/model.py``)."""
     from snakeloco.app.bench.model import bench_model
 
-    r = bench_model(cmd.checkpoint, n=cmd.calls)
+    r = bench_model(**options(cmd))
     print(
         f"decode one z_B: p50 {r['decode_p50_ms']:.2f} ms, p95 {r['decode_p95_ms']:.2f} ms; "
         f"batch of {r['batch']}: {r['batch_decodes_per_s']:.0f} decodes/s"
@@ -46,7 +52,7 @@ def app(cmd) -> dict:
     """One client's latency through a real designer server (``bench/app.py``)."""
     from snakeloco.app.bench.app import bench_app
 
-    r = bench_app(cmd.checkpoint, cmd.moves, cmd.ensemble, cmd.seed)
+    r = bench_app(**options(cmd))
     print(
         f"{r['moves']} slider moves: decoded view p50 {r['decoded_p50_ms']:.1f} ms, p95 {r['decoded_p95_ms']:.1f} ms; "
         f"first motion p50 {r['first_motion_p50_ms']:.0f} ms, p95 {r['first_motion_p95_ms']:.0f} ms; "
@@ -63,14 +69,7 @@ def tabs(cmd) -> dict:
     """Several rendering tabs in one Chromium (``bench/tabs.py``)."""
     from snakeloco.app.bench.tabs import bench_tabs
 
-    r = bench_tabs(
-        cmd.tabs,
-        cmd.rounds,
-        cmd.checkpoint,
-        cmd.ensemble,
-        browser_nice=cmd.browser_nice,
-        rendering=cmd.rendering,
-    )
+    r = bench_tabs(**options(cmd))
     print(
         f"{r['tabs']} tabs animating in one Chromium (nice {r['browser_nice']}) on {r['cpus']} CPUs, "
         f"{r['rounds']} key presses each; light rendering {r['light_rendering']} ({r['rendering']})\n"
@@ -93,20 +92,7 @@ def load(cmd) -> dict:
     """Several browser tabs on one server (``bench/load.py``)."""
     from snakeloco.app.bench.load import bench_load
 
-    r = bench_load(
-        cmd.clients,
-        cmd.seconds,
-        cmd.checkpoint,
-        cmd.ensemble,
-        cmd.seed,
-        render=cmd.render,
-        pin_cpus=cmd.pin_cpus,
-        single_seconds=cmd.single_seconds,
-        dwell=cmd.dwell,
-        browser_nice=cmd.browser_nice,
-        driver=cmd.driver,
-        browser_page=cmd.browser_page,
-    )
+    r = bench_load(**options(cmd))
     where = (
         f"server on CPUs {r['server_cpus']}, browsers on CPUs {r['browser_cpus']}"
         if r["server_cpus"]
@@ -187,7 +173,7 @@ def scale(cmd) -> dict:
     """The Ray backend against the local one, zarr against .npz (``bench/scale.py``)."""
     from snakeloco.app.bench.scale import bench_scale
 
-    r = bench_scale(cmd.records, cmd.family, cmd.seed, cmd.workers, cmd.memory_records)
+    r = bench_scale(**options(cmd))
     print(
         f"{r['records']} {r['family']} records, {r['workers']} CPUs: local {r['local_records_per_s']:.2f} records/s, "
         f"ray {r['ray_records_per_s']:.2f} records/s (start-up included); ratio {r['ratio']:.3f} (ray / local, "
@@ -210,7 +196,7 @@ def design(cmd) -> dict:
 
     from snakeloco.app.bench.design import bench_design
 
-    r = bench_design(cmd.checkpoint, cmd.data, cmd.targets, cmd.seed, cmd.candidates, cmd.workers, cmd.rounds)
+    r = bench_design(**options(cmd))
     for name in ("design", "design_first_round", "baseline"):
         f = r[name]
         heading = (
@@ -242,7 +228,7 @@ def screen(cmd) -> dict:
     """The structured family's cheap screen against the full one (``bench/screen.py``)."""
     from snakeloco.app.bench.screen import bench_screen
 
-    r = bench_screen(cmd.records, cmd.seed, cmd.draws, cmd.workers)
+    r = bench_screen(**options(cmd))
     for name, f in r["rates"].items():
         print(
             f"{name:9s} {f['records']:4d} records: {f['records_per_s']:.3f} records/s, rejection "
