@@ -208,19 +208,16 @@ def run_evaluate(cmd: Evaluate) -> dict:
     from snakeloco.app.evaluate_report import format_report
     from snakeloco.model.evaluate import ZK_MODES, evaluate
 
-    with Progress(len(ZK_MODES) * cmd.prior_samples, "consistency") as progress:
+    with Progress(len(ZK_MODES) * cmd.consistency.prior_samples, "consistency") as progress:
         report = evaluate(
             cmd.checkpoint,
             cmd.data,
-            cmd.prior_samples,
-            cmd.ensemble,
-            cmd.seed,
+            cmd.consistency,
             cmd.workers,
             progress,
             cmd.replays,
             backend=cmd.backend,
             floor_records=cmd.floor_records,
-            positions=cmd.positions,
         )
     print(format_report(report))
     if cmd.report is not None:

@@ -19,7 +19,7 @@ from snakeloco.app.bench.load_driver import DWELL_S
 from snakeloco.model.calibrate import CalibrateConfig
 from snakeloco.model.config import ModelConfig
 from snakeloco.model.design_config import DesignConfig, Target
-from snakeloco.model.evaluate import PRIOR_SAMPLES
+from snakeloco.model.evaluate import ConsistencyConfig
 from snakeloco.model.sampler import SamplerConfig
 from snakeloco.model.train import PRESETS, TrainConfig
 from snakeloco.sim import GenerateConfig
@@ -87,14 +87,7 @@ class Evaluate(Command):
     """Held-out dataset .npz (generate it with a seed not used for training)."""
     checkpoint: Path | None = None
     """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
-    prior_samples: Annotated[int, Field(ge=0)] = PRIOR_SAMPLES
-    """z_B drawn for the consistency check (0 skips it)."""
-    positions: Literal["sampler", "prior"] = "sampler"
-    """Where those z_B come from: the checkpoint's sampler (its density over the training posteriors, where the sliders and Random put them) or the N(0, I) prior (what sliders dragged to their edges reach)."""
-    ensemble: Ensemble = ENSEMBLE_SIZE
-    """Replays per generated gait: the commands plus ensemble-1 copies with 1e-3 relative noise."""
-    seed: Seed = 0
-    """Seed of the prior draws and noise."""
+    consistency: Annotated[ConsistencyConfig, Flat] = ConsistencyConfig()
     workers: Workers = None
     """Simulation threads (default: all cores)."""
     backend: Annotated[BackendConfig, Flat] = BackendConfig()

@@ -8,8 +8,10 @@ body path is scored beside the ensemble's spread (``sim.consistency``).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import SHAPE_STD_FLOOR
@@ -124,23 +126,38 @@ ZK_MODES: dict[str, float | None] = {"zk_zero": None, "zk_sampled": 1.0}
 """The consistency check's z_k modes (report keys): z_k = 0, and z_k sampled from the learned prior
 at this temperature (``GaitModel.joint_latents``)."""
 REPLAYS = "consistency-replays"
-POSITIONS = ("sampler", "prior")
-"""Where the consistency check's z_B come from: the shipped sampler (``GaitModel.sample_z_b``: where
-the sliders and Random put them) or N(0, I) (what dragging sliders to their edges used to reach)."""
+
+
+class ConsistencyConfig(BaseModel):
+    """What the generated-gait consistency check draws and how it replays (``consistency``; the flags
+    of ``snakeloco evaluate``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    prior_samples: int = Field(PRIOR_SAMPLES, ge=0, description="z_B drawn for the check (0 skips it).")
+    positions: Literal["sampler", "prior"] = Field(
+        "sampler",
+        description="Where those z_B come from: the checkpoint's sampler (its density over the training "
+        "posteriors, where the sliders and Random put them) or the N(0, I) prior (what sliders dragged to "
+        "their edges reach).",
+    )
+    ensemble: int = Field(
+        ENSEMBLE_SIZE,
+        ge=2,
+        description="Replays per generated gait: the commands plus ensemble-1 copies with 1e-3 relative noise.",
+    )
+    seed: int = Field(0, ge=0, description="Seed of the draws and the noise.")
 
 
 def consistency(
     model: GaitModel,
-    n_prior: int = PRIOR_SAMPLES,
-    ensemble: int = ENSEMBLE_SIZE,
-    seed: int = 0,
+    cfg: ConsistencyConfig | None = None,
     workers: int | None = None,
     progress=None,
     replays: str | Path | None = None,
     backend: BackendConfig | None = None,
-    positions: str = "sampler",
 ) -> dict:
-    """Decode n_prior z_B from the sampler (or the N(0, I) prior, ``positions``; z_k = 0 and z_k
+    """Decode ``cfg.prior_samples`` z_B from the sampler (or the N(0, I) prior, ``positions``; z_k = 0 and z_k
     sampled), replay each as an ensemble, score. Per mode also: the share of z_B the density flags
     as off the data and the figures per density component (``per_component``).
 
@@ -150,11 +167,11 @@ def consistency(
     the designer does. ``replays``: an .npz of the ensembles' replays, read when it exists (it must
     hold the same draw of this checkpoint's decodes: ``model.replays``), else written after
     replaying. A calibration that leaves the decoded shapes alone (``snakeloco calibrate``) is
-    then re-scored in seconds instead of replaying 2 n_prior ensembles. ``backend``: where the replays
-    run (``sim.backend``; default this machine's ``workers`` threads).
+    then re-scored in seconds instead of replaying 2 x prior_samples ensembles. ``backend``: where the
+    replays run (``sim.backend``; default this machine's ``workers`` threads).
     """
-    if positions not in POSITIONS:
-        raise ValueError(f"positions must be one of {POSITIONS}, got {positions!r}")
+    cfg = cfg or ConsistencyConfig()
+    n_prior, ensemble, seed, positions = cfg.prior_samples, cfg.ensemble, cfg.seed, cfg.positions
     if positions == "sampler":
         z_b = model.sample_z_b(n_prior, seed)
     else:
@@ -281,19 +298,17 @@ def physics_floor(commands: np.ndarray, body_ds: np.ndarray, runner, seed: int =
 def evaluate(
     checkpoint: str | Path | None,
     data: str | Path,
-    n_prior: int = PRIOR_SAMPLES,
-    ensemble: int = ENSEMBLE_SIZE,
-    seed: int = 0,
+    cfg: ConsistencyConfig | None = None,
     workers: int | None = None,
     progress=None,
     replays: str | Path | None = None,
     backend: BackendConfig | None = None,
     floor_records: int = 0,
-    positions: str = "sampler",
 ) -> dict:
     """All evaluation figures for a checkpoint on a (held-out) dataset (``replays``, ``backend``:
     ``consistency``; ``floor_records``: how many of the dataset's records ``physics_floor`` replays,
     0 none)."""
+    cfg = cfg or ConsistencyConfig()
     model = load_pretrained(checkpoint)
     ds = load_dataset(data)
     shape, body_ds = ds.shape.astype(np.float64), ds.body_ds.astype(np.float64)
@@ -306,24 +321,14 @@ def evaluate(
         "robot_warning": model.robot_warning(),
         **rec,
     }
-    out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=seed))
+    out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=cfg.seed))
     if floor_records > 0:
         n = min(floor_records, len(ds))
         runner = open_backend(backend, workers)
         try:
-            out.update(physics_floor(ds.commands[:n].astype(np.float64), body_ds[:n], runner, seed))
+            out.update(physics_floor(ds.commands[:n].astype(np.float64), body_ds[:n], runner, cfg.seed))
         finally:
             runner.close()
-    if n_prior > 0:
-        out["consistency"] = consistency(
-            model,
-            n_prior,
-            ensemble,
-            seed,
-            workers,
-            progress=progress,
-            replays=replays,
-            backend=backend,
-            positions=positions,
-        )
+    if cfg.prior_samples > 0:
+        out["consistency"] = consistency(model, cfg, workers, progress, replays, backend)
     return out

@@ -10,7 +10,7 @@ import torch
 
 from snakeloco.app.cli import main
 from snakeloco.app.evaluate_report import format_report
-from snakeloco.model.evaluate import evaluate, physics_floor
+from snakeloco.model.evaluate import ConsistencyConfig, evaluate, physics_floor
 from snakeloco.sim.backend import open_backend
 from snakeloco.sim.consistency import (
     compare,
@@ -20,6 +20,9 @@ from snakeloco.sim.consistency import (
     perturbed_commands,
     where_it_went,
 )
+
+TWO = ConsistencyConfig(prior_samples=2, ensemble=3)
+"""Two z_B per z_k mode, three replays each: the smallest check that has a spread."""
 
 
 def test_perturbed_commands():
@@ -117,7 +120,9 @@ def test_physics_floor_scores_noisy_replays_of_the_records(tiny_dataset):
 
 
 def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
-    report = evaluate(checkpoint, tiny_dataset_path, n_prior=2, ensemble=2, workers=2, floor_records=2)
+    report = evaluate(
+        checkpoint, tiny_dataset_path, TWO.model_copy(update={"ensemble": 2}), workers=2, floor_records=2
+    )
     assert report["floor_records"] + report["floor_broken"] == 2 and "r2_body_floor" in report
     for key in ("r2_shape", "r2_shape_zk_zero", "r2_body", "mmd_zb", "mmd_zb_null95", "inter_intra_ratio"):
         assert np.isfinite(report[key])
@@ -174,7 +179,7 @@ def test_consistency_drops_broken_members_and_leaves_out_broken_gaits(checkpoint
         return dataclasses.replace(result, failures=failures)
 
     monkeypatch.setattr(Simulator, "simulate", flaky)
-    report = ev.consistency(load_pretrained(checkpoint), n_prior=2, ensemble=3, workers=2)
+    report = ev.consistency(load_pretrained(checkpoint), TWO, workers=2)
     for c in report.values():
         assert (c["n_gaits"], c["n_broken"], c["n_gaits_with_a_broken_member"]) == (1, 1, 2)
         assert c["gaits"][0]["ensemble_broken"] == 1.0
@@ -241,7 +246,7 @@ def test_consistency_replays_are_written_reused_and_checked(
 
     model = load_pretrained(checkpoint)
     replays = tmp_path / "replays.npz"
-    fresh = ev.consistency(model, n_prior=2, ensemble=3, workers=2, replays=replays)
+    fresh = ev.consistency(model, TWO, workers=2, replays=replays)
     assert replays.exists()
 
     def no_simulation(self, commands):
@@ -250,22 +255,22 @@ def test_consistency_replays_are_written_reused_and_checked(
     from snakeloco.sim.physics import Simulator
 
     monkeypatch.setattr(Simulator, "simulate", no_simulation)
-    reused = ev.consistency(model, n_prior=2, ensemble=3, workers=2, replays=replays)
+    reused = ev.consistency(model, TWO, workers=2, replays=replays)
     for mode in ev.ZK_MODES:
         assert reused[mode]["gaits"] == fresh[mode]["gaits"]
         assert reused[mode]["n_gaits"] + reused[mode]["n_broken"] == 2
     # Another draw, or other decoded gaits (another checkpoint's), is refused by name.
     with pytest.raises(DatasetError, match=r"replays of .*'seed': 0.*asks for .*'seed': 5"):
-        ev.consistency(model, n_prior=2, ensemble=3, seed=5, replays=replays)
+        ev.consistency(model, TWO.model_copy(update={"seed": 5}), replays=replays)
     other = load_pretrained(checkpoint)
     with torch.no_grad():
         other.net.child_out.bias.add_(0.05)  # every decoded shape moves
     with pytest.raises(DatasetError, match="decoded by another checkpoint"):
-        ev.consistency(other, n_prior=2, ensemble=3, replays=replays)
+        ev.consistency(other, TWO, replays=replays)
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not an npz")
     with pytest.raises(DatasetError, match=r"not a consistency-replays \.npz \(no zip archive"):
-        ev.consistency(model, n_prior=2, ensemble=3, replays=bad)
+        ev.consistency(model, TWO, replays=bad)
     # The command says so and exits 2, without a traceback.
     with pytest.raises(SystemExit) as exc:
         _evaluate_cli(tiny_dataset_path, checkpoint, "--replays", bad)

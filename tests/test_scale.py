@@ -19,6 +19,7 @@ from conftest import TINY
 
 from snakeloco.app.cli import main
 from snakeloco.model import TrainConfig, train
+from snakeloco.model.evaluate import ConsistencyConfig
 from snakeloco.sim import GenerateConfig, generate_dataset, load_dataset
 from snakeloco.sim.backend import RAY_MISSING, BackendConfig
 from snakeloco.sim.dataset import ZARR_MISSING, DatasetError
@@ -242,7 +243,9 @@ def test_evaluation_replays_on_ray_equal_the_local_ones(tmp_path, checkpoint, ti
     files = {}
     for name, backend in (("local", None), ("ray", RAY)):
         files[name] = tmp_path / f"{name}.npz"
-        consistency(model, 3, 2, 0, 2, replays=files[name], backend=backend)
+        consistency(
+            model, ConsistencyConfig(prior_samples=3, ensemble=2), 2, replays=files[name], backend=backend
+        )
     with np.load(files["local"]) as a, np.load(files["ray"]) as b:
         assert sorted(a.files) == sorted(b.files)
         for key in a.files:
