@@ -20,14 +20,6 @@ from snakeloco.app.commands import (
     BENCH_HELP,
     BENCHES,
     COMMANDS,
-    BenchApp,
-    BenchDesign,
-    BenchLoad,
-    BenchModel,
-    BenchScale,
-    BenchScreen,
-    BenchSim,
-    BenchTabs,
     Calibrate,
     Command,
     Design,
@@ -281,19 +273,14 @@ def run_serve(cmd: Serve) -> None:
 
 
 def run_bench(cmd: Command) -> dict:
-    """Run a benchmark (``app/bench/report.py``), print its summary and, with --json, its figures as
-    one JSON object on the last line."""
-    runs = {
-        BenchSim: report.sim,
-        BenchModel: report.model,
-        BenchApp: report.app,
-        BenchLoad: report.load,
-        BenchTabs: report.tabs,
-        BenchScale: report.scale,
-        BenchDesign: report.design,
-        BenchScreen: report.screen,
-    }
-    result = runs[type(cmd)](cmd)
+    """Run a benchmark (``app/bench/NAME.py``), print its summary (``app/bench/report.py``) and, with
+    --json, its figures as one JSON object on the last line."""
+    import importlib
+
+    name = next(n for n, command in BENCHES.items() if command is type(cmd))
+    bench = getattr(importlib.import_module(f"snakeloco.app.bench.{name}"), f"bench_{name}")
+    result = bench(**report.options(cmd))
+    getattr(report, name)(result)
     if cmd.json:
         print(jsonlib.dumps(result))
     return result

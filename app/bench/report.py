@@ -1,10 +1,13 @@
-"""``snakeloco bench {sim,model,app,load,scale,design}``: run a benchmark and print its figures for a person.
+"""``snakeloco bench NAME``: the figures of a benchmark, printed for a person.
 
-Each function takes the parsed command (``app/cli.py``) and returns the figures as a dict (the CLI
-prints it as JSON with ``--json``). The benchmarks themselves live beside this file.
+``snakeloco bench NAME`` calls ``bench_NAME`` of ``app/bench/NAME.py`` with the command's options
+(``options``) and prints the figures it returns with the function ``NAME`` here (and as JSON with
+``--json``).
 """
 
 from __future__ import annotations
+
+import numpy as np
 
 
 def options(cmd) -> dict:
@@ -13,11 +16,8 @@ def options(cmd) -> dict:
     return {name: getattr(cmd, name) for name in type(cmd).model_fields if name != "json"}
 
 
-def sim(cmd) -> dict:
+def sim(r: dict) -> None:
     """The simulator against bare MuJoCo (``bench/sim.py``)."""
-    from snakeloco.app.bench.sim import bench_sim
-
-    r = bench_sim(**options(cmd))
     print(
         f"threads {r['workers']}, {r['samples']} records of {r['steps_per_sample']} steps\n"
         f"raw mujoco.rollout   {r['raw_steps_per_s']:12.0f} steps/s\n"
@@ -27,14 +27,10 @@ def sim(cmd) -> dict:
         f"sim.replay           {r['replay_ms']:9.1f} ms"
         f"   replay_ratio {r['replay_ratio']:.3f} (replay time / bare time)"
     )
-    return r
 
 
-def model(cmd) -> dict:
+def model(r: dict) -> None:
     """Decode latency and throughput (``bench/model.py``)."""
-    from snakeloco.app.bench.model import bench_model
-
-    r = bench_model(**options(cmd))
     print(
         f"decode one z_B: p50 {r['decode_p50_ms']:.2f} ms, p95 {r['decode_p95_ms']:.2f} ms; "
         f"batch of {r['batch']}: {r['batch_decodes_per_s']:.0f} decodes/s"
@@ -45,14 +41,10 @@ def model(cmd) -> dict:
             f"p95 {r['decode_raw_p95_ms']:.2f} ms; projection and path prediction cost "
             f"{r['projection_cost_ratio']:.2f}x"
         )
-    return r
 
 
-def app(cmd) -> dict:
+def app(r: dict) -> None:
     """One client's latency through a real designer server (``bench/app.py``)."""
-    from snakeloco.app.bench.app import bench_app
-
-    r = bench_app(**options(cmd))
     print(
         f"{r['moves']} slider moves: decoded view p50 {r['decoded_p50_ms']:.1f} ms, p95 {r['decoded_p95_ms']:.1f} ms; "
         f"first motion p50 {r['first_motion_p50_ms']:.0f} ms, p95 {r['first_motion_p95_ms']:.0f} ms; "
@@ -62,14 +54,10 @@ def app(cmd) -> dict:
         f"a tab receives {r['animating_bytes_per_s'] / 1e3:.1f} kB/s while the snake animates and "
         f"{r['bytes_per_move'] / 1e3:.0f} kB per slider move"
     )
-    return r
 
 
-def tabs(cmd) -> dict:
+def tabs(r: dict) -> None:
     """Several rendering tabs in one Chromium (``bench/tabs.py``)."""
-    from snakeloco.app.bench.tabs import bench_tabs
-
-    r = bench_tabs(**options(cmd))
     print(
         f"{r['tabs']} tabs animating in one Chromium (nice {r['browser_nice']}) on {r['cpus']} CPUs, "
         f"{r['rounds']} key presses each; light rendering {r['light_rendering']} ({r['rendering']})\n"
@@ -85,14 +73,10 @@ def tabs(cmd) -> dict:
         )
         + f" (goal <= 10); server exceptions {r['server_exceptions']}"
     )
-    return r
 
 
-def load(cmd) -> dict:
+def load(r: dict) -> None:
     """Several browser tabs on one server (``bench/load.py``)."""
-    from snakeloco.app.bench.load import bench_load
-
-    r = bench_load(**options(cmd))
     where = (
         f"server on CPUs {r['server_cpus']}, browsers on CPUs {r['browser_cpus']}"
         if r["server_cpus"]
@@ -166,14 +150,10 @@ def load(cmd) -> dict:
         print("stale:", "; ".join(details))
     for message in r["exception_messages"]:
         print("exception:", message)
-    return r
 
 
-def scale(cmd) -> dict:
+def scale(r: dict) -> None:
     """The Ray backend against the local one, zarr against .npz (``bench/scale.py``)."""
-    from snakeloco.app.bench.scale import bench_scale
-
-    r = bench_scale(**options(cmd))
     print(
         f"{r['records']} {r['family']} records, {r['workers']} CPUs: local {r['local_records_per_s']:.2f} records/s, "
         f"ray {r['ray_records_per_s']:.2f} records/s (start-up included); ratio {r['ratio']:.3f} (ray / local, "
@@ -187,16 +167,10 @@ def scale(cmd) -> dict:
             f"{m['npz']['peak_rss_after_write_mib']:.0f} / {m['zarr']['peak_rss_after_write_mib']:.0f} MiB; "
             f"same first-epoch loss: {r['same_first_epoch_loss']}"
         )
-    return r
 
 
-def design(cmd) -> dict:
+def design(r: dict) -> None:
     """Inverse design against the same physics budget spent on prior draws (``bench/design.py``)."""
-    import numpy as np
-
-    from snakeloco.app.bench.design import bench_design
-
-    r = bench_design(**options(cmd))
     for name in ("design", "design_first_round", "baseline"):
         f = r[name]
         heading = (
@@ -221,14 +195,10 @@ def design(cmd) -> dict:
         f"{r['search_s_median']:.1f} s + physics {r['physics_s_median']:.1f} s, medians); a {u['target_m']:.0f} m "
         f"target: met {u['met']}, closest reached {u['closest_reached_m']} ({u['error_m']:.1f} m off)"
     )
-    return r
 
 
-def screen(cmd) -> dict:
+def screen(r: dict) -> None:
     """The structured family's cheap screen against the full one (``bench/screen.py``)."""
-    from snakeloco.app.bench.screen import bench_screen
-
-    r = bench_screen(**options(cmd))
     for name, f in r["rates"].items():
         print(
             f"{name:9s} {f['records']:4d} records: {f['records_per_s']:.3f} records/s, rejection "
@@ -246,4 +216,3 @@ def screen(cmd) -> dict:
             f"{a['cheap_rejects_full_keeps']} only by the full one); rejected at "
             f"{a['early_seconds']:g} s: {a['early_rejects']}, of which the full screen kept {a['early_rejects_full_keeps']}"
         )
-    return r
