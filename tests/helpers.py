@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import socket
 import time
@@ -84,3 +85,28 @@ def fresh_net(cfg: ModelConfig = SMALL) -> HierarchicalVAE:
     net = HierarchicalVAE(cfg)
     init_signal_source(net, RECORD.freqs, unit_normalization())
     return net
+
+
+@contextlib.contextmanager
+def designer_page(checkpoint, viewport: dict | None = None, **page_options):
+    """A designer server (ensemble 2) and one Chromium page on it whose tab has settled: yields the
+    Playwright module, the server, the page and the tab's ``DesignerClient``; all closed after."""
+    from snakeloco.app.bench.load_driver import CHROMIUM_ARGS, wait_until
+    from snakeloco.app.server import DesignerServer
+
+    sync_api = pytest.importorskip("playwright.sync_api")
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    try:
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            try:
+                page = browser.new_page(viewport=viewport or {"width": 1400, "height": 900}, **page_options)
+                page.goto(f"http://127.0.0.1:{srv.port}")
+                assert wait_until(lambda: len(srv.clients) == 1), "the page never connected"
+                d = next(iter(srv.clients.values()))
+                assert d.wait_idle(90)
+                yield sync_api, srv, page, d
+            finally:
+                browser.close()
+    finally:
+        srv.stop()

@@ -8,77 +8,64 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-import pytest
 
-from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
+from snakeloco.app.bench.load_driver import CHROMIUM_ARGS, wait_until
 from snakeloco.app.gait_csv import read_gait_csv
-from snakeloco.app.server import DesignerServer
 
-from helpers import BROWSER
+from helpers import BROWSER, designer_page
 
 ARGS = CHROMIUM_ARGS
 pytestmark = BROWSER
 
 
 def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
-    sync_api = pytest.importorskip("playwright.sync_api")
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
-    try:
-        with sync_api.sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-            page = browser.new_page(viewport={"width": 1400, "height": 900}, accept_downloads=True)
-            page.goto(f"http://127.0.0.1:{srv.port}")
-            assert wait_until(lambda: len(srv.clients) == 1), "the page never connected"
-            d = next(iter(srv.clients.values()))
-            assert d.wait_idle(90)
-            # This Chromium renders WebGL in software (SwiftShader): the page ticks Light rendering.
-            assert wait_until(lambda: d.controls.light.value is True, 30), "the page kept full rendering"
-            assert d.controls.layers["Grid"].value is False
-            box = page.get_by_role("checkbox", name="Light rendering")
-            box.uncheck()  # a user who wants shadows back gets them, and the page leaves it so
-            assert wait_until(lambda: d.controls.light.value is False and d.controls.layers["Grid"].value)
-            page.wait_for_timeout(1500)
-            assert d.controls.light.value is False and not box.is_checked()
-            # Move the first z_B slider with the keyboard, as a person would.
-            slider = page.get_by_role("slider").first
-            slider.focus()
-            for _ in range(25):
-                slider.press("ArrowRight")
-            assert wait_until(lambda: d.sliders[0].value > 0.2), "the slider move never reached the server"
-            assert wait_until(lambda: d.idle() and d.decoded.latents.z_b[0] == d.sliders[0].value, 90)
-            assert d.simulated is not None
-            with page.expect_download(timeout=30000) as info:
-                page.get_by_role("button", name="Export CSV").click()
-            path = tmp_path / "gait.csv"
-            info.value.save_as(path)
-            text = path.read_text()
-            assert f"# z_B: [{d.sliders[0].value:.4f}" in text
-            table = read_gait_csv(text.encode())
-            np.testing.assert_array_equal(table.commands, d.decoded.commands)
-            # Import it back through the upload button.
-            page.locator("input[type=file]").first.set_input_files(str(path))
-            assert wait_until(lambda: d.decoded.source == "import: gait.csv" and d.idle(), 90)
-            np.testing.assert_array_equal(d.decoded.commands, table.commands)
-            # An oversized upload is refused when it starts (nothing buffered) with a visible message,
-            # and a malformed one after parsing; the imported gait stays in both cases.
-            big = tmp_path / "big.csv"
-            big.write_bytes(b"0" * (5 * 2**20))
-            page.locator("input[type=file]").first.set_input_files(str(big))
-            sync_api.expect(page.get_by_text("Import CSV: big.csv rejected")).to_be_visible(timeout=30000)
-            assert not srv.server.gui._current_file_upload_states
-            bad = tmp_path / "bad.csv"
-            bad.write_text(path.read_text().replace("joint_8", "joint_9"))
-            page.locator("input[type=file]").first.set_input_files(str(bad))
-            sync_api.expect(page.get_by_text("Import CSV: bad.csv rejected")).to_be_visible(timeout=30000)
-            assert d.idle() and d.decoded.source == "import: gait.csv"
-            np.testing.assert_array_equal(d.decoded.commands, table.commands)
-            page.wait_for_timeout(1500)
-            screenshot = tmp_path / "designer.png"  # under the test's own folder: nothing goes into the repo
-            page.screenshot(path=str(screenshot))
-            assert screenshot.read_bytes()[:4] == b"\x89PNG" and screenshot.stat().st_size > 10_000
-            browser.close()
-    finally:
-        srv.stop()
+    with designer_page(checkpoint, accept_downloads=True) as (sync_api, srv, page, d):
+        assert d.wait_idle(90)
+        # This Chromium renders WebGL in software (SwiftShader): the page ticks Light rendering.
+        assert wait_until(lambda: d.controls.light.value is True, 30), "the page kept full rendering"
+        assert d.controls.layers["Grid"].value is False
+        box = page.get_by_role("checkbox", name="Light rendering")
+        box.uncheck()  # a user who wants shadows back gets them, and the page leaves it so
+        assert wait_until(lambda: d.controls.light.value is False and d.controls.layers["Grid"].value)
+        page.wait_for_timeout(1500)
+        assert d.controls.light.value is False and not box.is_checked()
+        # Move the first z_B slider with the keyboard, as a person would.
+        slider = page.get_by_role("slider").first
+        slider.focus()
+        for _ in range(25):
+            slider.press("ArrowRight")
+        assert wait_until(lambda: d.sliders[0].value > 0.2), "the slider move never reached the server"
+        assert wait_until(lambda: d.idle() and d.decoded.latents.z_b[0] == d.sliders[0].value, 90)
+        assert d.simulated is not None
+        with page.expect_download(timeout=30000) as info:
+            page.get_by_role("button", name="Export CSV").click()
+        path = tmp_path / "gait.csv"
+        info.value.save_as(path)
+        text = path.read_text()
+        assert f"# z_B: [{d.sliders[0].value:.4f}" in text
+        table = read_gait_csv(text.encode())
+        np.testing.assert_array_equal(table.commands, d.decoded.commands)
+        # Import it back through the upload button.
+        page.locator("input[type=file]").first.set_input_files(str(path))
+        assert wait_until(lambda: d.decoded.source == "import: gait.csv" and d.idle(), 90)
+        np.testing.assert_array_equal(d.decoded.commands, table.commands)
+        # An oversized upload is refused when it starts (nothing buffered) with a visible message,
+        # and a malformed one after parsing; the imported gait stays in both cases.
+        big = tmp_path / "big.csv"
+        big.write_bytes(b"0" * (5 * 2**20))
+        page.locator("input[type=file]").first.set_input_files(str(big))
+        sync_api.expect(page.get_by_text("Import CSV: big.csv rejected")).to_be_visible(timeout=30000)
+        assert not srv.server.gui._current_file_upload_states
+        bad = tmp_path / "bad.csv"
+        bad.write_text(path.read_text().replace("joint_8", "joint_9"))
+        page.locator("input[type=file]").first.set_input_files(str(bad))
+        sync_api.expect(page.get_by_text("Import CSV: bad.csv rejected")).to_be_visible(timeout=30000)
+        assert d.idle() and d.decoded.source == "import: gait.csv"
+        np.testing.assert_array_equal(d.decoded.commands, table.commands)
+        page.wait_for_timeout(1500)
+        screenshot = tmp_path / "designer.png"  # under the test's own folder: nothing goes into the repo
+        page.screenshot(path=str(screenshot))
+        assert screenshot.read_bytes()[:4] == b"\x89PNG" and screenshot.stat().st_size > 10_000
 
 
 def _set_hidden(page, hidden: bool) -> None:
@@ -105,49 +92,38 @@ def _pause_then_hide_and_show(page, d, settle_ms: int) -> None:
 
 
 def test_a_hidden_tab_pauses_its_animation_and_resumes_when_shown(checkpoint, monkeypatch):
-    sync_api = pytest.importorskip("playwright.sync_api")
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
-    try:
-        with sync_api.sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-            page = browser.new_page(viewport={"width": 1400, "height": 900})
-            page.goto(f"http://127.0.0.1:{srv.port}")
-            assert wait_until(lambda: len(srv.clients) == 1), "the page never connected"
-            d = next(iter(srv.clients.values()))
-            assert d.wait_idle(90) and d.playback.playing
-            page.get_by_role("button", name="Pause").wait_for(timeout=30000)
-            _set_hidden(page, True)
-            assert wait_until(lambda: not d.playback.playing, 30), "hiding the tab did not pause it"
-            frame = d.playback.frame
-            page.wait_for_timeout(500)
-            assert d.playback.frame == frame  # no poses while hidden
-            _set_hidden(page, False)
-            assert wait_until(lambda: d.playback.playing, 30), "showing the tab did not resume it"
-            # A user's own pause survives hiding and showing the tab.
-            _pause_then_hide_and_show(page, d, settle_ms=1000)
-            # ... even when the tab is hidden before the button's new label has come back from the
-            # server (a busy server or a slow network: here the label is sent 0.8 s late).
-            page.get_by_role("button", name="Play").click()
-            assert wait_until(lambda: d.playback.playing, 30)
-            page.wait_for_timeout(300)
-            playback = d.playback
+    with designer_page(checkpoint) as (_sync_api, _srv, page, d):
+        assert d.wait_idle(90) and d.playback.playing
+        page.get_by_role("button", name="Pause").wait_for(timeout=30000)
+        _set_hidden(page, True)
+        assert wait_until(lambda: not d.playback.playing, 30), "hiding the tab did not pause it"
+        frame = d.playback.frame
+        page.wait_for_timeout(500)
+        assert d.playback.frame == frame  # no poses while hidden
+        _set_hidden(page, False)
+        assert wait_until(lambda: d.playback.playing, 30), "showing the tab did not resume it"
+        # A user's own pause survives hiding and showing the tab.
+        _pause_then_hide_and_show(page, d, settle_ms=1000)
+        # ... even when the tab is hidden before the button's new label has come back from the
+        # server (a busy server or a slow network: here the label is sent 0.8 s late).
+        page.get_by_role("button", name="Play").click()
+        assert wait_until(lambda: d.playback.playing, 30)
+        page.wait_for_timeout(300)
+        playback = d.playback
 
-            def toggle_with_late_label():
-                playback.playing = not playback.playing
-                label = "Pause" if playback.playing else "Play"
-                threading.Timer(0.8, setattr, (playback.controls.play_button, "label", label)).start()
+        def toggle_with_late_label():
+            playback.playing = not playback.playing
+            label = "Pause" if playback.playing else "Play"
+            threading.Timer(0.8, setattr, (playback.controls.play_button, "label", label)).start()
 
-            monkeypatch.setattr(playback, "toggle", toggle_with_late_label)
-            _pause_then_hide_and_show(page, d, settle_ms=2000)
-            # A tab shown again before the hiding's Pause label arrived still resumes.
-            page.get_by_role("button", name="Play").click()
-            assert wait_until(lambda: d.playback.playing, 30)
-            page.get_by_role("button", name="Pause").wait_for(timeout=30000)
-            _set_hidden(page, True)
-            assert wait_until(lambda: not d.playback.playing, 30)
-            _set_hidden(page, False)
-            assert wait_until(lambda: d.playback.playing, 30), "showing the tab did not resume it"
-            page.wait_for_timeout(1000)  # the last late label is sent
-            browser.close()
-    finally:
-        srv.stop()
+        monkeypatch.setattr(playback, "toggle", toggle_with_late_label)
+        _pause_then_hide_and_show(page, d, settle_ms=2000)
+        # A tab shown again before the hiding's Pause label arrived still resumes.
+        page.get_by_role("button", name="Play").click()
+        assert wait_until(lambda: d.playback.playing, 30)
+        page.get_by_role("button", name="Pause").wait_for(timeout=30000)
+        _set_hidden(page, True)
+        assert wait_until(lambda: not d.playback.playing, 30)
+        _set_hidden(page, False)
+        assert wait_until(lambda: d.playback.playing, 30), "showing the tab did not resume it"
+        page.wait_for_timeout(1000)  # the last late label is sent

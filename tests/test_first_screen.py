@@ -10,13 +10,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
+from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.readout import READOUT_ID
 from snakeloco.app.scene import path_points
-from snakeloco.app.server import DesignerServer
 from snakeloco.app.view import in_view
 
-from helpers import BROWSER
+from helpers import BROWSER, designer_page
 
 pytestmark = BROWSER
 VIEWPORT = {"width": 1500, "height": 950}
@@ -48,64 +47,53 @@ def _grid_pixels(page, d) -> int:
 
 
 def test_the_readout_is_in_view_and_says_what_the_server_computed_and_the_camera_frames_the_paths(checkpoint):
-    sync_api = pytest.importorskip("playwright.sync_api")
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
-    try:
-        with sync_api.sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-            page = browser.new_page(viewport=VIEWPORT)
-            page.goto(f"http://127.0.0.1:{srv.port}")
-            assert wait_until(lambda: len(srv.clients) == 1), "the page never connected"
-            d = next(iter(srv.clients.values()))
-            assert d.wait_idle(90) and d.simulated is not None
-            assert wait_until(lambda: d.controls.light.value is True, 30), "the page kept full rendering"
-            # The metre grid is drawn in light rendering (the shaded grid is not).
-            assert d.scene.metres.visible and not d.controls.layers["Grid"].value
-            assert _grid_pixels(page, d) > 2000, "the metre grid is not drawn with light rendering on"
-            # The plots open by default in a window this wide.
-            sync_api.expect(page.locator(".u-title", has_text="forward (m)")).to_be_visible(timeout=30000)
+    with designer_page(checkpoint, viewport=VIEWPORT) as (sync_api, _srv, page, d):
+        assert d.wait_idle(90) and d.simulated is not None
+        assert wait_until(lambda: d.controls.light.value is True, 30), "the page kept full rendering"
+        # The metre grid is drawn in light rendering (the shaded grid is not).
+        assert d.scene.metres.visible and not d.controls.layers["Grid"].value
+        assert _grid_pixels(page, d) > 2000, "the metre grid is not drawn with light rendering on"
+        # The plots open by default in a window this wide.
+        sync_api.expect(page.locator(".u-title", has_text="forward (m)")).to_be_visible(timeout=30000)
 
-            # A decode far from the start: the camera frames both paths' ends once the replay is done.
-            d.sliders[0].value = 2.5
-            assert wait_until(lambda: d.idle() and d.decoded.latents.z_b[0] == 2.5, 90)
-            r = d.readout
-            assert r.state == "done" and r.gap_m is not None
-            assert wait_until(lambda: _ends_in_view(d), 15), "the camera does not frame both path ends"
+        # A decode far from the start: the camera frames both paths' ends once the replay is done.
+        d.sliders[0].value = 2.5
+        assert wait_until(lambda: d.idle() and d.decoded.latents.z_b[0] == 2.5, 90)
+        r = d.readout
+        assert r.state == "done" and r.gap_m is not None
+        assert wait_until(lambda: _ends_in_view(d), 15), "the camera does not frame both path ends"
 
-            expected = {
-                "model-distance": f"{r.model.distance_m:.2f} m",
-                "model-direction": f"{r.model.direction_deg:+.0f}°",
-                "model-heading": f"{r.model.heading_change_deg:+.0f}°",
-                "mujoco-distance": f"{r.mujoco.distance_m:.2f} m",
-                "mujoco-direction": f"{r.mujoco.direction_deg:+.0f}°",
-                "mujoco-heading": f"{r.mujoco.heading_change_deg:+.0f}°",
-                "gap": f"{r.gap_m:.2f} m",
-                "gap-share": f"{100 * r.gap_share:.0f}%",
-            }
-            readout = page.locator(f"#{READOUT_ID}")
-            sync_api.expect(readout.locator('[data-key="gap"]')).to_have_text(expected["gap"], timeout=30000)
-            for key, text in expected.items():
-                cell = readout.locator(f'[data-key="{key}"]')
-                assert cell.inner_text() == text, key
-                box = cell.bounding_box()  # in the first viewport: no scrolling
-                assert box is not None and box["y"] >= 0 and box["x"] >= 0
-                assert (
-                    box["y"] + box["height"] <= VIEWPORT["height"]
-                    and box["x"] + box["width"] <= VIEWPORT["width"]
-                )
-            # The numbers are those of the paths drawn: the model's end and MuJoCo's replay end.
-            end = d.decoded.body_ds[-1]
-            assert r.model.distance_m == pytest.approx(np.hypot(end[1], end[2]))
-            gap = np.hypot(*(d.decoded.body_ds[-1, 1:3] - d.simulated.body[-1, 1:3]))
-            assert r.gap_m == pytest.approx(gap)
+        expected = {
+            "model-distance": f"{r.model.distance_m:.2f} m",
+            "model-direction": f"{r.model.direction_deg:+.0f}°",
+            "model-heading": f"{r.model.heading_change_deg:+.0f}°",
+            "mujoco-distance": f"{r.mujoco.distance_m:.2f} m",
+            "mujoco-direction": f"{r.mujoco.direction_deg:+.0f}°",
+            "mujoco-heading": f"{r.mujoco.heading_change_deg:+.0f}°",
+            "gap": f"{r.gap_m:.2f} m",
+            "gap-share": f"{100 * r.gap_share:.0f}%",
+        }
+        readout = page.locator(f"#{READOUT_ID}")
+        sync_api.expect(readout.locator('[data-key="gap"]')).to_have_text(expected["gap"], timeout=30000)
+        for key, text in expected.items():
+            cell = readout.locator(f'[data-key="{key}"]')
+            assert cell.inner_text() == text, key
+            box = cell.bounding_box()  # in the first viewport: no scrolling
+            assert box is not None and box["y"] >= 0 and box["x"] >= 0
+            assert (
+                box["y"] + box["height"] <= VIEWPORT["height"]
+                and box["x"] + box["width"] <= VIEWPORT["width"]
+            )
+        # The numbers are those of the paths drawn: the model's end and MuJoCo's replay end.
+        end = d.decoded.body_ds[-1]
+        assert r.model.distance_m == pytest.approx(np.hypot(end[1], end[2]))
+        gap = np.hypot(*(d.decoded.body_ds[-1, 1:3] - d.simulated.body[-1, 1:3]))
+        assert r.gap_m == pytest.approx(gap)
 
-            # A camera the user moved stays where it is; "Frame paths" frames on demand.
-            d.client.camera.position = (30.0, 30.0, 2.0)  # as a drag would leave it (far off)
-            d.sliders[0].value = -2.5
-            assert wait_until(lambda: d.idle() and d.decoded.latents.z_b[0] == -2.5, 90)
-            assert np.allclose(d.client.camera.position, (30.0, 30.0, 2.0), atol=0.05)
-            page.get_by_role("button", name="Frame paths").click()
-            assert wait_until(lambda: _ends_in_view(d), 15)
-            browser.close()
-    finally:
-        srv.stop()
+        # A camera the user moved stays where it is; "Frame paths" frames on demand.
+        d.client.camera.position = (30.0, 30.0, 2.0)  # as a drag would leave it (far off)
+        d.sliders[0].value = -2.5
+        assert wait_until(lambda: d.idle() and d.decoded.latents.z_b[0] == -2.5, 90)
+        assert np.allclose(d.client.camera.position, (30.0, 30.0, 2.0), atol=0.05)
+        page.get_by_role("button", name="Frame paths").click()
+        assert wait_until(lambda: _ends_in_view(d), 15)
