@@ -33,6 +33,11 @@ Flat = tyro.conf.OmitArgPrefixes
 Workers = Annotated[int | None, Field(ge=1)]
 Seed = Annotated[int, Field(ge=0)]  # numpy's generators take no negative seed
 Ensemble = Annotated[int, Field(ge=2)]  # the replay and at least one perturbed copy: a spread needs two
+Checkpoint = Annotated[
+    Path | None,
+    tyro.conf.arg(help="A checkpoint directory, or a shipped one by gait family: paper (the default)."),
+]
+Json = Annotated[bool, tyro.conf.arg(help="Print the figures as one JSON object on the last line.")]
 
 
 # ``--json`` is a field named json, which shadows pydantic's deprecated ``BaseModel.json`` method: fine
@@ -85,14 +90,12 @@ class Evaluate(Command):
 
     data: Path
     """Held-out dataset .npz (generate it with a seed not used for training)."""
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    checkpoint: Checkpoint = None
     consistency: Annotated[ConsistencyConfig, Flat] = ConsistencyConfig()
     workers: Workers = None
     """Simulation threads (default: all cores)."""
     backend: Annotated[BackendConfig, Flat] = BackendConfig()
-    json: bool = False
-    """Print the figures as one JSON object on the last line."""
+    json: Json = False
     report: Path | None = None
     """Also write the figures, with every generated gait's statistics, to this JSON file."""
     replays: Path | None = None
@@ -108,8 +111,7 @@ class Calibrate(Command):
     """The dataset .npz the checkpoint was trained on (its training split is mixed in)."""
     out: Path
     """Directory for the calibrated checkpoint (may be the input checkpoint's own)."""
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    checkpoint: Checkpoint = None
     config: Annotated[CalibrateConfig, Flat] = CalibrateConfig()
     workers: Workers = None
     """Simulation threads (default: all cores)."""
@@ -127,8 +129,7 @@ class Design(Command):
     out: Path
     """Directory for candidate_N.csv (gait CSV) and report.json."""
     target: Annotated[Target, Flat]
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    checkpoint: Checkpoint = None
     config: Annotated[DesignConfig, Flat] = DesignConfig()
     workers: Workers = None
     """Simulation threads (default: all cores)."""
@@ -155,8 +156,7 @@ class Figures(Command):
     """Dataset .npz for the fit figure."""
     out: Path
     """Output directory."""
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    checkpoint: Checkpoint = None
     seed: Seed = 0
     """Seed of the sample choice and latent draws."""
     report: Path | None = None
@@ -170,8 +170,7 @@ class Serve(Command):
     """Interface to bind; the default keeps the designer on this machine. Use 0.0.0.0 only on a trusted network."""
     port: Annotated[int, Field(ge=0, le=65535)] = 8080
     """TCP port (0: any free port)."""
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    checkpoint: Checkpoint = None
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
 
@@ -179,8 +178,7 @@ class Serve(Command):
 class BenchSim(Command):
     """Benchmark the simulator: raw mujoco.rollout vs the generator, replay vs a bare mj_step loop."""
 
-    json: bool = False
-    """Print the figures as one JSON object on the last line."""
+    json: Json = False
     workers: Workers = None
     """Threads (default: all cores)."""
     samples: Annotated[int | None, Field(ge=1)] = None
@@ -192,10 +190,8 @@ class BenchSim(Command):
 class BenchModel(Command):
     """Benchmark decoding: latency of one z_B (the slider path) p50/p95 and batch throughput."""
 
-    json: bool = False
-    """Print the figures as one JSON object on the last line."""
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    json: Json = False
+    checkpoint: Checkpoint = None
     calls: Annotated[int, Field(ge=1)] = 200
     """Timed single decodes."""
 
@@ -203,10 +199,8 @@ class BenchModel(Command):
 class BenchApp(Command):
     """Benchmark the designer through a real server: slider -> decoded view / replay ready, vs bare MuJoCo."""
 
-    json: bool = False
-    """Print the figures as one JSON object on the last line."""
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    json: Json = False
+    checkpoint: Checkpoint = None
     moves: Annotated[int, Field(ge=1)] = 20
     """Slider moves to time."""
     ensemble: Ensemble = ENSEMBLE_SIZE
@@ -226,10 +220,8 @@ class BenchLoad(Command):
     """With --driver protocol: one Chromium page drags beside the protocol clients of the multi-client phase and passes the same stale checks on what it drew and exported."""
     seconds: Annotated[float, Field(gt=0)] = 60.0
     """Length of each phase."""
-    json: bool = False
-    """Print the figures as one JSON object on the last line."""
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    json: Json = False
+    checkpoint: Checkpoint = None
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait (as in `snakeloco serve`)."""
     seed: Seed = 0
@@ -256,10 +248,8 @@ class BenchTabs(Command):
     """Pages in the one browser, all animating."""
     rounds: Annotated[int, Field(ge=1)] = 10
     """Key presses per tab (one tab after another)."""
-    json: bool = False
-    """Print the figures as one JSON object on the last line."""
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    json: Json = False
+    checkpoint: Checkpoint = None
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait (as in `snakeloco serve`)."""
     browser_nice: Annotated[int, Field(ge=0, le=19)] = 0
@@ -281,8 +271,7 @@ class BenchScale(Command):
     """Threads here, and CPUs of the Ray instance started (default: all cores)."""
     memory_records: Annotated[int, Field(ge=0)] = 4096
     """Records written through each writer for the memory figures (0 skips them)."""
-    json: bool = False
-    """Print the figures as one JSON object on the last line."""
+    json: Json = False
 
 
 class BenchDesign(Command):
@@ -290,8 +279,7 @@ class BenchDesign(Command):
 
     data: Path
     """Held-out dataset (a seed not used in training): its records' ends are the targets."""
-    checkpoint: Path | None = None
-    """A checkpoint directory, or a shipped one by gait family: paper (the default)."""
+    checkpoint: Checkpoint = None
     targets: Annotated[int, Field(ge=1)] = 50
     """Targets (every other one also asks for the record's heading change)."""
     candidates: Annotated[int, Field(ge=1)] = 4
@@ -302,8 +290,7 @@ class BenchDesign(Command):
     """Seed of the target choice, the searches and the baseline's draws."""
     workers: Workers = None
     """Simulation threads (default: all cores)."""
-    json: bool = False
-    """Print the figures as one JSON object on the last line."""
+    json: Json = False
 
 
 class BenchScreen(Command):
@@ -317,8 +304,7 @@ class BenchScreen(Command):
     """Seed of the records (the sample's draws: seed + 1000)."""
     workers: Workers = None
     """Simulation threads (default: all cores)."""
-    json: bool = False
-    """Print the figures as one JSON object on the last line."""
+    json: Json = False
 
 
 class Bench(Command):
