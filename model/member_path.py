@@ -20,6 +20,8 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
+from snakeloco.model.fitting import fit_best
+
 MEMBER_HEAD_WEIGHTS = "member_head.safetensors"
 CHANNEL_WEIGHTS = (1.0, 4.0, 4.0, 1.0, 1.0, 4.0)
 """Loss weight per body channel (vertical, forward, sideways, roll, pitch, yaw): the path in the
@@ -85,8 +87,7 @@ def fit_member_head(
     log: Callable[[str], None] | None = print,
 ) -> tuple[MemberPathHead, dict]:
     """Fit a head on (inputs (N, 2 S), normalised body (N, 500, 6)) pairs, the epoch with the lowest
-    validation loss kept (``model.finetune.fit_best``). Returns the head and what it scored."""
-    from snakeloco.model.finetune import fit_best
+    validation loss kept (``model.fitting.fit_best``). Returns the head and what it scored."""
 
     torch.manual_seed(seed)
     x, y = torch.as_tensor(inputs, dtype=torch.float32), torch.as_tensor(body, dtype=torch.float32)

@@ -92,3 +92,46 @@ def test_wheel_installs_under_one_name_with_its_data(tmp_path):
 def test_help_text_names_the_controls():
     text = help_text()
     assert "Export CSV" in text and "Import CSV" in text and "z_k mode" in text
+
+
+def _imports() -> dict[str, set[str]]:
+    """snakeloco module -> the snakeloco modules it imports (at module level or inside functions),
+    read from the source: sim, model and app are the packages in this checkout."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    graph: dict[str, set[str]] = {}
+    for package in ("sim", "model", "app"):
+        for path in (root / package).rglob("*.py"):
+            name = "snakeloco." + ".".join(path.relative_to(root).with_suffix("").parts)
+            name = name.removesuffix(".__init__")
+            found = set()
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("snakeloco"):
+                    found.add(node.module)
+                elif isinstance(node, ast.Import):
+                    found.update(a.name for a in node.names if a.name.startswith("snakeloco"))
+            graph[name] = found
+    return graph
+
+
+def test_layers_import_downward_only_and_the_benchmarks_never_import_the_cli():
+    """sim imports nothing of model or app, model nothing of app; no benchmark imports the CLI (the
+    CLI sits above them); and no module imports another that imports it back (one loop: a cycle)."""
+    graph = _imports()
+    for module, deps in graph.items():
+        layer = module.split(".")[1]
+        below = {"sim": ("snakeloco.sim",), "model": ("snakeloco.sim", "snakeloco.model")}.get(layer)
+        if below is not None:
+            assert all(d.startswith(below) for d in deps), (module, sorted(deps))
+        if module.startswith("snakeloco.app.bench"):
+            assert not deps & {"snakeloco.app.cli", "snakeloco.app.commands"}, module
+    for module, deps in graph.items():  # a cycle of any length through module
+        seen, todo = set(), [d for d in deps if d in graph]
+        while todo:
+            d = todo.pop()
+            assert d != module, f"{module} imports itself back"
+            if d not in seen:
+                seen.add(d)
+                todo.extend(x for x in graph[d] if x in graph)
