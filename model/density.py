@@ -153,7 +153,12 @@ def fit_density(
 
 
 def direction_name(forward: float, sideways: float, heading_deg: float) -> str:
-    """A path's end in words: "forward, 17 m", "backward, turning left, 9 m" (start frame, m, deg)."""
+    """A path's end in words: "forward, 17 m", "backward, turning left, 9 m", "in place, turning
+    right 2.2 turns" (start frame, m, deg)."""
+    if np.hypot(forward, sideways) < 1.0 and abs(heading_deg) >= 45:
+        return (
+            f"in place, turning {'left' if heading_deg > 0 else 'right'} {abs(heading_deg) / 360:.1f} turns"
+        )
     angle = np.degrees(np.arctan2(sideways, forward))
     way = (
         "forward"
@@ -168,12 +173,19 @@ def direction_name(forward: float, sideways: float, heading_deg: float) -> str:
     return f"{way}{turn}, {np.hypot(forward, sideways):.0f} m"
 
 
-def name_components(ends: np.ndarray) -> list[str]:
+KIND_WORDS = {"undulate": "undulation", "sidewind": "sidewinding", "roll": "rolling", "turn": "turning wave"}
+"""A structured member's kind (``sim.members.Member.kind``) as a component's name begins it."""
+
+
+def name_components(ends: np.ndarray, kinds: list[str] | None = None) -> list[str]:
     """Distinct names of components from where their mean gaits end: ends (K, 3) = forward,
-    sideways (m) and heading change (deg) of each component mean's predicted path."""
+    sideways (m) and heading change (deg) of each component mean's predicted path; ``kinds`` (K),
+    where the family has several, the kind of each mean's member ("rolling: right, 5 m")."""
     names: list[str] = []
-    for f, s, h in np.asarray(ends, np.float64):
+    for k, (f, s, h) in enumerate(np.asarray(ends, np.float64)):
         name, n = direction_name(f, s, h), 2
+        if kinds is not None:
+            name = f"{KIND_WORDS.get(kinds[k], kinds[k])}: {name}"
         base = name
         while name in names:
             name, n = f"{base} ({n})", n + 1

@@ -223,11 +223,18 @@ def fit_sampler(
                 f"member path head: held-out sampler gaits xy R² median {fit['held_out_xy_r2_median']:.3f}, "
                 f"validation records {fit['val_records_xy_r2_median']:.3f}"
             )
-    # Names: where each component's mean gait goes (z_k = 0), as this checkpoint predicts it.
+    # Names: where each component's mean gait goes (z_k = 0), as this checkpoint predicts it, and of
+    # which kind its member is where the family has more than one.
     means = np.asarray(density.means)
-    _, body = model.decode(means)
+    kinds = None
+    if model.projects:
+        found, _, _, body, _ = model.decode_members(means)
+        if sum(w > 0 for w in model.config.members.kind_weights) > 1:
+            kinds = [m.kind for m in found]
+    else:
+        _, body = model.decode(means)
     ends = np.stack([body[:, -1, 1], body[:, -1, 2], np.degrees(body[:, -1, 5] - body[:, 0, 5])], axis=1)
-    density = density.model_copy(update={"names": name_components(ends)})
+    density = density.model_copy(update={"names": name_components(ends, kinds)})
     summary["names"] = density.names
     summary["wall_time_s"] = time.perf_counter() - t_start
     summary["data"] = str(data)

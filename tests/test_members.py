@@ -122,6 +122,9 @@ def test_components_are_named_by_where_their_gaits_go():
     names = name_components(np.array([[17.0, 1.0, 5.0], [-12.0, 0.5, 0.0], [0.5, 4.0, 120.0], [16.0, 0, 0]]))
     assert names == ["forward, 17 m", "backward, 12 m", "left, turning left, 4 m", "forward, 16 m"]
     assert name_components(np.array([[5.0, 0, 0], [5.2, 0, 0]])) == ["forward, 5 m", "forward, 5 m (2)"]
+    # A family of several kinds names each component's kind first (the every family's sampler).
+    kinds = name_components(np.array([[0.5, -5.0, 3.0], [0.2, 0.1, 800.0]]), ["roll", "turn"])
+    assert kinds == ["rolling: right, 5 m", "turning wave: in place, turning left 2.2 turns"]
 
 
 @pytest.mark.slow
