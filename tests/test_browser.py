@@ -51,15 +51,16 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
         np.testing.assert_array_equal(d.decoded.commands, table.commands)
         # An oversized upload is refused when it starts (nothing buffered) with a visible message,
         # and a malformed one after parsing; the imported gait stays in both cases.
+        # (90 s: a busy 2-core machine with a software-rendered page behind was seen to take over 30 s)
         big = tmp_path / "big.csv"
         big.write_bytes(b"0" * (5 * 2**20))
         page.locator("input[type=file]").first.set_input_files(str(big))
-        sync_api.expect(page.get_by_text("Import CSV: big.csv rejected")).to_be_visible(timeout=30000)
+        sync_api.expect(page.get_by_text("Import CSV: big.csv rejected")).to_be_visible(timeout=90000)
         assert not srv.server.gui._current_file_upload_states
         bad = tmp_path / "bad.csv"
         bad.write_text(path.read_text().replace("joint_8", "joint_9"))
         page.locator("input[type=file]").first.set_input_files(str(bad))
-        sync_api.expect(page.get_by_text("Import CSV: bad.csv rejected")).to_be_visible(timeout=30000)
+        sync_api.expect(page.get_by_text("Import CSV: bad.csv rejected")).to_be_visible(timeout=90000)
         assert d.idle() and d.decoded.source == "import: gait.csv"
         np.testing.assert_array_equal(d.decoded.commands, table.commands)
         page.wait_for_timeout(1500)
