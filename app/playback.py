@@ -14,7 +14,7 @@ from snakeloco.sim import RECORD
 
 FRAME_HZ = 20.0
 """Snake poses sent per second while playing (the record's rate: one sample a frame at speed 1; 10 did
-not make 3 tabs rendering in one software-WebGL Chromium answer key presses sooner, docs/robustness.md)."""
+not make 3 tabs rendering in one software-WebGL Chromium answer key presses sooner, docs/load.md)."""
 SCRUBBER_PERIOD_S = 0.5
 """How often the playing animation moves the time scrubber (the snake itself moves every frame)."""
 

@@ -137,7 +137,7 @@ class TabScene:
         """Full rendering (cascaded shadows, environment lighting) or light: neither. In a browser
         without a GPU every frame is drawn on the CPU (SwiftShader) and read back, and the page
         answers input only between frames: one animating 1280x800 tab drew 5.6 frames/s, 9.6
-        without shadows, 10.6 without the shaded grid, 12.4 without all three (docs/robustness.md).
+        without shadows, 10.6 without the shaded grid, 12.4 without all three (docs/load.md).
         The grid is a layer of its own (``Tab`` turns it off with this)."""
         scene = self.client.scene
         scene.configure_default_lights(True, cast_shadow=not light)

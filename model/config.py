@@ -78,7 +78,7 @@ class ModelConfig(BaseModel):
         "the posterior's z_k. It trains the designer's z_k = 0 decoding directly, so z_B must carry "
         "the gait: without it the structured model kept the gait in z_1..8 and in the true shapes "
         "the root GRU is fed, and decoded z_k = 0 shapes with R^2 -0.08 from the records' own z_B "
-        "(docs/model-notes.md).",
+        "(docs/structured-notes.md).",
     )
     encoder_sees_shape: bool = Field(
         False,

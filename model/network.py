@@ -77,7 +77,7 @@ class HierarchicalVAE(nn.Module):
         if cfg.encoder_sees_shape:
             # The gait's whole joint shape, embedded and added to the pooled body features: z_B can
             # then hold a structured gait's few parameters exactly, which a pooled convolution over
-            # the body and the signals reads out only roughly (docs/model-notes.md).
+            # the body and the signals reads out only roughly (docs/structured-notes.md).
             d_shape = cfg.n_joints * cfg.n_components * 2
             self.enc_shape = nn.Sequential(
                 nn.Linear(d_shape, cfg.root_hidden), nn.GELU(), nn.Linear(cfg.root_hidden, c3)

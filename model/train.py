@@ -83,7 +83,7 @@ PRESETS: dict[str, TrainPreset] = {
 """``snakeloco train --preset NAME`` starts from these (any option still overrides them). ``paper``:
 the shipped checkpoint of the paper family (``model/pretrained``), 140 epochs on the 4096-record
 dataset (docs/model.md). ``structured``: the structured family's recipe, chosen on its first 1744
-records (docs/model-notes.md: z_B of 8, the body decoder and encoder both seeing the joint
+records (docs/structured-notes.md: z_B of 8, the body decoder and encoder both seeing the joint
 signals, 200 epochs in cycles of 50)."""
 
 

@@ -23,7 +23,7 @@ thread waits on it in "Commit", and a key press waits seconds (a Chromium trace 
 GPU process's main thread busy 94% of the time, nearly all of it in ``readPixels``). At nice 0
 what a frame costs decides it: each page ticks "Light rendering" itself in software WebGL (no
 shadows, environment map or shaded grid: 12.4 frames/s against 5.6), and ``rendering`` measures
-the page's choice, or every tab full, or every tab light (docs/robustness.md).
+the page's choice, or every tab full, or every tab light (docs/load.md).
 """
 
 from __future__ import annotations
