@@ -303,3 +303,20 @@ def test_a_draw_the_early_check_rejects_the_full_screen_rejects_too():
         assert isinstance(early, SimulationError) and "at 20 s" in str(early), (index, early)
         late = _screen(full, [index])
         assert isinstance(late, SimulationError) and "final spread" in str(late), (index, late)
+
+
+@pytest.mark.slow
+def test_bench_screen_compares_the_screens_side_by_side(capsys):
+    main(["bench", "screen", "--records", "2", "--draws", "3", "--workers", "2", "--json"])
+    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    rates = r["rates"]
+    # (the undulation family runs the first half of the 8-record chunks: here the one chunk)
+    assert rates["cheap"]["records"] == rates["full"]["records"] == rates["undulate"]["records"] == 2
+    for f in rates.values():  # a record costs 0.5-20 s of 2-core physics, whichever screen
+        assert 0.05 < f["records_per_s"] < 2 and 0 <= f["rejection_rate"] < 1, f
+    assert 0.1 < r["ratio_full"] < 20 and 0.1 < r["ratio_undulate"] < 50, r
+    a = r["agreement"]
+    assert a["draws"] == 3 and a["early_seconds"] == 20
+    assert a["disagree"] == a["cheap_keeps_full_rejects"] + a["cheap_rejects_full_keeps"] <= 3
+    assert sum(kept for kept, _ in a["kept_by_kind"].values()) == a["cheap_kept"] <= 3
+    assert sum(drawn for _, drawn in a["kept_by_kind"].values()) == 3
