@@ -177,12 +177,13 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
         passed = []
         for j in going:
             spread, broken = _spread(screen.body[rows[j]], [screen.failures[r] for r in rows[j]])
-            if broken or spread > sc.max_spread:
+            verdict = "redraw" if broken else sc.verdict(spread, k)
+            if verdict == "redraw":
                 rejected[j] = broken or f"final spread {spread:.3f} > {sc.max_spread} in the first check"
                 continue
             chunk.joint_angles[j] = screen.joint_angles[rows[j][0]]
             chunk.body[j] = screen.body[rows[j][0]]
-            if spread <= sc.sure_spread or sc.members == k:  # no second check: this is its spread
+            if verdict == "keep":  # no second check: this is its spread
                 spreads[j] = spread
             else:
                 passed.append(j)
@@ -194,7 +195,7 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
                 body = np.concatenate([screen.body[rows[j]], rest.body[m * extra : (m + 1) * extra]])
                 failures = [screen.failures[r] for r in rows[j]] + rest.failures[m * extra : (m + 1) * extra]
                 spread, broken = _spread(body, failures)
-                if broken or spread > sc.max_spread:
+                if broken or sc.verdict(spread, sc.members) == "redraw":
                     rejected[j] = (
                         broken or f"final spread {spread:.3f} > {sc.max_spread} over {sc.members} replays"
                     )

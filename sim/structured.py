@@ -124,6 +124,14 @@ class StructuredConfig(BaseModel):
         "of its members (0: every kept draw gets all of them).",
     )
 
+    def verdict(self, spread: float, replays: int) -> str:
+        """What the screen does with a draw whose 100 s spread over its first ``replays`` replays is
+        ``spread``: "redraw" (above ``max_spread``), "keep" (within it after all ``members``, or
+        within ``sure_spread``) or "more" (run the rest of its members first)."""
+        if spread > self.max_spread:
+            return "redraw"
+        return "keep" if replays >= self.members or spread <= self.sure_spread else "more"
+
     def amplitude_ranges(self, kind: str) -> tuple[tuple[float, float], tuple[float, float]]:
         """(pitch, yaw) amplitude ranges (rad) of a ``kind`` member of this family: what
         ``draw_wave`` draws times ``amplitude_scale`` (before the command-limit scale)."""

@@ -62,6 +62,10 @@ def agreement(draws: int, seed: int, simulator: Simulator) -> dict:
     cfg = GenerateConfig(num_samples=draws, seed=seed, family="structured", structured=sc)
     rate = cfg.excitation.sample_rate
     n_early = round(sc.early_seconds * rate)
+
+    def spread(body: np.ndarray) -> float:
+        return ensemble_spread(body, rate)["final_spread"]
+
     k = sc.screen_members
     full = np.zeros(draws, bool)
     cheap = np.zeros(draws, bool)
@@ -80,14 +84,10 @@ def agreement(draws: int, seed: int, simulator: Simulator) -> dict:
             if any(f is not None for f in result.failures[rows]):
                 continue  # broken: every screen rejects it
             body = result.body[rows]
-
-            def spread(b: np.ndarray) -> float:
-                return ensemble_spread(b, rate)["final_spread"]
-
-            full[i] = spread(body) <= sc.max_spread
+            full[i] = sc.verdict(spread(body), sc.members) == "keep"
             early_rejects[i] = n_early > 0 and spread(body[:k, :n_early]) > sc.early_max_spread
-            s2 = spread(body[:k])
-            cheap[i] = not early_rejects[i] and s2 <= sc.max_spread and (s2 <= sc.sure_spread or full[i])
+            first = sc.verdict(spread(body[:k]), k)  # the cheap screen's verdict, as simulate_structured's
+            cheap[i] = not early_rejects[i] and (first == "keep" or (first == "more" and full[i]))
     kinds_arr = np.array(kinds)
     return {
         "draws": draws,
