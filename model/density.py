@@ -98,6 +98,11 @@ class LatentDensity(BaseModel):
         top = lc.max(axis=1, keepdims=True)
         return (top + np.log(np.exp(lc - top).sum(axis=1, keepdims=True)))[:, 0]
 
+    @property
+    def peak_log_density(self) -> float:
+        """The highest log-density among the components' means (about the mixture's peak)."""
+        return float(self.log_density(self._arrays()[1]).max())
+
     def component_of(self, z_b: np.ndarray) -> np.ndarray:
         """The most responsible component of each z_B (B, D): (B,) ints."""
         return self.component_log_densities(z_b).argmax(axis=1)

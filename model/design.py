@@ -3,8 +3,9 @@
 A target is a final position over the 100 s record in the frame of the start (forward, sideways,
 metres), optionally a heading change (degrees) and a bound on the net roll (rad). The model proposes:
 CMA-ES (the ``cma`` library) over z_B, z_k = 0, minimises the distance of the decoded path's end from
-the target plus ``prior_weight`` x the negative log prior (so the search stays where the model was
-trained), from several starts at once (the best of a screen of prior draws, each population decoded
+the target plus ``prior_weight`` x the negative log density of the shipped slider sampler (so the
+search stays on the data, where the member's predicted path was trained; N(0, I) for a checkpoint
+without one), from several starts at once (the best of a screen of sampler draws, each population decoded
 in one batch). The best distinct optima are replayed (``sim.backend``: here or on Ray) and MuJoCo
 decides: candidates are ranked again by the distance of their own replay's end from the target.
 Then physics corrects the model: each of the best verified candidates is searched again near its
@@ -47,16 +48,31 @@ def path_end(body: np.ndarray) -> np.ndarray:
     )
 
 
-def objective(ends: np.ndarray, z_b: np.ndarray, target: Target, cfg: DesignConfig) -> np.ndarray:
-    """What the search minimises (m), per row of ``ends`` (``path_end``) and z_B."""
+def objective(ends: np.ndarray, target: Target, cfg: DesignConfig) -> np.ndarray:
+    """The path's miss (m) per row of ``ends`` (``path_end``): distance from the target, plus the
+    heading and roll terms where asked."""
     cost = np.hypot(ends[:, 0] - target.forward, ends[:, 1] - target.sideways)
     if target.heading is not None:
         cost = cost + cfg.heading_weight * np.abs(ends[:, 2] - target.heading)
     if target.max_roll is not None:
         cost = cost + cfg.roll_weight * np.maximum(np.abs(ends[:, 3]) - target.max_roll, 0.0)
-    radius = np.linalg.norm(z_b, axis=1)
-    outside = np.maximum(radius - (math.sqrt(z_b.shape[1]) + cfg.prior_margin), 0.0)
-    return cost + cfg.prior_weight * 0.5 * radius**2 + OUTSIDE_COST * outside
+    return cost
+
+
+def prior_cost(model: GaitModel, z_b: np.ndarray, cfg: DesignConfig) -> np.ndarray:
+    """What leaving the data costs (m), per z_B: ``prior_weight`` x its negative log density, plus
+    OUTSIDE_COST per unit of "radius" beyond the bulk. With a shipped slider density (the training
+    records' posteriors) the bulk is where 99% of them are (``density.threshold``) and the radius
+    beyond it sqrt(2 x the log-density deficit), the Gaussian's own; without one, the N(0, I) prior's
+    |z| beyond sqrt(D_b) + ``prior_margin``."""
+    density = model.config.density
+    if density is None:
+        radius = np.linalg.norm(z_b, axis=1)
+        outside = np.maximum(radius - (math.sqrt(z_b.shape[1]) + cfg.prior_margin), 0.0)
+        return cfg.prior_weight * 0.5 * radius**2 + OUTSIDE_COST * outside
+    log_p = density.log_density(z_b)
+    outside = np.sqrt(2.0 * np.maximum(density.threshold - log_p, 0.0))
+    return cfg.prior_weight * (density.peak_log_density - log_p) + OUTSIDE_COST * outside
 
 
 @dataclass
@@ -137,7 +153,7 @@ def _evolve(
         ends = path_end(body)
         for j, k in enumerate(live):
             part = slice(j * cfg.population, (j + 1) * cfg.population)
-            cost = objective(ends[part], z[part], targets[k], cfg)
+            cost = objective(ends[part], targets[k], cfg) + prior_cost(model, z[part], cfg)
             runs[k].tell(list(asked[k]), cost.tolist())
             seen[k].append((z[part], cost))
     return [
@@ -175,7 +191,7 @@ def search(
     # a density, the same draws as before it had one).
     screen = model.sample_z_b(cfg.screen, seed=cfg.seed)
     _, body = model.decode(screen)
-    cost = objective(path_end(body), screen, target, cfg)
+    cost = objective(path_end(body), target, cfg) + prior_cost(model, screen, cfg)
     starts: list[np.ndarray] = []
     for i in np.argsort(cost):  # the best draws that are not next to one already taken
         if all(np.linalg.norm(screen[i] - s) > cfg.sigma0 for s in starts):
@@ -284,11 +300,7 @@ def simulated_cost(c: Candidate, target: Target, cfg: DesignConfig) -> float:
     """What ranks verified candidates: the search's objective on the replay's end (no prior term)."""
     if c.simulated is None:
         return float("inf")
-    return float(
-        objective(c.simulated[None], np.zeros((1, 1)), target, cfg.model_copy(update={"prior_weight": 0.0}))[
-            0
-        ]
-    )
+    return float(objective(c.simulated[None], target, cfg)[0])
 
 
 def meets(c: Candidate, target: Target, cfg: DesignConfig) -> bool:

@@ -8,7 +8,7 @@ import math
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 OUTSIDE_COST = 10.0
-"""Metres of error per unit of z_B radius beyond the prior's bulk (``DesignConfig.prior_margin``)."""
+"""Metres of error per unit of z_B radius beyond the data's bulk (``design.prior_cost``)."""
 VERIFY_ENSEMBLE = 4
 """Replays per reported candidate: its own and 3 with 1e-3 relative command noise."""
 
@@ -52,13 +52,15 @@ class DesignConfig(BaseModel):
     population: int = Field(12, ge=4, description="CMA-ES population per generation.")
     sigma0: float = Field(0.5, gt=0, description="CMA-ES initial step (prior units).")
     prior_weight: float = Field(
-        0.05, ge=0, description="Metres of error one unit of negative log prior (|z|^2 / 2) costs."
+        0.05, ge=0, description="Metres of error one nat of negative log density of the slider sampler (of "
+        "the N(0, I) prior, |z|^2 / 2, without one) costs."
     )
     prior_margin: float = Field(
         3.0,
         gt=0,
-        description="z_B farther than sqrt(D_b) + this from the prior's mean (beyond ~99.9% of "
-        "its mass, where the model saw no data) costs OUTSIDE_COST metres per unit.",
+        description="Without a slider density: z_B farther than sqrt(D_b) + this from the prior's "
+        "mean (beyond ~99.9% of its mass, where the model saw no data) costs OUTSIDE_COST metres "
+        "per unit. With one, its off-data threshold is the bulk's edge.",
     )
     heading_weight: float = Field(0.05, ge=0, description="Metres of error one degree of heading costs.")
     roll_weight: float = Field(

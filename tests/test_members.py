@@ -156,6 +156,29 @@ def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predict
 
 
 @pytest.mark.slow
+def test_inverse_design_on_a_sampler_checkpoint_searches_on_the_data(member_checkpoint):
+    """The design's prior term is the shipped density's: a component mean costs (about) nothing, a
+    z_B far off the data costs metres per unit beyond the bulk, and the search's candidates stay where
+    the records are even when the target asks for more than any record does (its best one: the
+    tiny model's density is far narrower than the 0.1 that makes a second candidate distinct)."""
+    from snakeloco.model import load_pretrained
+    from snakeloco.model.design import path_end, prior_cost, search
+    from snakeloco.model.design_config import OUTSIDE_COST, DesignConfig, Target
+
+    m = load_pretrained(member_checkpoint[0])
+    cfg = DesignConfig(candidates=2, screen=32, starts=2, generations=8, population=6)
+    means = np.asarray(m.config.density.means)
+    on = prior_cost(m, means, cfg)
+    far = prior_cost(m, means[:1] + 40.0, cfg)
+    assert on.max() < 0.05 * m.config.density.dim + 1e-9 < 3 * OUTSIDE_COST < far[0]
+    end = path_end(m.decode(means[:1])[1])[0]
+    target = Target(forward=float(end[0]) * 5, sideways=float(end[1]) * 5)  # beyond the data's reach
+    best = search(m, target, cfg)[0]
+    assert not m.off_data(best.z_b[None])[0]
+    assert best.cost < 3 * OUTSIDE_COST
+
+
+@pytest.mark.slow
 def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_data(member_checkpoint):
     from snakeloco.app.server import DesignerServer
 
