@@ -275,10 +275,12 @@ class BenchScale(Command):
 
 
 class BenchDesign(Command):
-    """Benchmark inverse design on held-out ends against a baseline with the same physics budget (random prior z_B, best of N replays): errors, heading, time to an answer."""
+    """Benchmark inverse design on held-out ends (or uniform targets all round) against random draws of the data with the same physics budget (best of N replays), and its first round against the same on that round's budget: errors, heading, time to an answer."""
 
-    data: Path
+    data: Path | None = None
     """Held-out dataset (a seed not used in training): its records' ends are the targets."""
+    reach: tuple[float, float] | None = None
+    """Instead of --data: targets this far away (min max, m), uniform in distance and direction."""
     checkpoint: Checkpoint = None
     targets: Annotated[int, Field(ge=1)] = 50
     """Targets (every other one also asks for the record's heading change)."""

@@ -261,7 +261,7 @@ def test_bench_design_compares_with_the_same_physics_budget(checkpoint, tiny_dat
     # Per target: 1 candidate replayed in each of up to 2 rounds, then its 3 noisy copies; the
     # baseline replays as many prior draws.
     assert r["targets"] == 2 and r["rounds"] == 2 and all(b in (4, 5) for b in r["physics_budget_replays"])
-    for name in ("design", "design_first_round", "baseline"):
+    for name in ("design", "design_first_round", "baseline", "baseline_first_round_budget"):
         # A miss of exactly 0 m, or no finite heading error (of the whole heading change, unwrapped:
         # a gait that spins turns many times), would be a broken measurement.
         assert 0 < r[name]["error_rel_median"] < 100 and 0 <= r[name]["heading_error_deg_median"] < 1e5
@@ -269,3 +269,30 @@ def test_bench_design_compares_with_the_same_physics_budget(checkpoint, tiny_dat
     assert r["design"]["error_rel_median"] <= r["design_first_round"]["error_rel_median"]
     assert r["seconds_p95"] >= r["seconds_p50"] > 0
     assert r["unreachable"]["met"] is False and r["unreachable"]["error_m"] > 50
+    # Uniform targets all round: no dataset, no heading asked.
+    main(
+        ["bench", "design", "--reach", "2", "3", "--checkpoint", str(checkpoint), "--targets", "2"]
+        + ["--candidates", "1", "--rounds", "1", "--workers", "2", "--json"]
+    )
+    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert r["target_source"] == "uniform 2-3 m, all round" and r["physics_budget_replays"] == [4, 4]
+    # the first round's baseline is the first of the same draws: never better than all of them
+    assert r["baseline_first_round_budget"]["error_rel_median"] >= r["baseline"]["error_rel_median"] > 0
+    assert r["design"]["heading_error_deg_median"] is None
+
+
+def test_uniform_design_targets_cover_every_direction_and_the_range():
+    from snakeloco.app.bench.design import _uniform_targets, bench_design
+
+    t = _uniform_targets(400, (2.0, 15.0), seed=3)
+    d = np.array([x.distance for x in t])
+    assert 2.0 <= d.min() < 2.5 and 14.5 < d.max() <= 15.0
+    quadrants = {(x.forward > 0, x.sideways > 0) for x in t}
+    assert len(quadrants) == 4 and all(x.heading is None for x in t)
+    assert _uniform_targets(5, (2.0, 15.0), seed=3) == t[:5]  # seeded
+    with pytest.raises(ValueError, match="not both"):
+        bench_design(None, data="x.npz", reach=(2.0, 15.0))
+    with pytest.raises(ValueError, match="not both"):
+        bench_design(None)
+    with pytest.raises(ValueError, match="0 < min <= max"):
+        bench_design(None, reach=(5.0, 2.0))

@@ -170,8 +170,9 @@ def scale(r: dict) -> None:
 
 
 def design(r: dict) -> None:
-    """Inverse design against the same physics budget spent on prior draws (``bench/design.py``)."""
-    for name in ("design", "design_first_round", "baseline"):
+    """Inverse design against the same physics budget spent on random draws (``bench/design.py``)."""
+    print(f"targets: {r['target_source']}")
+    for name in ("design", "design_first_round", "baseline", "baseline_first_round_budget"):
         f = r[name]
         heading = (
             f", heading error median {f['heading_error_deg_median']:.1f} deg, p90 {f['heading_error_deg_p90']:.1f} deg"
@@ -179,7 +180,7 @@ def design(r: dict) -> None:
             else ""
         )
         print(
-            f"{name:18s}: end error / target distance median {f['error_rel_median']:.3f}, p90 {f['error_rel_p90']:.3f}, "
+            f"{name:27s}: end error / target distance median {f['error_rel_median']:.3f}, p90 {f['error_rel_p90']:.3f}, "
             f"met {f['met_share']:.0%}"
             f"{heading}"
             + (
@@ -191,7 +192,7 @@ def design(r: dict) -> None:
     u = r["unreachable"]
     print(
         f"{r['targets']} targets, {np.median(r['physics_budget_replays']):.0f} replays each (median, the "
-        f"baseline's too); time to an answer p50 {r['seconds_p50']:.1f} s, p95 {r['seconds_p95']:.1f} s (search "
+        f"baseline's too; {r['candidates']} in the first round and its baseline); time to an answer p50 {r['seconds_p50']:.1f} s, p95 {r['seconds_p95']:.1f} s (search "
         f"{r['search_s_median']:.1f} s + physics {r['physics_s_median']:.1f} s, medians); a {u['target_m']:.0f} m "
         f"target: met {u['met']}, closest reached {u['closest_reached_m']} ({u['error_m']:.1f} m off)"
     )
