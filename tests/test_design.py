@@ -271,8 +271,11 @@ def test_bench_design_compares_with_the_same_physics_budget(checkpoint, tiny_dat
     assert r["unreachable"]["met"] is False and r["unreachable"]["error_m"] > 50
     # Uniform targets all round: no dataset, no heading asked.
     main(
-        "bench design --reach 2 3 --targets 2 --candidates 1 --rounds 1 --workers 2 --json".split()
-        + ["--checkpoint", str(checkpoint)]
+        [
+            *"bench design --reach 2 3 --targets 2 --candidates 1 --rounds 1 --workers 2 --json".split(),
+            "--checkpoint",
+            str(checkpoint),
+        ]
     )
     r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert r["target_source"] == "uniform 2-3 m, all round" and r["physics_budget_replays"] == [4, 4]
