@@ -115,6 +115,7 @@ class TabScene:
         self.gen_path = self.band = None
         self.sim_parts: list[viser.LineSegmentsHandle] = []  # the simulated path, one node per part streamed
         self.fan: list[viser.LineSegmentsHandle] = []  # one node per batch of ensemble members
+        self._fan_segments: list[np.ndarray] = []  # what those nodes draw (to merge them into one)
         self._fan_drawn = 0  # ensemble members the fan shows
         self._sim_drawn = 0  # replay samples the simulated path shows
         self._measured: np.ndarray | None = None  # the re-measured shape drawn
@@ -189,7 +190,7 @@ class TabScene:
         self._sim_points = None
         for node in self.sim_parts + self.fan:
             node.remove()
-        self.sim_parts, self.fan, self._fan_drawn = [], [], 0
+        self.sim_parts, self.fan, self._fan_segments, self._fan_drawn = [], [], [], 0
         self._sim_drawn = 0
         self._measured = None
         self._cloud("decoded", gait.shape)
@@ -216,7 +217,7 @@ class TabScene:
         )
         self.sim_parts.append(part)
         self._sim_drawn = len(body)
-        self._sim_points = points if self._sim_points is None else np.concatenate([self._sim_points, points])
+        self._sim_points = points if self._sim_points is None else np.concatenate([self._sim_points, points[1:]])
 
     def draw_streaming(self, body: np.ndarray, qpos0: np.ndarray) -> None:
         """The simulated path so far (a streamed replay's first samples)."""
@@ -226,12 +227,27 @@ class TabScene:
     def draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
         """The simulated path (and the ensemble fan once it ran), the re-measured joint shape, and the
         decoded path moved to the replay's starting height: only what is not drawn already (a
-        streamed replay drew its path, an ensemble's batches their members)."""
+        streamed replay drew its path, an ensemble's batches their members). The streamed parts,
+        and the fan's batches once the ensemble is done, become one node each here, so that the
+        next slider move removes two nodes instead of a dozen (the decoded view waits on that)."""
         self.start = self.kinematics.start_frame(sim.qpos[0])
         z0 = float(self.start[0][2])
         self._draw_sim_path(sim.body)
+        if len(self.sim_parts) > 1 and self._sim_points is not None:
+            whole = self._line(
+                "simulated/whole", polyline(self._sim_points), SIM_COLOR, 4.0, "Simulated path", z0
+            )
+            for node in self.sim_parts:
+                node.remove()
+            self.sim_parts = [whole]
         if ensemble and len(sim.ensemble_body) > 1:
             self.draw_fan(sim.ensemble_body)
+            if len(self.fan) > 1:
+                segments = np.concatenate(self._fan_segments)
+                whole = self._line("ensemble/whole", segments, FAN_COLOR, 1.0, "Ensemble fan", z0)
+                for node in self.fan:
+                    node.remove()
+                self.fan, self._fan_segments = [whole], [segments]
         for node in (self.gen_path, self.band):
             if node is not None:
                 node.position = (0.0, 0.0, z0)
@@ -279,6 +295,7 @@ class TabScene:
             self.fan.append(
                 self._line(f"ensemble/{len(self.fan)}", segments, FAN_COLOR, 1.0, "Ensemble fan", z0)
             )
+            self._fan_segments.append(segments)
             self._fan_drawn += len(members)
 
     def draw_snake(self, qpos: np.ndarray, follow: bool = False) -> None:

@@ -13,6 +13,7 @@ from test_app_parts import bad_gait_files
 
 from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.gait_csv import read_gait_csv, write_gait_csv
+from snakeloco.app.scene import FAN_STEP
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.session import Latents
 from snakeloco.sim import replay
@@ -59,8 +60,16 @@ def test_slider_change_decodes_replays_and_draws(server):
         assert d.simulated is not None and d.simulated.ensemble_body.shape == (3, 2000, 6)
         assert d.scene.gen_path is not None and d.scene.sim_path is not None and d.scene.fan
         assert set(d.scene.clouds) == {"decoded", "measured"}
-        # Every perturbed member is drawn once (one node per batch); the path ends where the replay does.
+        # Every perturbed member is drawn once (one node per batch while they come in, merged into one
+        # when the ensemble is done, as the streamed path's parts are when the replay is); the path
+        # starts and ends where the replay does.
         assert d.scene._fan_drawn == len(d.simulated.ensemble_body) - 1
+        assert len(d.scene.sim_parts) == 1 and len(d.scene.fan) == 1
+        members = len(d.simulated.ensemble_body) - 1
+        per_member = len(range(0, 2000, FAN_STEP)) - 1  # segments of one member's polyline
+        assert d.scene.fan[0].points.shape == (members * per_member, 2, 3)
+        start = d.scene.sim_path.points[0, 0] + d.scene.sim_path.position
+        np.testing.assert_allclose(start[:2], d.simulated.body[0, 1:3], atol=1e-5)
         end = d.scene.sim_path.points[-1, 1] + d.scene.sim_path.position
         np.testing.assert_allclose(end[:2], d.simulated.body[-1, 1:3], atol=1e-5)
         assert "Predictability" in d.controls.panel.content
