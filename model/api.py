@@ -24,7 +24,7 @@ from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoin
 from snakeloco.model.member_path import MemberPathHead, member_inputs
 from snakeloco.model.network import HierarchicalVAE
 from snakeloco.model.stats import stats_dict
-from snakeloco.model.tracing import trace_one_arg, trace_single
+from snakeloco.model.tracing import Graphs
 from snakeloco.sim.members import Member, project_many
 
 
@@ -61,7 +61,7 @@ class GaitModel:
         support = config.shape_support
         self._support = None if support is None else np.asarray(support, bool)[..., None]  # (8, L, 1)
         self._lock = threading.Lock()
-        self._traced: dict[str, torch.jit.ScriptModule | None] = {}  # one-z_B graphs, made on first use
+        self._graphs = Graphs(net)  # one-z_B graphs, made on first use
 
     @property
     def family(self) -> str:
@@ -158,7 +158,7 @@ class GaitModel:
             raise ValueError("this checkpoint has no member path head")
         x = member_inputs(np.stack([m.shape() for m in members]), np.asarray(self.config.member_head.support))
         x = torch.as_tensor(x, dtype=torch.float32)
-        head = self._single_input("member_head", self.member_head, "forward", x) if len(x) == 1 else None
+        head = self._graphs.one_input("member_head", self.member_head, "forward", x) if len(x) == 1 else None
         with self._lock, torch.inference_mode():
             body = (head or self.member_head)(x).numpy().astype(np.float64)
         return body * self._body_std + self._body_mean
@@ -170,10 +170,13 @@ class GaitModel:
         members' measured shapes (B, 8, L, 2), the paths predicted for them (B, 500, 6) (the
         network's own body decode where the checkpoint has no member head) and the statistics the
         model predicts for the members' shapes {name: (B,)} (``predict_stats``)."""
-        shape, body, stats = self.decode_raw(z_b, z_j, with_stats=True)
-        members, residuals = self.project(shape)
         if self.member_head is None:
+            shape, body, stats = self.decode_raw(z_b, z_j, with_stats=True)
+            members, residuals = self.project(shape)
             return members, residuals, self.member_shapes(members), body, stats
+        # The network's own path and statistics would be thrown away: its joint decoder alone
+        # (a third of the slider's decode time).
+        members, residuals = self.project(self.decode_shape(z_b, z_j))
         # The statistics head judges the member's own shape: the predicted path's 5 Hz steps carry the
         # head's small ripple, which a path length summed over 500 steps would count 3x over.
         measured = self.member_shapes(members)
@@ -225,10 +228,11 @@ class GaitModel:
     def _phys(self, shape: torch.Tensor, body: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """Decoded network outputs in physical units; joint-shape coefficients outside the family's
         support (``CheckpointConfig.shape_support``) are zero, as in every training record."""
+        return self._phys_shape(shape), body.numpy().astype(np.float64) * self._body_std + self._body_mean
+
+    def _phys_shape(self, shape: torch.Tensor) -> np.ndarray:
         shape_p = shape.numpy().astype(np.float64) * self._shape_std + self._shape_mean
-        if self._support is not None:
-            shape_p = np.where(self._support, shape_p, 0.0)
-        return shape_p, body.numpy().astype(np.float64) * self._body_std + self._body_mean
+        return shape_p if self._support is None else np.where(self._support, shape_p, 0.0)
 
     # --- API -------------------------------------------------------------------------------------
 
@@ -280,20 +284,23 @@ class GaitModel:
     def decode_raw(self, z_b: np.ndarray, z_j: np.ndarray | None = None, with_stats: bool = False):
         """The network's own decode, no projection: shape, body_ds (and the statistics head's
         prediction with ``with_stats``)."""
-        z_b = self._check_z_b(z_b)
-        zj = None
-        if z_j is not None:
-            z_j = np.asarray(z_j, np.float32)
-            want = (z_b.shape[0], self.config.model.n_joints, self.z_j_dim)
-            if z_j.shape != want:
-                raise ValueError(f"z_j must be {want} for {z_b.shape[0]} z_b, got {z_j.shape}")
-            zj = torch.as_tensor(_finite("z_j", z_j))
+        z_b, zj = self._latents(z_b, z_j)
         with self._lock, torch.inference_mode():
             shape, body, stats = self._generate(torch.as_tensor(z_b), zj)
         shape_p, body_p = self._phys(shape, body)
         if not with_stats:
             return shape_p, body_p
         return shape_p, body_p, self.stats_from_network(stats.numpy())
+
+    def decode_shape(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> np.ndarray:
+        """The network's decoded joint shape alone (rad), as ``decode_raw`` gives it."""
+        z_b, zj = self._latents(z_b, z_j)
+        if zj is None:
+            zj = torch.zeros(z_b.shape[0], self.config.model.n_joints, self.z_j_dim)
+        traced = self._graphs.single("generate_shape") if z_b.shape[0] == 1 else None
+        with self._lock, torch.inference_mode():
+            shape = (traced or self.net.generate_shape)(torch.as_tensor(z_b), zj)
+        return self._phys_shape(shape)
 
     def _check_shape(self, shape: np.ndarray) -> np.ndarray:
         """Joint shapes as float64 (B, 8, L, 2); a ValueError names a wrong shape or a non-finite value."""
@@ -303,6 +310,17 @@ class GaitModel:
             raise ValueError(f"shape must be (B, {cfg.n_joints}, {cfg.n_components}, 2), got {shape.shape}")
         return _finite("shape", shape)
 
+    def _latents(self, z_b: np.ndarray, z_j: np.ndarray | None) -> tuple[np.ndarray, torch.Tensor | None]:
+        """Checked z_b (B, Db) float32 and z_j as a tensor (None stays None)."""
+        z_b = self._check_z_b(z_b)
+        if z_j is None:
+            return z_b, None
+        z_j = np.asarray(z_j, np.float32)
+        want = (z_b.shape[0], self.config.model.n_joints, self.z_j_dim)
+        if z_j.shape != want:
+            raise ValueError(f"z_j must be {want} for {z_b.shape[0]} z_b, got {z_j.shape}")
+        return z_b, torch.as_tensor(_finite("z_j", z_j))
+
     def _check_z_b(self, z_b: np.ndarray) -> np.ndarray:
         """z_b as float32 (B, Db) (one (Db,) vector becomes B = 1); a ValueError names a wrong shape
         or a non-finite value."""
@@ -311,28 +329,9 @@ class GaitModel:
             raise ValueError(f"z_b must be (B, {self.z_b_dim}), got {z_b.shape}")
         return _finite("z_b", z_b)
 
-    def _single(self, method: str):
-        """The traced one-z_B graph of ``net.<method>`` (``tracing.trace_single``), or None where
-        this torch cannot trace (then the eager method gives the same numbers)."""
-        return self._trace(method, lambda: trace_single(self.net, method))
-
-    def _trace(self, name: str, make):
-        """``make()``'s graph, made once and kept under ``name`` (None where tracing failed)."""
-        if name not in self._traced:
-            try:
-                self._traced[name] = make()
-            except Exception:
-                self._traced[name] = None
-        return self._traced[name]
-
-    def _single_input(self, name: str, module, method: str, example: torch.Tensor):
-        """The traced one-input graph of ``module.<method>`` for one example (``tracing.trace_one_arg``),
-        or None where this torch cannot trace (the eager call gives the same numbers)."""
-        return self._trace(name, lambda: trace_one_arg(module, method, example))
-
     def _generate(self, z_b: torch.Tensor, z_j: torch.Tensor | None):
         """``net.generate``; one z_B (the slider path) runs the traced graph."""
-        traced = self._single("generate") if z_b.shape[0] == 1 else None
+        traced = self._graphs.single("generate") if z_b.shape[0] == 1 else None
         if traced is None:
             return self.net.generate(z_b, z_j)
         if z_j is None:
@@ -343,7 +342,9 @@ class GaitModel:
         """Body statistics the model predicts for the gaits of joint shapes (B, 8, L, 2) rad."""
         shape = self._check_shape(shape)
         x = self.normalize_shape(shape)
-        traced = self._single_input("predict_stats", self.net, "predict_stats", x) if len(x) == 1 else None
+        traced = (
+            self._graphs.one_input("predict_stats", self.net, "predict_stats", x) if len(x) == 1 else None
+        )
         with self._lock, torch.inference_mode():
             v = traced(x) if traced is not None else self.net.predict_stats(x)
         return self.stats_from_network(v.numpy())
@@ -366,7 +367,7 @@ class GaitModel:
         with self._lock, torch.inference_mode():
             zb = torch.as_tensor(z).repeat_interleave(n, dim=0)  # (B n, Db)
             eps = eps.flatten(0, 1)
-            traced = self._single("sample_joints") if zb.shape[0] == 1 else None
+            traced = self._graphs.single("sample_joints") if zb.shape[0] == 1 else None
             joints = traced(zb, eps) if traced is not None else self.net.sample_joints(zb, eps)
             out = joints.view(z.shape[0], n, -1, self.z_j_dim)
         out = out.numpy().astype(np.float64)

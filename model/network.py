@@ -11,9 +11,8 @@ C = 6 body channels, Db = z_b_dim, Dj = z_j_dim, H = root GRU width.
   and posterior q(z_k | e(X_k), h_{k-1}, z_B), both diagonal Gaussians.
 - Child GRU (one set of weights for all joints) over the L components of joint k, started from
   [h_{k-1}, z_B, z_k] and fed the component's log-frequency, emitting c_kl = (re, im).
-- Body decoder: mirror of the encoder (linear to T/8 steps, three x2 upsamplings with
-  convolutions) from z_B, modulated (FiLM) by the gait's predicted body statistics
-  (``body_sees_stats``, below); by
+- Body decoder: mirror of the encoder (linear to T/8 steps, three x2 upsamplings with convolutions)
+  from z_B, modulated (FiLM) by the gait's predicted body statistics (``body_sees_stats``, below); by
   default the joint latents are zeroed there (``body_sees_joint_latents``), the paper's generation
   setting (a), because the decoder otherwise memorised training bodies.
 - Statistics head (an extension of the paper): the body's *predictable statistics* over the record
@@ -36,8 +35,7 @@ C = 6 body channels, Db = z_b_dim, Dj = z_j_dim, H = root GRU width.
   path, so the decoder cannot memorise through them.
 - At generation time the root GRU is fed the decoded shape of joint k in place of X_k.
 
-All tensors here are normalised (model/checkpoint.py holds the statistics); physical units live in
-model/api.py.
+All tensors here are normalised (statistics in model/checkpoint.py; physical units in model/api.py).
 """
 
 from __future__ import annotations
@@ -392,6 +390,10 @@ class HierarchicalVAE(nn.Module):
         shape = joints["shape"]
         stats = self.predict_stats(shape)
         return shape, self.decode_body(z_b, joints["z_j"], stats, shape), stats
+
+    def generate_shape(self, z_b: torch.Tensor, z_j: torch.Tensor) -> torch.Tensor:
+        """``generate``'s shape alone (what a checkpoint that projects onto its family needs)."""
+        return self.run_joints(z_b, z_j=z_j)["shape"]
 
     def sample_joints(self, z_b: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
         """Joint latents drawn from the learned prior given z_b (B, Db), noise eps (B, K, Dj)."""

@@ -19,7 +19,8 @@ class _Method(nn.Module):
 
 def trace_single(net: HierarchicalVAE, method: str = "generate") -> torch.jit.ScriptModule:
     """``net.<method>(z_b (1, Db), z_j (1, K, Dj))`` as a frozen TorchScript graph, for one z_B:
-    ``generate`` (z_j: the joint latents) or ``sample_joints`` (z_j: the prior's noise).
+    ``generate`` or ``generate_shape`` (z_j: the joint latents) or ``sample_joints`` (z_j: the
+    prior's noise).
 
     Why: eager PyTorch releases and re-takes the GIL around each of the few hundred small ops of a
     decode, so in a server where any other Python thread is busy (another tab drawing, the websocket
@@ -57,3 +58,28 @@ def trace_one_arg(module: nn.Module, method: str, example: torch.Tensor) -> torc
         return torch.jit.freeze(
             torch.jit.trace(_OneArg(module, method).eval(), (example,), check_trace=False)
         )
+
+
+class Graphs:
+    """A network's traced graphs, each made on first use and kept (None where this torch cannot
+    trace it: then the eager call gives the same numbers)."""
+
+    def __init__(self, net: HierarchicalVAE) -> None:
+        self.net = net
+        self.made: dict[str, torch.jit.ScriptModule | None] = {}
+
+    def _get(self, name: str, make):
+        if name not in self.made:
+            try:
+                self.made[name] = make()
+            except Exception:
+                self.made[name] = None
+        return self.made[name]
+
+    def single(self, method: str):
+        """The one-z_B graph of ``net.<method>`` (``trace_single``)."""
+        return self._get(method, lambda: trace_single(self.net, method))
+
+    def one_input(self, name: str, module: nn.Module, method: str, example: torch.Tensor):
+        """The graph of ``module.<method>`` for inputs shaped like ``example`` (``trace_one_arg``)."""
+        return self._get(name, lambda: trace_one_arg(module, method, example))

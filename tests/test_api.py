@@ -152,10 +152,10 @@ def test_single_z_decode_runs_traced_and_matches_eager_exactly(checkpoint):
         ref_stats = m.stats_from_network(e_stats.numpy())
         for k, v in ref_stats.items():
             np.testing.assert_array_equal(stats[k], v)
-    assert m._traced["generate"] is not None  # the slider path ran the traced graph
+    assert m._graphs.made["generate"] is not None  # the slider path ran the traced graph
     z_b = rng.standard_normal(m.z_b_dim)
     sampled = m.sample_joint_latents(z_b, 1, seed=5, temperature=0.7)
-    assert m._traced["sample_joints"] is not None
+    assert m._graphs.made["sample_joints"] is not None
     eps = torch.randn(1, 1, 8, m.z_j_dim, generator=torch.Generator().manual_seed(5)) * 0.7
     with torch.inference_mode():
         eager = m.net.sample_joints(torch.as_tensor(z_b[None], dtype=torch.float32), eps[0])
@@ -167,7 +167,7 @@ def test_one_members_path_and_statistics_run_traced_and_match_eager_exactly():
 
     m = load_pretrained("structured")  # the shipped checkpoint with a member path head
     members, _, measured, body, stats = m.decode_members(m.sample_z_b(1, seed=4))
-    assert m._traced["member_head"] is not None and m._traced["predict_stats"] is not None
+    assert m._graphs.made["member_head"] is not None and m._graphs.made["predict_stats"] is not None
     x = member_inputs(np.stack([q.shape() for q in members]), np.asarray(m.config.member_head.support))
     with torch.inference_mode():
         eager_body = m.member_head(torch.as_tensor(x, dtype=torch.float32)).numpy().astype(np.float64)

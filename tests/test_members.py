@@ -144,8 +144,11 @@ def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predict
     np.testing.assert_array_equal(s2, shape)
     np.testing.assert_array_equal(b2, body)
     np.testing.assert_allclose(body, m.predict_paths(members))  # the member's path, not a second decode
-    _, raw_body = m.decode_raw(z)
+    raw_shape, raw_body = m.decode_raw(z)
     assert not np.allclose(raw_body, body)
+    # the shape-only decode (the slider's path on such a checkpoint) is the network's own, to the bit
+    np.testing.assert_array_equal(m.decode_shape(z), raw_shape)
+    np.testing.assert_array_equal(m.decode_shape(z[:1]), m.decode_raw(z[:1])[0])  # traced
     for member, s in zip(members, shape, strict=True):
         again, _ = m.project(s[None])
         np.testing.assert_allclose(again[0].shape(), member.shape(), atol=1e-12)  # an exact member
