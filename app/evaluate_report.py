@@ -10,6 +10,18 @@ def _interval(c: dict, key: str, part: str) -> str:
     return f"[{lo:.3f}-{hi:.3f}]"
 
 
+def _where(d: dict) -> str:
+    """Where a set of replays went (``sim.consistency.diversity``), in one line."""
+    q, v = d["heading_quadrants"], d["speed_bl_s_quantiles"]
+    return (
+        "heading quadrants "
+        + ", ".join(f"{k} {n}" for k, n in q.items())
+        + f"; speed p10/p50/p90/max {v['p10']:.3f}/{v['p50']:.3f}/{v['p90']:.3f}/{v['max']:.3f} body lengths/s "
+        f"({100 * d['share_speed_ge_0.15_bl_s']:.0f}% >= 0.15); {100 * d.get('share_travel_ge_2m', float('nan')):.0f}% "
+        f"travel >= 2 m, {100 * d['share_travel_ge_5m']:.0f}% >= 5 m; {100 * d['share_rolling']:.0f}% roll"
+    )
+
+
 def format_report(r: dict) -> str:
     """Human-readable evaluation report."""
     lines = [f"WARNING: {r['robot_warning']}"] if r.get("robot_warning") else []
@@ -47,7 +59,14 @@ def format_report(r: dict) -> str:
         f"active units: z_B {r['active_units_zb']}, z_j {r['active_units_zj']}; "
         f"inter/intra body variance {r['inter_intra_ratio']:.2f}",
     ]
-    for mode, c in r.get("consistency", {}).items():
+    lines += consistency_lines(r.get("consistency", {}))
+    return "\n".join(lines)
+
+
+def consistency_lines(consistency: dict) -> list[str]:
+    """The generated-gait consistency part of the report (``model.evaluate.consistency``)."""
+    lines = []
+    for mode, c in consistency.items():
         lines.append(
             f"consistency ({mode}, z_B from the {c.get('positions', 'prior')}, "
             f"{100 * c.get('off_data_fraction', 0.0):.0f}% flagged off the data): {c['n_gaits']} gaits, "
@@ -59,6 +78,13 @@ def format_report(r: dict) -> str:
                 f"  component {c_name}: {p['n_gaits']} gaits ({p['n_broken']} broke), xy-path R^2 "
                 f"{p['xy_r2']:.3f}, final-position error {100 * p['final_error_rel']:.1f}% of the distance, "
                 f"ensemble spread {p['final_spread']:.3f}"
+            )
+        for kind, p in c.get("per_kind", {}).items():
+            lines.append(
+                f"  kind {kind}: {p['n_gaits']} gaits (of {p['n_drawn']} drawn), xy-path R^2 {p['xy_r2']:.3f}, "
+                f"final-position error {100 * p['final_error_rel']:.1f}% of the distance, ensemble spread "
+                f"{p['final_spread']:.3f}, {p['displacement_m']:.1f} m travelled (median)"
+                + (f"; {_where(p['diversity'])}" if p["diversity"] else "")
             )
         lines.append(
             f"  physics' spread: final position {c.get('final_spread', float('nan')):.2f} x displacement; "
@@ -82,12 +108,5 @@ def format_report(r: dict) -> str:
         )
         d = c.get("diversity")
         if d:
-            q, v = d["heading_quadrants"], d["speed_bl_s_quantiles"]
-            lines.append(
-                "  where the replays went: heading quadrants "
-                + ", ".join(f"{k} {n}" for k, n in q.items())
-                + f"; speed p10/p50/p90/max {v['p10']:.3f}/{v['p50']:.3f}/{v['p90']:.3f}/{v['max']:.3f} body lengths/s "
-                f"({100 * d['share_speed_ge_0.15_bl_s']:.0f}% >= 0.15); {100 * d['share_travel_ge_5m']:.0f}% travel >= 5 m; "
-                f"{100 * d['share_rolling']:.0f}% roll"
-            )
-    return "\n".join(lines)
+            lines.append(f"  where the replays went: {_where(d)}")
+    return lines

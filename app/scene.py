@@ -217,7 +217,9 @@ class TabScene:
         )
         self.sim_parts.append(part)
         self._sim_drawn = len(body)
-        self._sim_points = points if self._sim_points is None else np.concatenate([self._sim_points, points[1:]])
+        self._sim_points = (
+            points if self._sim_points is None else np.concatenate([self._sim_points, points[1:]])
+        )
 
     def draw_streaming(self, body: np.ndarray, qpos0: np.ndarray) -> None:
         """The simulated path so far (a streamed replay's first samples)."""

@@ -29,6 +29,7 @@ from snakeloco.sim.consistency import (
     path_stats,
     perturbed_commands,
 )
+from snakeloco.sim.structured import KINDS
 
 
 def _stats_errors(predicted: dict[str, np.ndarray], body_ds: np.ndarray) -> dict[str, float]:
@@ -184,6 +185,11 @@ def consistency(
         name: model.joint_latents(z_b, temperature, seed=seed + 1) for name, temperature in ZK_MODES.items()
     }
     decoded = {name: model.decode_with_stats(z_b, z_j) for name, z_j in modes.items()}
+    # the family member each decode is (its kind), where the checkpoint decodes members
+    kinds = {
+        name: [m.kind for m in model.project(shapes)[0]] if model.projects else None
+        for name, (shapes, _, _) in decoded.items()
+    }
     drawn = {
         "n_prior": n_prior,
         "ensemble": ensemble,
@@ -229,9 +235,13 @@ def consistency(
             row["ensemble_broken"] = float((~ok).sum())
             row["component"] = float(component[i])
             row["off_data"] = float(off_data[i])
+            if kinds[name] is not None:
+                row["kind"] = float(KINDS.index(kinds[name][i]))
             rows.append(row)
         keys = [
-            k for k in (rows[0] if rows else {}) if k not in ("heading_deg", "rolls", "component", "off_data")
+            k
+            for k in (rows[0] if rows else {})
+            if k not in ("heading_deg", "rolls", "component", "off_data", "kind")
         ]
         summary = {k: float(np.median([r[k] for r in rows])) for k in keys}
         summary["diversity"] = diversity(rows)
@@ -260,9 +270,28 @@ def consistency(
             for c, c_name in enumerate(names)
             for mine in [[r for r in rows if r["component"] == c]]
         }
+        if kinds[name] is not None:
+            summary["per_kind"] = _per_kind(rows, kinds[name])
         summary["gaits"] = rows
         report[name] = summary
     return report
+
+
+def _per_kind(rows: list[dict], kinds: list[str]) -> dict:
+    """The consistency figures (medians) and where the replays went, per member kind."""
+    out = {}
+    for kind in (k for k in KINDS if k in kinds):
+        mine = [r for r in rows if r.get("kind") == float(KINDS.index(kind))]
+        out[kind] = {
+            "n_drawn": kinds.count(kind),
+            "n_gaits": len(mine),
+            **{
+                k: float(np.median([r[k] for r in mine])) if mine else float("nan")
+                for k in ("xy_r2", "final_error_rel", "final_spread", "displacement_m")
+            },
+            "diversity": diversity(mine),
+        }
+    return out
 
 
 def physics_floor(commands: np.ndarray, body_ds: np.ndarray, runner, seed: int = 0, batch: int = 16) -> dict:

@@ -155,8 +155,8 @@ def where_it_went(body: np.ndarray, sample_rate: float) -> dict[str, float]:
 def diversity(rows: list[dict[str, float]]) -> dict:
     """Where a set of gaits went (rows of ``where_it_went``): final headings by quadrant (centred on
     forward, left, backward, right) and in 30-degree bins, speed quantiles in body lengths per
-    second, the share at least 0.15 body lengths/s, the share travelling at least 5 m and the
-    share rolling."""
+    second, the share at least 0.15 body lengths/s, the shares travelling at least 2 and 5 m and
+    the share rolling."""
     if not rows:
         return {}
     heading = np.array([r["heading_deg"] for r in rows])
@@ -170,6 +170,7 @@ def diversity(rows: list[dict[str, float]]) -> dict:
             zip(("p10", "p50", "p90", "max"), np.quantile(speed, [0.1, 0.5, 0.9, 1.0]).tolist(), strict=True)
         ),
         "share_speed_ge_0.15_bl_s": float((speed >= 0.15).mean()),
+        "share_travel_ge_2m": float(np.mean([r["displacement_m"] >= 2.0 for r in rows])),
         "share_travel_ge_5m": float(np.mean([r["displacement_m"] >= 5.0 for r in rows])),
         "share_rolling": float(np.mean([r["rolls"] for r in rows])),
     }

@@ -83,11 +83,11 @@ def test_where_gaits_went_and_their_diversity():
     assert w["speed_bl_s"] == pytest.approx(0.2 / 0.95, rel=0.01)  # the body is 0.95 m long
     assert w["rolls"] == 1.0 and w["net_roll"] == pytest.approx(9.98)
     assert where_it_went(_straight(0.0, 0.2, roll_rate=0.05), 5.0)["rolls"] == 0.0  # 5 rad: under a turn
-    rows = [where_it_went(_straight(h, v), 5.0) for h, v in [(10, 0.01), (80, 0.2), (-100, 0.06), (170, 0.3)]]
+    rows = [where_it_went(_straight(h, v), 5.0) for h, v in [(10, 0.01), (80, 0.2), (-100, 0.03), (170, 0.3)]]
     d = diversity(rows)
     assert d["heading_quadrants"] == {"forward": 1, "left": 1, "backward": 1, "right": 1}
     assert sum(d["heading_hist_30deg"]) == 4
-    assert d["share_travel_ge_5m"] == 0.75  # 1 m, 20 m, 6 m, 30 m
+    assert d["share_travel_ge_2m"] == 0.75 and d["share_travel_ge_5m"] == 0.5  # 1 m, 20 m, 3 m, 30 m
     assert d["share_speed_ge_0.15_bl_s"] == 0.5
     assert d["share_rolling"] == 0.0
     assert d["speed_bl_s_quantiles"]["max"] == pytest.approx(0.3 * 99.8 / 99.8 / 0.95, rel=0.01)

@@ -182,6 +182,27 @@ def test_inverse_design_on_a_sampler_checkpoint_searches_on_the_data(member_chec
 
 
 @pytest.mark.slow
+def test_evaluate_reports_each_member_kind_of_the_sampler_gaits(member_checkpoint):
+    from snakeloco.app.evaluate_report import consistency_lines
+    from snakeloco.model import load_pretrained
+    from snakeloco.model.evaluate import ConsistencyConfig, consistency
+
+    m = load_pretrained(member_checkpoint[0])
+    report = consistency(m, ConsistencyConfig(prior_samples=3, ensemble=2, seed=4), workers=2)
+    for mode in report.values():  # the undulation family: one kind, every draw of it
+        kind = mode["per_kind"]["undulate"]
+        assert set(mode["per_kind"]) == {"undulate"} and kind["n_drawn"] == 3
+        assert kind["n_gaits"] == mode["n_gaits"] and kind["xy_r2"] == pytest.approx(
+            np.median([g["xy_r2"] for g in mode["gaits"]])
+        )
+        assert sum(kind["diversity"]["heading_quadrants"].values()) == kind["n_gaits"]
+    assert (
+        sum(line.startswith("  kind undulate: 3 gaits (of 3 drawn)") for line in consistency_lines(report))
+        == 2
+    )
+
+
+@pytest.mark.slow
 def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_data(member_checkpoint):
     from snakeloco.app.server import DesignerServer
 
