@@ -148,6 +148,12 @@ class ConsistencyConfig(BaseModel):
         description="Replays per generated gait: the commands plus ensemble-1 copies with 1e-3 relative noise.",
     )
     seed: int = Field(0, ge=0, description="Seed of the draws and the noise.")
+    zk_modes: tuple[Literal["zk_zero", "zk_sampled"], ...] = Field(
+        tuple(ZK_MODES),
+        min_length=1,
+        description="The z_k modes replayed: z_k = 0 (what the sliders decode) and z_k sampled at T = 1 "
+        "(what Random with a temperature decodes); one of them halves the replays.",
+    )
 
 
 def consistency(
@@ -182,7 +188,7 @@ def consistency(
     names = density.names if density is not None else ["prior"]
     off_data = model.off_data(z_b)
     modes = {
-        name: model.joint_latents(z_b, temperature, seed=seed + 1) for name, temperature in ZK_MODES.items()
+        name: model.joint_latents(z_b, ZK_MODES[name], seed=seed + 1) for name in dict.fromkeys(cfg.zk_modes)
     }
     decoded = {name: model.decode_with_stats(z_b, z_j) for name, z_j in modes.items()}
     # the family member each decode is (its kind), where the checkpoint decodes members
