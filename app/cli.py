@@ -16,12 +16,10 @@ from pathlib import Path
 import tyro
 
 from snakeloco.app.bench import report
+from snakeloco.app.bench.options import BENCH_HELP, BENCHES
 from snakeloco.app.commands import (
-    BENCH_HELP,
-    BENCHES,
     COMMANDS,
     Calibrate,
-    Command,
     Design,
     Evaluate,
     Figures,
@@ -30,7 +28,7 @@ from snakeloco.app.commands import (
     Serve,
     Train,
 )
-from snakeloco.app.options import OptionError, flag, parse, parse_one
+from snakeloco.app.options import Command, OptionError, flag, parse, parse_one
 from snakeloco.model.train import PRESETS
 
 # What each command writes: "dir" (a directory it fills) or "file"; a "file" that already exists

@@ -15,9 +15,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+import warnings
+from pathlib import Path
+from typing import Annotated
 
 import tyro
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from tyro.constructors import ConstructorRegistry, StructConstructorSpec, StructTypeInfo
 
 
@@ -106,3 +109,28 @@ def parse_one(command: type, args: list[str], prog: str, default: BaseModel):
     """One command's model from ``args``, starting from the field values of ``default`` (built with
     ``model_construct``; ``tyro.MISSING`` marks a field still required)."""
     return tyro.cli(command, args=args, prog=prog, default=default, registry=REGISTRY)
+
+
+# --- what every command shares ----------------------------------------------------------------
+
+Flat = tyro.conf.OmitArgPrefixes
+"""A nested config whose fields are flags of their own (``--epochs``, not ``--train.epochs``)."""
+Workers = Annotated[int | None, Field(ge=1)]
+Seed = Annotated[int, Field(ge=0)]  # numpy's generators take no negative seed
+Ensemble = Annotated[int, Field(ge=2)]  # the replay and at least one perturbed copy: a spread needs two
+Checkpoint = Annotated[
+    Path | None,
+    tyro.conf.arg(help="A checkpoint directory, or a shipped one by gait family: paper (the default)."),
+]
+Json = Annotated[bool, tyro.conf.arg(help="Print the figures as one JSON object on the last line.")]
+
+
+# ``--json`` is a field named json, which shadows pydantic's deprecated ``BaseModel.json`` method: fine
+# for these option models, which are never serialised that way.
+warnings.filterwarnings("ignore", message='Field name "json"', category=UserWarning)
+
+
+class Command(BaseModel):
+    """A subcommand's options (frozen, no unknown fields, no NaN)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)

@@ -284,8 +284,8 @@ def test_every_bench_option_is_the_parameter_of_its_function():
     import importlib
     import inspect
 
+    from snakeloco.app.bench.options import BENCHES
     from snakeloco.app.bench.report import options
-    from snakeloco.app.commands import BENCHES
 
     for name, command in BENCHES.items():
         fn = getattr(importlib.import_module(f"snakeloco.app.bench.{name}"), f"bench_{name}")

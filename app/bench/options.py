@@ -1,0 +1,165 @@
+"""The benchmarks' options (``snakeloco bench NAME``), beside the benchmarks they configure; the
+CLI (``app.cli``) parses them, the runner (``app.bench.report``) passes them by name."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from snakeloco.app.bench.load_driver import DWELL_S
+from snakeloco.app.options import Checkpoint, Command, Ensemble, Json, Seed, Workers
+from snakeloco.model.design_config import DesignConfig
+from snakeloco.sim.consistency import ENSEMBLE_SIZE
+
+
+class BenchSim(Command):
+    """Benchmark the simulator: raw mujoco.rollout vs the generator, replay vs a bare mj_step loop."""
+
+    json: Json = False
+    workers: Workers = None
+    """Threads (default: all cores)."""
+    samples: Annotated[int | None, Field(ge=1)] = None
+    """Records per batch (default: 4 per thread)."""
+    repeats: Annotated[int, Field(ge=1)] = 3
+    """Runs of each measurement; the best is kept."""
+
+
+class BenchModel(Command):
+    """Benchmark decoding: latency of one z_B (the slider path) p50/p95 and batch throughput."""
+
+    json: Json = False
+    checkpoint: Checkpoint = None
+    calls: Annotated[int, Field(ge=1)] = 200
+    """Timed single decodes."""
+
+
+class BenchApp(Command):
+    """Benchmark the designer through a real server: slider -> decoded view / replay ready, vs bare MuJoCo."""
+
+    json: Json = False
+    checkpoint: Checkpoint = None
+    moves: Annotated[int, Field(ge=1)] = 20
+    """Slider moves to time."""
+    ensemble: Ensemble = ENSEMBLE_SIZE
+    """Replays per gait (as in `snakeloco serve`)."""
+    seed: Seed = 0
+    """Seed of the slider values moved to."""
+
+
+class BenchLoad(Command):
+    """Several users drag sliders on one server (protocol clients, or headless Chromium pages): latency, bytes, exceptions, stale draws, RSS."""
+
+    clients: Annotated[int, Field(ge=1)] = 4
+    """Users in the multi-client phase (a single-client phase runs first, side by side)."""
+    driver: Literal["protocol", "browser"] = "protocol"
+    """protocol: each user is an asyncio websocket client speaking viser's protocol (next to no CPU, as users' browsers on their own machines), with one real Chromium page beside the multi-client phase's; browser: a Chromium page each (for machines with spare cores: --pin-cpus)."""
+    browser_page: bool = True
+    """With --driver protocol: one Chromium page drags beside the protocol clients of the multi-client phase and passes the same stale checks on what it drew and exported."""
+    seconds: Annotated[float, Field(gt=0)] = 60.0
+    """Length of each phase."""
+    json: Json = False
+    checkpoint: Checkpoint = None
+    ensemble: Ensemble = ENSEMBLE_SIZE
+    """Replays per gait (as in `snakeloco serve`)."""
+    seed: Seed = 0
+    """Seed of the drag targets."""
+    render: bool = False
+    """Let the pages draw the 3D view and animate the snake (software WebGL: far fewer slider updates)."""
+    pin_cpus: bool = False
+    """Pin the server to the first half of the CPUs and the browsers to the second half."""
+    single_seconds: Annotated[float | None, Field(gt=0)] = None
+    """Length of the single-client phase (default: --seconds), e.g. a short reference before a
+    10-minute multi-client run that watches memory."""
+    dwell: Annotated[float, Field(ge=0)] = DWELL_S
+    """Seconds each page rests with the mouse up after a drag, looking at the gait it let go of (its
+    replay has that long to finish); 0: drag without rests, replays finish only when the drags end."""
+    browser_nice: Annotated[int, Field(ge=0, le=19)] = 10
+    """Nice of the load-generating browsers (and their scheduling group): 10 puts them level with the
+    server's replays; 15 below them, closer to browsers on other machines."""
+
+
+class BenchTabs(Command):
+    """Several designer tabs rendering and animating in one headless Chromium: key press -> value at the server, Export CSV time."""
+
+    tabs: Annotated[int, Field(ge=1)] = 3
+    """Pages in the one browser, all animating."""
+    rounds: Annotated[int, Field(ge=1)] = 10
+    """Key presses per tab (one tab after another)."""
+    json: Json = False
+    checkpoint: Checkpoint = None
+    ensemble: Ensemble = ENSEMBLE_SIZE
+    """Replays per gait (as in `snakeloco serve`)."""
+    browser_nice: Annotated[int, Field(ge=0, le=19)] = 0
+    """Nice of the browser's threads and its scheduling group. 0: as a person's browser runs beside the server on one machine (the server's physics then sits at +10/+15 inside its own group); `bench load` puts its load generators at +10 instead, to measure the server."""
+    rendering: Literal["page", "full", "light"] = "page"
+    """How the tabs draw: as each page chose ("Light rendering" ticks itself where WebGL renders in software, as in this headless Chromium), or every tab full (shadows, environment lighting, shaded grid), or every tab light."""
+
+
+class BenchScale(Command):
+    """Benchmark scale-out: the same records on the local and the Ray backend (throughput ratio, identical arrays, Ray's start-up), and the driver's peak memory writing and training from .npz vs zarr."""
+
+    records: Annotated[int, Field(ge=1)] = 256
+    """Records generated on each backend."""
+    family: Literal["paper", "structured"] = "paper"
+    """Gait family of those records."""
+    seed: Seed = 7
+    """Seed of the records."""
+    workers: Workers = None
+    """Threads here, and CPUs of the Ray instance started (default: all cores)."""
+    memory_records: Annotated[int, Field(ge=0)] = 4096
+    """Records written through each writer for the memory figures (0 skips them)."""
+    json: Json = False
+
+
+class BenchDesign(Command):
+    """Benchmark inverse design on held-out ends (or uniform targets all round) against random draws of the data with the same physics budget (best of N replays), and its first round against the same on that round's budget: errors, heading, time to an answer."""
+
+    data: Path | None = None
+    """Held-out dataset (a seed not used in training): its records' ends are the targets."""
+    reach: tuple[float, float] | None = None
+    """Instead of --data: targets this far away (min max, m), uniform in distance and direction."""
+    checkpoint: Checkpoint = None
+    targets: Annotated[int, Field(ge=1)] = 50
+    """Targets (every other one also asks for the record's heading change)."""
+    candidates: Annotated[int, Field(ge=1)] = 4
+    """Candidates verified per design round (x4 replays each)."""
+    rounds: Annotated[int, Field(ge=1)] = DesignConfig().rounds
+    """Rounds of search and verification per design (the baseline gets as many replays as the design used)."""
+    seed: Seed = 1
+    """Seed of the target choice, the searches and the baseline's draws."""
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    json: Json = False
+
+
+class BenchScreen(Command):
+    """Benchmark the structured family's screen: records/s of the cheap screen against the full one and against the undulation family, side by side; how often the cheap verdict differs from the full one on a sample."""
+
+    records: Annotated[int, Field(ge=1)] = 32
+    """Records generated by each screen (the undulation family: half as many)."""
+    draws: Annotated[int, Field(ge=0)] = 64
+    """Draws replayed in full for the agreement figures (0 skips them)."""
+    seed: Seed = 5
+    """Seed of the records (the sample's draws: seed + 1000)."""
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    json: Json = False
+
+
+class Bench(Command):
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design,screen} --help`."""
+
+
+BENCHES: dict[str, type[Command]] = {
+    "sim": BenchSim,
+    "model": BenchModel,
+    "app": BenchApp,
+    "load": BenchLoad,
+    "tabs": BenchTabs,
+    "scale": BenchScale,
+    "design": BenchDesign,
+    "screen": BenchScreen,
+}
+BENCH_HELP = Bench.__doc__
