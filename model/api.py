@@ -164,23 +164,24 @@ class GaitModel:
         return body * self._body_std + self._body_mean
 
     def decode_members(
-        self, z_b: np.ndarray, z_j: np.ndarray | None = None
-    ) -> tuple[list[Member], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        self, z_b: np.ndarray, z_j: np.ndarray | None = None, with_stats: bool = True
+    ) -> tuple[list[Member], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray] | None]:
         """Decode, project and predict: the members (B), the projections' residuals (B,), the
         members' measured shapes (B, 8, L, 2), the paths predicted for them (B, 500, 6) (the
         network's own body decode where the checkpoint has no member head) and the statistics the
-        model predicts for the members' shapes {name: (B,)} (``predict_stats``)."""
+        model predicts for the members' shapes {name: (B,)} (``predict_stats``; None without
+        ``with_stats``, which saves half a batch's time where only paths count: inverse design)."""
         if self.member_head is None:
             shape, body, stats = self.decode_raw(z_b, z_j, with_stats=True)
             members, residuals = self.project(shape)
-            return members, residuals, self.member_shapes(members), body, stats
-        # The network's own path and statistics would be thrown away: its joint decoder alone
-        # (a third of the slider's decode time).
+            return members, residuals, self.member_shapes(members), body, stats if with_stats else None
+        # The network's own path and statistics would be thrown away: its joint decoder alone.
         members, residuals = self.project(self.decode_shape(z_b, z_j))
         # The statistics head judges the member's own shape: the predicted path's 5 Hz steps carry the
         # head's small ripple, which a path length summed over 500 steps would count 3x over.
         measured = self.member_shapes(members)
-        return members, residuals, measured, self.predict_paths(members), self.predict_stats(measured)
+        stats = self.predict_stats(measured) if with_stats else None
+        return members, residuals, measured, self.predict_paths(members), stats
 
     def robot_warning(self) -> str | None:
         """None if the checkpoint was trained on this robot (``sim/snake.xml``), else a warning.
@@ -265,8 +266,10 @@ class GaitModel:
     def decode(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """z_b (B, Db) and z_j (B, 8, Dj) (None: zeros, the paper's setting (a)) -> shape, body_ds.
         Where the checkpoint ``projects``: the member's shape and the path predicted for it."""
-        shape, body, _ = self.decode_with_stats(z_b, z_j)
-        return shape, body
+        if self.projects:
+            _, _, shape, body, _ = self.decode_members(z_b, z_j, with_stats=False)
+            return shape, body
+        return self.decode_raw(z_b, z_j)
 
     def decode_with_stats(
         self, z_b: np.ndarray, z_j: np.ndarray | None = None
