@@ -165,7 +165,7 @@ def test_inverse_design_on_a_sampler_checkpoint_searches_on_the_data(member_chec
     the records are even when the target asks for more than any record does (its best one: the
     tiny model's density is far narrower than the 0.1 that makes a second candidate distinct)."""
     from snakeloco.model import load_pretrained
-    from snakeloco.model.design import path_end, prior_cost, search
+    from snakeloco.model.design import design, path_end, prior_cost, search
     from snakeloco.model.design_config import OUTSIDE_COST, DesignConfig, Target
 
     m = load_pretrained(member_checkpoint[0])
@@ -179,6 +179,9 @@ def test_inverse_design_on_a_sampler_checkpoint_searches_on_the_data(member_chec
     best = search(m, target, cfg)[0]
     assert not m.off_data(best.z_b[None])[0]
     assert best.cost < 3 * OUTSIDE_COST
+    # A target no gait of the family reaches: MuJoCo says not met, with the closest end it reached.
+    far = design(m, Target(forward=100.0, sideways=0.0), cfg.model_copy(update={"rounds": 1}), workers=2)
+    assert far.met is False and far.candidates[0].error_m > 80 and far.replays == 2 + 2 * 3
 
 
 @pytest.mark.slow
