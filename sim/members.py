@@ -149,13 +149,9 @@ def _objective(groups: list[tuple[np.ndarray, np.ndarray, bool]], nu: np.ndarray
     return f, df, ddf
 
 
-def _best_nu(groups, lo: float, hi: float, shared: bool = False) -> float:
-    """The spatial frequency in [-hi, -lo] u [lo, hi] that maximises the fit: grid, then Newton."""
-    half = np.linspace(lo, hi, GRID // 2 + 1)
-    grid = np.concatenate([-half[::-1], half])
-    f, _, _ = _objective(groups, grid, shared)
-    i = int(np.argmax(f))
-    nu, sign = float(grid[i]), 1.0 if grid[i] >= 0 else -1.0
+def _polish(groups, nu: float, lo: float, hi: float, shared: bool) -> float:
+    """Newton's method on F from ``nu``, kept inside its half of [-hi, -lo] u [lo, hi]."""
+    sign = 1.0 if nu >= 0 else -1.0
     for _ in range(50):
         _, df, ddf = _objective(groups, np.array([nu]), shared)
         if not ddf[0] < 0:
@@ -167,6 +163,28 @@ def _best_nu(groups, lo: float, hi: float, shared: bool = False) -> float:
         nu = new
         if abs(step) < 1e-15:
             break
+    return nu
+
+
+def _best_nu(groups, lo: float, hi: float, shared: bool = False) -> float:
+    """The spatial frequency in [-hi, -lo] u [lo, hi] that maximises the fit: grid, then Newton.
+
+    A wave on joints two modules apart with a free phase fits nu and nu -+ pi alike (aliases). Where
+    the grid's best polishes onto a range edge (its maximum lies just outside), the other half's best
+    is polished too and the better kept: a draw at nu_yaw 1.54 is found there, not as -1.6."""
+    half = np.linspace(lo, hi, GRID // 2 + 1)
+    grid = np.concatenate([-half[::-1], half])
+    f, _, _ = _objective(groups, grid, shared)
+    i = int(np.argmax(f))
+    nu = _polish(groups, float(grid[i]), lo, hi, shared)
+    if abs(nu) in (lo, hi):
+        other = np.flatnonzero((grid >= 0) != (grid[i] >= 0))
+        alt = _polish(groups, float(grid[other[np.argmax(f[other])]]), lo, hi, shared)
+        if (
+            _objective(groups, np.array([alt]), shared)[0][0]
+            > _objective(groups, np.array([nu]), shared)[0][0]
+        ):
+            nu = alt
     return nu
 
 

@@ -89,6 +89,28 @@ def test_the_exported_csv_carries_the_member_whose_parameters_give_its_commands_
         read_member(text.replace('"a_yaw":', '"a_yaw_typo":'))
 
 
+def test_a_yaw_wave_near_the_range_edge_projects_onto_itself_not_its_clipped_alias():
+    """Yaw joints sit two modules apart, so with a free phase nu and nu - pi fit alike; record 1084
+    of the every family (nu_yaw 1.54 of 1.6) projected onto -1.6, 0.25% off, before both halves'
+    best were polished."""
+    drawn = {
+        "kind": "turn",
+        "wave": {
+            "a_pitch": 0.19,
+            "a_yaw": 0.32,
+            "nu_pitch": 0.12,
+            "nu_yaw": 1.54,
+            "delta": -1.28,
+            "frequency": 0.29,
+        },
+        "steering": {"amplitude": 0.27, "phase": -1.16, "frequency": 0.05},
+        "scale": 1.0,
+    }
+    member = member_from_draw(drawn)
+    again, res = project(member.shape(), STRUCTURED_PRESETS["every"])
+    assert res < 1e-12 and again.wave.nu_yaw == pytest.approx(1.54, abs=1e-9)
+
+
 def _two_clusters(n: int = 300, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     a = rng.normal([3, 0, 0], [0.3, 0.5, 0.2], (n, 3))
