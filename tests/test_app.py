@@ -60,14 +60,11 @@ def test_slider_change_decodes_replays_and_draws(server):
         assert d.simulated is not None and d.simulated.ensemble_body.shape == (3, 2000, 6)
         assert d.scene.gen_path is not None and d.scene.sim_path is not None and d.scene.fan
         assert set(d.scene.clouds) == {"decoded", "measured"}
-        # Every perturbed member is drawn once (one node per batch while they come in, merged into one
-        # when the ensemble is done, as the streamed path's parts are when the replay is); the path
-        # starts and ends where the replay does.
-        assert d.scene._fan_drawn == len(d.simulated.ensemble_body) - 1
-        assert len(d.scene.sim_parts) == 1 and len(d.scene.fan) == 1
+        # Every perturbed member drawn once (merged into one node when the ensemble is done, as the
+        # streamed path's parts are when the replay is); the path starts and ends where the replay does.
         members = len(d.simulated.ensemble_body) - 1
-        per_member = len(range(0, 2000, FAN_STEP)) - 1  # segments of one member's polyline
-        assert d.scene.fan[0].points.shape == (members * per_member, 2, 3)
+        assert d.scene._fan_drawn == members and len(d.scene.sim_parts) == len(d.scene.fan) == 1
+        assert d.scene.fan[0].points.shape == (members * (len(range(0, 2000, FAN_STEP)) - 1), 2, 3)
         start = d.scene.sim_path.points[0, 0] + d.scene.sim_path.position
         np.testing.assert_allclose(start[:2], d.simulated.body[0, 1:3], atol=1e-5)
         end = d.scene.sim_path.points[-1, 1] + d.scene.sim_path.position
@@ -99,15 +96,13 @@ def test_export_import_export_round_trips_exactly(server):
         assert rows[0] == "time_s," + ",".join(f"joint_{k}" for k in range(1, 9)) and len(rows) == 2001
         version = d.import_bytes("gait.csv", first.encode())
         assert version is not None and d.wait_idle(60)
-        # Writing the encoding into the sliders ran their callbacks (viser calls them in the setting
-        # thread): none of them asked for a decode that would replace the imported gait.
+        # Writing the encoding into the sliders ran their callbacks: none asked for a decode over it.
         assert d.version == version and d.decoded.source == "import: gait.csv"
         second = d.export_text()
         assert _data_rows(second) == rows
         np.testing.assert_array_equal(read_gait_csv(second).commands, read_gait_csv(first).commands)
         assert "# z_B (encoded)" in second
-        # The imported commands were replayed exactly as written: the tab's replay is the one the
-        # simulator gives those commands, to the bit.
+        # The imported commands were replayed exactly as written (the simulator's replay, to the bit).
         expected = replay(read_gait_csv(first).commands)
         np.testing.assert_array_equal(d.simulated.joint_angles, expected.joint_angles)
         np.testing.assert_array_equal(d.simulated.body, expected.body)
@@ -281,11 +276,10 @@ def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server
             assert not np.isfinite(first.replayed)
         gate.set()
         assert d.wait_idle(60)
-        # The held (stale) replay stopped at its first chunk and was never drawn; the newest one was,
-        # streamed chunk by chunk to the whole record.
+        # The held (stale) replay stopped at its first chunk (left while it ran, or when it was in) and
+        # was never drawn; the newest one was, streamed chunk by chunk to the whole record.
         assert replayed == [1.0, 1.6]
         first_n, chunk = STREAM_FIRST, STREAM_CHUNK
-        # (it is left while its first chunk runs, or at the latest when that chunk is in)
         assert [n for z, n in parts if z == 1.0] in ([], [first_n])
         assert [n for z, n in parts if z == 1.6] == [*range(first_n, 2000, chunk), 2000]
         assert not np.isfinite(first.replayed) and np.isfinite(d.timings[-1].ensembled)
