@@ -150,10 +150,10 @@ def _evolve(
         asked = {k: np.asarray(runs[k].ask()) for k in live}
         z = np.concatenate([asked[k] for k in live])
         _, body = model.decode(z)
-        ends = path_end(body)
+        ends, prior = path_end(body), prior_cost(model, z, cfg)  # all runs' populations at once
         for j, k in enumerate(live):
             part = slice(j * cfg.population, (j + 1) * cfg.population)
-            cost = objective(ends[part], targets[k], cfg) + prior_cost(model, z[part], cfg)
+            cost = objective(ends[part], targets[k], cfg) + prior[part]
             runs[k].tell(list(asked[k]), cost.tolist())
             seen[k].append((z[part], cost))
     return [

@@ -190,12 +190,13 @@ def consistency(
     modes = {
         name: model.joint_latents(z_b, ZK_MODES[name], seed=seed + 1) for name in dict.fromkeys(cfg.zk_modes)
     }
-    decoded = {name: model.decode_with_stats(z_b, z_j) for name, z_j in modes.items()}
-    # the family member each decode is (its kind), where the checkpoint decodes members
-    kinds = {
-        name: [m.kind for m in model.project(shapes)[0]] if model.projects else None
-        for name, (shapes, _, _) in decoded.items()
-    }
+    decoded, kinds = {}, {}  # kinds: the family member each decode is, where the checkpoint decodes members
+    for name, z_j in modes.items():
+        if model.projects:
+            members, _, shape, body, stats = model.decode_members(z_b, z_j)
+            decoded[name], kinds[name] = (shape, body, stats), [m.kind for m in members]
+        else:
+            decoded[name], kinds[name] = model.decode_with_stats(z_b, z_j), None
     drawn = {
         "n_prior": n_prior,
         "ensemble": ensemble,
