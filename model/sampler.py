@@ -35,7 +35,7 @@ from snakeloco.model.replays import load_side_file, replay_shapes, save_side_fil
 from snakeloco.model.train import split_records
 from snakeloco.sim import DatasetError, joint_shape, load_dataset
 from snakeloco.sim.backend import BackendConfig, open_backend
-from snakeloco.sim.members import member_from_draw, project_many, residual
+from snakeloco.sim.members import project_many
 
 SAMPLER_GAITS = "sampler-gaits"
 GAIT_KEYS = ("z_b", "mode", "z_index", "shape", "body")
@@ -112,22 +112,10 @@ def replay_sampler_gaits(
 
 
 def record_members(ds, index: np.ndarray, family) -> np.ndarray:
-    """The commanded member shapes (n, 8, L, 2) of dataset records: the member each record's draw
-    logged (``meta["drawn"]``, ``sim.members.member_from_draw``) where the dataset has the log, else
-    each record's commands transformed (``sim.joint_shape``: exact for its periodic commands) and
-    projected onto its family. Either way the member must give the record's commands back.
-
-    Why the log first: a spatial frequency and its alias (nu - pi for the yaw joints, two modules
-    apart, with a free phase) fit a record equally well, and the projection keeps the one inside
-    the family's range; a draw near the range's edge (nu_yaw 1.54 of 1.6: record 1084 of the every
-    family) then projects onto its alias clipped at the edge, 0.25% off."""
-    drawn = ds.meta.get("drawn")
+    """The commanded member shapes (n, 8, L, 2) of dataset records: each record's commands
+    transformed (``sim.joint_shape``: exact for its periodic commands) and projected onto its family."""
     commanded = joint_shape(ds.commands[index].astype(np.float64), ds.config.excitation)
-    if drawn is not None and len(drawn) == len(ds):
-        members = [member_from_draw(drawn[int(i)]) for i in index]
-        residuals = np.array([residual(c, m) for c, m in zip(commanded, members, strict=True)])
-    else:
-        members, residuals = project_many(commanded, family)
+    members, residuals = project_many(commanded, family)
     if residuals.max() > 1e-4:
         raise DatasetError(
             f"record {int(index[residuals.argmax()])} is not a member of its family (residual "

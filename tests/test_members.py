@@ -13,7 +13,7 @@ from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, read_member, wri
 from snakeloco.model.density import LatentDensity, fit_density, name_components
 from snakeloco.sim import GenerateConfig, generate_dataset, shape_to_commands
 from snakeloco.sim.gaits import GaitEquation
-from snakeloco.sim.members import Member, member_from_draw, project, project_many, residual
+from snakeloco.sim.members import Member, member_from_draw, project, residual
 from snakeloco.sim.structured import STRUCTURED_PRESETS, draw_structured
 
 UNDULATE = STRUCTURED_PRESETS["undulate"]
@@ -181,17 +181,18 @@ def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predict
 
 
 @pytest.mark.slow
-def test_record_members_come_from_the_draw_log_and_must_give_the_records_commands_back(member_checkpoint):
+def test_record_members_are_the_members_the_records_drew_and_a_non_member_is_refused(member_checkpoint):
     from snakeloco.model import load_pretrained
     from snakeloco.model.sampler import record_members
-    from snakeloco.sim import DatasetError, joint_shape, load_dataset
+    from snakeloco.sim import DatasetError, load_dataset
 
     family = load_pretrained(member_checkpoint[0]).config.members
     ds = load_dataset(member_checkpoint[1])
     index = np.arange(len(ds))
-    projected, _ = project_many(joint_shape(ds.commands.astype(np.float64), ds.config.excitation), family)
-    np.testing.assert_allclose(record_members(ds, index, family), [m.shape() for m in projected], atol=1e-6)
-    ds.meta["drawn"][1]["wave"]["a_yaw"] *= 1.5  # a log that does not match the record's commands
+    logged = [member_from_draw(d).shape() for d in ds.meta["drawn"]]
+    np.testing.assert_allclose(record_members(ds, index, family), logged, atol=1e-6)
+    t = np.arange(ds.commands.shape[1]) / ds.config.excitation.sample_rate
+    ds.commands[1, :, 1] += 0.05 * np.sin(2 * np.pi * 0.52 * t)  # one yaw joint off the travelling wave
     with pytest.raises(DatasetError, match="record 1 is not a member"):
         record_members(ds, index, family)
 
