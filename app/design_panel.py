@@ -19,6 +19,7 @@ from snakeloco.app.session import LatestWorker
 from snakeloco.model.design import Candidate, design
 from snakeloco.model.design_config import DesignConfig, Target
 from snakeloco.sim.backend import LocalBackend
+from snakeloco.sim.scheduler import Turn
 
 MARKER_COLOR = (220, 30, 60)
 
@@ -124,7 +125,7 @@ class DesignPanel:
                     f"{what} {n} candidates in MuJoCo (round {rnd} of at most {rounds}) ..."
                 )
 
-        runner = LocalBackend.on(self.tab.session.simulator)
+        runner = LocalBackend.on(self.tab.session.simulator_for(Turn.DESIGN))
         result = design(
             self.tab.model, target, self.config, runner=runner, cancelled=stopped, on_verify=verifying
         )

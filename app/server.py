@@ -27,6 +27,8 @@ from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import SHIPPED, CheckpointError, resolve_checkpoint
 from snakeloco.sim import Simulator
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.sim.scheduler import FairPhysics
+from snakeloco.sim.threads import resolve_workers
 
 DECODE_THREADS = 1
 """torch intra-op threads of a designer server process. Four threads decoding at once on 2 cores:
@@ -139,8 +141,11 @@ class DesignerServer:
         """The model a new tab starts with (``checkpoint``'s); ``models``: all its Gait family dropdown offers."""
         self.ensemble = ensemble
         self.workers = workers
-        # Every tab's replays and ensembles take turns on one pool of physics threads, at nice +15.
-        self.simulator = Simulator(workers, nice=PHYSICS_NICE)
+        # Every tab's replays and ensembles take fair turns on one pool of physics threads, one a
+        # core, below the decoding and drawing threads (``sim.scheduler``: every tab's replay before
+        # any tab's ensemble, round robin between tabs, superseded work dropped unrun).
+        self.physics = FairPhysics(resolve_workers(workers), nice=PHYSICS_NICE)
+        self.simulator = Simulator(1)  # the robot, its command rule and checks: rollouts go to physics
         self.clients: dict[int, DesignerClient] = {}
         self.errors: list[str] = []
         """Every exception a tab's callbacks or workers raised (each also printed); bench load counts them."""
@@ -169,6 +174,7 @@ class DesignerServer:
                 on_error=self._error,
                 simulator=self.simulator,
                 models=self.models,
+                physics=self.physics,
             )
         except Exception as exc:  # a tab that could not be set up must not take the server down
             traceback.print_exc()
@@ -190,6 +196,7 @@ class DesignerServer:
         for d in designers:
             d.close()
         self.simulator.close()
+        self.physics.close()
         self.server.stop()
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -20,7 +20,8 @@ from snakeloco.sim import BODY_DOWNSAMPLE, BODY_RATE, SimulationError, Simulator
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, compare, perturbed_commands
 from snakeloco.sim.members import Member
 from snakeloco.sim.physics import StreamedReplay
-from snakeloco.sim.threads import replay_runner
+from snakeloco.sim.scheduler import FairPhysics, OnTurns, Turn
+from snakeloco.sim.threads import resolve_workers
 
 ZkMode = Literal["zero", "sampled"]
 
@@ -104,42 +105,39 @@ class GaitSession:
         workers: int | None = None,
         physics_nice: int = 0,
         simulator: Simulator | None = None,
-        replay_nice: int = 0,
-        drag_nice: int | None = None,
+        physics: FairPhysics | None = None,
+        tab: Hashable = None,
     ) -> None:
         self.model = model
         self.ensemble = ensemble
-        # ``simulator``: one shared by every tab of a server (its rollouts then take turns, so the
-        # physics of N tabs uses the cores once, not N times over, and holds one batch of physics
-        # steps in memory at a time); the caller closes it. Else the session owns one for its replays
-        # (one thread) and one for ensembles (all cores). ``physics_nice``: those run on native
-        # threads that much lower in CPU priority (``Simulator(nice=...)``).
+        # ``physics``: where replays and ensembles run, in fair turns (``sim.scheduler``): a server's
+        # one pool shared by every tab (``tab`` names this one), so the physics of N tabs uses the
+        # cores once, not N times over. Else a pool of the session's own (``workers`` threads,
+        # ``physics_nice`` below the caller). ``simulator``: the robot, command rule and checks
+        # those rollouts use (a server shares one); the caller closes what it passed in.
         self._owned = []
         if simulator is None:
-            self._owned = [
-                Simulator(workers=1, nice=physics_nice),
-                Simulator(workers, nice=physics_nice),
-            ]
-        self._replayer, self._ensembler = self._owned or (simulator, simulator)
-        # Streamed replays run on a rollout thread of the session's own (GIL released), ``replay_nice`` below the
-        # caller: below a server's own threads (decoding, drawing), above its ensembles.
-        self._stream_runner = replay_runner(replay_nice)
-        # ``drag_nice``: where a replay's later chunks run while its gait may be one the user is
-        # dragging through (``replay_streamed``'s ``settled``); None: on the same thread.
-        self._drag_runner = replay_runner(drag_nice) if drag_nice is not None else self._stream_runner
+            simulator = Simulator(workers=1)
+            self._owned.append(simulator)
+        if physics is None:
+            physics = FairPhysics(resolve_workers(workers), nice=physics_nice)
+            self._owned.append(physics)
+        self._simulator, self.physics, self.tab = simulator, physics, tab
 
     @property
-    def simulator(self) -> Simulator:
-        """The simulator of the session's ensembles (all cores, or the server's shared one)."""
-        return self._ensembler
+    def simulator(self) -> OnTurns:
+        """The session's ensemble simulator (its batches in this tab's ensemble turns)."""
+        return self.simulator_for(Turn.ENSEMBLE)
+
+    def simulator_for(self, turn: Turn, wanted: Callable[[], bool] | None = None) -> OnTurns:
+        """A simulator whose batches run on the physics pool as this tab's ``turn`` (each row dropped
+        unrun once ``wanted`` says no; the batch is then None)."""
+        return OnTurns(self._simulator, self.physics.runner(self.tab, turn, wanted))
 
     def close(self) -> None:
-        """Stop the native threads of the simulators this session owns."""
-        for simulator in self._owned:
-            simulator.close()
-        self._stream_runner.close()
-        if self._drag_runner is not self._stream_runner:
-            self._drag_runner.close()
+        """Stop the threads this session owns."""
+        for owned in self._owned:
+            owned.close()
 
     def decode(self, latents: Latents) -> DecodedGait:
         """Decode latents to a joint shape, a body path and resynthesised commands."""
@@ -169,9 +167,10 @@ class GaitSession:
         )
 
     def replay(self, gait: DecodedGait) -> SimulatedGait:
-        """Replay the commands (one thread); raises SimulationError if physics breaks."""
+        """Replay the commands whole (a settled replay's turns); raises SimulationError if physics
+        breaks."""
         t0 = time.perf_counter()
-        return self._simulated(self._replayer.replay(gait.commands), t0)
+        return self._simulated(self.simulator_for(Turn.SETTLED).replay(gait.commands), t0)
 
     def _simulated(self, result, t0: float) -> SimulatedGait:
         """A whole replay (``ReplayResult`` or the last ``StreamedReplay``) begun at ``t0``."""
@@ -179,7 +178,7 @@ class GaitSession:
             joint_angles=result.joint_angles,
             body=result.body,
             qpos=result.qpos,
-            shape=joint_shape(result.joint_angles, self._replayer.excitation),
+            shape=joint_shape(result.joint_angles, self._simulator.excitation),
             ensemble_body=result.body[None],
             replay_ms=1e3 * (time.perf_counter() - t0),
         )
@@ -195,19 +194,21 @@ class GaitSession:
         each chunk and returns whether to go on. Returns the same SimulatedGait as ``replay`` (bit for
         bit), or None where ``on_part`` stopped it; raises SimulationError if physics breaks.
 
-        The first chunk (the first motion) runs on the replay thread; each later one there too where
-        ``settled()`` says the user has let go of this gait, else on the ``drag_nice`` thread, so
-        that the replay of a gait some tab has settled on comes before the chunks of gaits other
-        tabs are still dragging through (same results wherever a chunk runs). ``wanted``: polled
-        while a chunk runs; once False the replay ends without waiting for that chunk (None)."""
+        The chunks run on the physics pool: the first as a first motion, each later one as settled
+        where ``settled()`` says the user has let go of this gait, else as dragged through, so the
+        replay of a gait some tab has settled on comes before the chunks of gaits other tabs are
+        still dragging through (same results whichever turn a chunk runs in). ``wanted``: asked when
+        a chunk's turn comes and polled while it runs; once False the replay ends (None)."""
         t0 = time.perf_counter()
         part = None
 
         def runner(k: int):
-            settle = settled is None or k == 0 or settled()
-            return self._stream_runner if settle else self._drag_runner
+            if k == 0:
+                return self.physics.runner(self.tab, Turn.FIRST_MOTION, wanted)
+            settle = settled is None or settled()
+            return self.physics.runner(self.tab, Turn.SETTLED if settle else Turn.DRAGGED, wanted)
 
-        for part in self._replayer.stream(gait.commands, runner=runner, wanted=wanted):
+        for part in self._simulator.stream(gait.commands, runner=runner, wanted=wanted):
             if part.failure is not None:
                 raise SimulationError(part.failure)
             if not on_part(part):
@@ -231,10 +232,11 @@ class GaitSession:
         of one batched rollout, bit for bit."""
         t0 = time.perf_counter()
         members = perturbed_commands(gait.commands, self.ensemble, seed=seed)[1:]
-        step = self._ensembler.workers
+        simulator = self.simulator_for(Turn.ENSEMBLE, wanted)
+        step = simulator.workers  # a batch a thread
         bodies, failures = [sim.body[None]], []
         for i in range(0, len(members), step):
-            result = self._ensembler.simulate(members[i : i + step], wanted)
+            result = simulator.simulate(members[i : i + step], wanted)
             if result is None:
                 return None
             failures += result.failures

@@ -35,21 +35,15 @@ from snakeloco.app.viser_patches import run_javascript
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, Simulator
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.sim.scheduler import FairPhysics
 
-REPLAY_NICE = 10
-"""Nice increment of the thread that runs a tab's streamed replay: below the server's own threads
-(decoding and drawing for every tab come first), above every ensemble (``PHYSICS_NICE``), and equal
-among tabs. At +5 (bench load, 4 clients, 2026-12-03): decoded view worst / single p95 2.05, replay
-ready 3.64, against 1.39-2.18 and 3.46-3.75 at +10: no gain for the replays, less room for decoding."""
-DRAG_REPLAY_NICE = 14
-"""Nice increment of the thread that runs a replay's chunks after the first while its gait is
-younger than ``SETTLED_S`` (the user may be dragging through it): below every tab's settled
-replays, above the ensembles. Speculative physics of a drag then takes what the settled replays
-leave."""
-PHYSICS_NICE = 15
-"""Nice increment of the threads that run a tab's ensemble rollouts (a server shares one set of them
-at this priority; ``sim.threads.RolloutThreads``). They hold the GIL only to enter and leave a
-rollout."""
+PHYSICS_NICE = 10
+"""Nice increment of the physics threads (``sim.scheduler.FairPhysics``: a server's one pool, whose
+turns put every tab's replays before any tab's ensemble): below the server's own threads (decoding
+and drawing for every tab come first). They hold the GIL only to enter and leave a rollout. At +5
+(bench load, 4 clients, 2026-12-03, replays on threads of their own): decoded view worst / single p95
+2.05, replay ready 3.64, against 1.39-2.18 and 3.46-3.75 at +10: no gain for the replays, less room
+for decoding."""
 
 
 class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
@@ -64,6 +58,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         on_error: Callable[[str], None] | None = None,
         simulator: Simulator | None = None,
         models: dict[str, GaitModel] | None = None,
+        physics: FairPhysics | None = None,
     ):
         self.client = client
         self._on_error = on_error
@@ -77,8 +72,8 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
             workers=workers,
             physics_nice=PHYSICS_NICE,
             simulator=simulator,
-            replay_nice=REPLAY_NICE,
-            drag_nice=DRAG_REPLAY_NICE,
+            physics=physics,
+            tab=client.client_id,
         )
         self.decoded: DecodedGait | None = None
         self.simulated: SimulatedGait | None = None

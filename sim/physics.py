@@ -29,6 +29,7 @@ from snakeloco.sim.results import (
     StreamedReplay,
 )
 from snakeloco.sim.robot import BODY_SITE, N_JOINTS, load_model
+from snakeloco.sim.scheduler import FairRunner
 from snakeloco.sim.threads import RolloutThreads, _FifoLock, resolve_workers
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -89,6 +90,7 @@ class Simulator:
         wanted: Callable[[], bool] | None = None,
         start: Paused | None = None,
         warm_out: np.ndarray | None = None,
+        runner: FairRunner | None = None,
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """Raw rollouts from the resting state (or from ``start``): ctrl (B, n_steps, 8) -> (state,
         sensordata).
@@ -96,7 +98,8 @@ class Simulator:
         state is (B, n_steps, nstate) after each step; sensordata (B, n_steps, nsensordata) is
         measured at the start of each step (about 16 MB per record: callers keep only samples).
         ``wanted``: asked when the batch gets its turn; False: nothing is rolled out (None).
-        ``warm_out`` (B, nv): filled with each row's warm start after its last step.
+        ``warm_out`` (B, nv): filled with each row's warm start after its last step. ``runner``: run
+        the rows on a shared pool's turns (``FairPhysics.runner``; None where one was dropped).
         """
         batch = ctrl.shape[0]
         if start is None:
@@ -109,6 +112,11 @@ class Simulator:
         m, n_steps = self.model, ctrl.shape[1]
         state = np.empty((batch, n_steps, mujoco.mj_stateSize(m, _STATE_SPEC)))
         sens = np.empty((batch, n_steps, m.nsensordata))
+        if runner is not None:
+            if self._closed:
+                raise SimulationError("the simulator was closed (the server is stopping)")
+            rows = runner.rollout(m, initial, ctrl, warm, state, sens, warm_out=warm_out)
+            return None if any(f.cancelled() for f in rows) else (state, sens)
         with self._lock:
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
@@ -147,6 +155,7 @@ class Simulator:
         wanted: Callable[[], bool] | None = None,
         samples: int | None = None,
         resume: Paused | None = None,
+        runner: FairRunner | None = None,
     ) -> BatchResult | None:
         """Simulate a batch of records under the command rule and measure them.
 
@@ -161,6 +170,8 @@ class Simulator:
             wanted: asked each time a part of the batch gets its turn (callers sharing the
                 simulator roll out first come, first served); False: the rest is not simulated
                 and None is returned (a batch whose gait was left while it waited in line).
+            runner: run the rows on a shared pool's turns (``Simulator.rollout``); None returned
+                where one was dropped as unwanted.
 
         Returns:
             BatchResult with (B, T, 8) joint angles and (B, T, 6) body states; a failed row's
@@ -182,7 +193,7 @@ class Simulator:
         for i in range(0, len(commands), self.max_batch):
             rows = slice(i, i + self.max_batch)
             start = None if resume is None else resume.rows(rows)
-            parts.append(self._simulate(commands[rows], wanted, samples, start))
+            parts.append(self._simulate(commands[rows], wanted, samples, start, runner))
             if parts[-1] is None:
                 return None
         if len(parts) == 1:
@@ -205,7 +216,12 @@ class Simulator:
         )
 
     def _simulate(
-        self, commands: np.ndarray, wanted: Callable[[], bool] | None, samples: int, start: Paused | None
+        self,
+        commands: np.ndarray,
+        wanted: Callable[[], bool] | None,
+        samples: int,
+        start: Paused | None,
+        runner: FairRunner | None = None,
     ) -> BatchResult | None:
         ctrl = expand_commands(commands, self.substeps, self.config)
         first = 0 if start is None else start.samples
@@ -214,7 +230,7 @@ class Simulator:
         end = (self.config.lead_in + samples) * self.substeps
         pause = samples < self.excitation.n_samples
         warm_out = np.empty((len(commands), self.model.nv)) if pause else None
-        rolled = self.rollout(ctrl[:, begin:end], wanted, start, warm_out)
+        rolled = self.rollout(ctrl[:, begin:end], wanted, start, warm_out, runner)
         if rolled is None:
             return None
         state, sens = rolled
@@ -270,25 +286,24 @@ class Simulator:
         chunk_samples: int = STREAM_CHUNK,
         first_samples: int = STREAM_FIRST,
         wanted: Callable[[], bool] | None = None,
-        runner: RolloutThreads | Callable[[int], RolloutThreads | None] | None = None,
+        runner: RolloutThreads
+        | FairRunner
+        | Callable[[int], RolloutThreads | FairRunner | None]
+        | None = None,
     ) -> Iterator[StreamedReplay]:
         """Replay one record (T, 8) rad in chunks of ``chunk_samples`` record samples, yielding after
         each chunk everything simulated so far (the first chunk is the lead-in and ``first_samples``).
 
         The physics state and the solver's warm start carry over from chunk to chunk, so the arrays
-        are bit-identical to ``replay``'s (prefixes of them until the last part). The chunks run on
-        the calling thread with an ``MjData`` of the stream's own, outside the simulator's lock (the
-        rollout releases the GIL): a replay never waits in line behind other callers' batches, the
-        operating system shares the cores, and a simulator with ``nice`` > 0 runs its batches below
-        the streams' priority (an interactive replay preempts ensembles). A caller that stops
-        iterating (a superseded replay) stops the physics at that chunk boundary. A chunk that
-        breaks the simulation ends the stream with its ``failure`` set. ``runner``: a one-thread
-        pool (``replay_runner``) to run the chunks on at its own priority instead of the calling
-        thread's (same results), or a function of the chunk's index (0 first) that picks one per
-        chunk (None: the calling thread). ``wanted``: polled while a runner's chunk is in flight; once
-        it says False the stream ends at once (a chunk still queued behind the runner's other work is
-        cancelled, a running one finishes on its thread, unread), so a newer gait's replay need not
-        wait for the old one's chunk.
+        are bit-identical to ``replay``'s (prefixes of them until the last part). The chunks run with
+        an ``MjData`` of the stream's own, outside the simulator's lock: a replay never waits behind
+        other callers' batches. A caller that stops iterating (a superseded replay) stops the physics
+        at that chunk boundary; a chunk that breaks the simulation ends the stream with its
+        ``failure`` set. ``runner``: where the chunks run (same results anywhere): a one-thread pool
+        (``RolloutThreads``), a shared pool's place (``FairPhysics.runner``), or a function of the
+        chunk's index (0 first) that picks one per chunk; None: the calling thread. ``wanted``:
+        polled while a runner's chunk is in flight; once False the stream ends at once (a queued
+        chunk is cancelled, a running one finishes unread).
         """
         commands = np.asarray(commands, dtype=np.float64)
         n_t = self.excitation.n_samples
@@ -355,10 +370,11 @@ class Simulator:
             if failure is not None:
                 return
 
-    def replay(self, commands: np.ndarray) -> ReplayResult:
-        """Simulate one record exactly as data generation does; raise SimulationError if it breaks."""
+    def replay(self, commands: np.ndarray, runner: FairRunner | None = None) -> ReplayResult:
+        """Simulate one record exactly as data generation does (on ``runner``'s turns, as
+        ``simulate``); raise SimulationError if it breaks."""
         commands = np.asarray(commands, dtype=np.float64)
-        result = self.simulate(commands[None])
+        result = self.simulate(commands[None], runner=runner)
         if result.failures[0] is not None:
             raise SimulationError(result.failures[0])
         return ReplayResult(
@@ -375,12 +391,9 @@ _default_simulator: Simulator | None = None
 
 
 def replay(commands: np.ndarray) -> ReplayResult:
-    """Replay one record of joint commands (T, 8) rad through the snake; see ``Simulator.replay``.
-
-    Raises:
-        ValueError: commands of the wrong shape or not finite.
-        SimulationError: the simulation diverged or threw the snake (the message says how and when).
-    """
+    """Replay one record of joint commands (T, 8) rad through the snake (``Simulator.replay``).
+    Raises ValueError (commands of the wrong shape or not finite) or SimulationError (the simulation
+    diverged or threw the snake; the message says how and when)."""
     global _default_simulator
     commands = np.asarray(commands, dtype=np.float64)
     if not np.isfinite(commands).all():

@@ -85,21 +85,6 @@ class RolloutThreads:
         if nice > 0:  # lowering needs no privilege; the creator's priority is untouched
             lower_thread_priority(nice)
 
-    def _one(
-        self, model: mujoco.MjModel, data: mujoco.MjData | None, warm_out: np.ndarray | None, **arrays
-    ) -> None:
-        local = self._local
-        if not hasattr(local, "runner"):
-            local.runner = mj_rollout.Rollout(nthread=0)  # no pool: runs on this thread
-            local.data = {}
-        if data is None:  # this thread's own MjData for the model (rollout sets its whole state)
-            data = local.data.get(id(model))
-            if data is None:
-                data = local.data[id(model)] = mujoco.MjData(model)
-        local.runner.rollout(model, data, **arrays)
-        if warm_out is not None:  # the solver's warm start after the last step: to carry on from
-            warm_out[:] = data.qacc_warmstart
-
     def rollout(
         self,
         model: mujoco.MjModel,
@@ -121,7 +106,8 @@ class RolloutThreads:
             raise ValueError("a given MjData serves one row at a time")
         futures = [
             self._executor.submit(
-                self._one,
+                rollout_row,
+                self._local,
                 model,
                 data,
                 None if warm_out is None else warm_out[i],
@@ -143,12 +129,29 @@ class RolloutThreads:
         self._executor.shutdown(wait=True, cancel_futures=True)
 
 
-def replay_runner(nice: int) -> RolloutThreads:
-    """One rollout thread at ``nice`` below the caller, for ``Simulator.stream`` (close it when
-    done): a server runs its tabs' replays below its own threads and above its ensembles."""
-    return RolloutThreads(1, nice, name="replay")
-
-
 def resolve_workers(workers: int | None) -> int:
     """Simulation threads to use: ``workers``, or one per core of this machine where it is None."""
     return max(1, int(workers)) if workers is not None else (os.cpu_count() or 1)
+
+
+def rollout_row(
+    local: threading.local,
+    model: mujoco.MjModel,
+    data: mujoco.MjData | None,
+    warm_out: np.ndarray | None,
+    **arrays,
+) -> None:
+    """One row's pool-less rollout on the calling thread (GIL released in MuJoCo): ``local`` keeps
+    the thread's rollout object and its own MjData per model where ``data`` is None (rollout sets
+    its whole state); ``warm_out``: where to put the solver's warm start after the last step (to
+    carry on from)."""
+    if not hasattr(local, "runner"):
+        local.runner = mj_rollout.Rollout(nthread=0)  # no pool: runs on this thread
+        local.data = {}
+    if data is None:
+        data = local.data.get(id(model))
+        if data is None:
+            data = local.data[id(model)] = mujoco.MjData(model)
+    local.runner.rollout(model, data, **arrays)
+    if warm_out is not None:
+        warm_out[:] = data.qacc_warmstart

@@ -17,6 +17,7 @@ from snakeloco.app.scene import FAN_STEP
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.session import Latents
 from snakeloco.sim import replay
+from snakeloco.sim.scheduler import Turn
 
 from helpers import apply, connect_headless
 
@@ -143,18 +144,14 @@ def test_two_clients_are_independent(server):
         assert d2.decoded.latents.z_b[0] == 0.0 and d2.sliders[0].value == 0.0
         assert not np.array_equal(d1.decoded.commands, d2.decoded.commands)
         # Their physics takes turns on the server's one pool of rollout threads...
-        assert d1.session._ensembler is d2.session._ensembler is server.simulator
-        assert d1.session._replayer is server.simulator
+        assert d1.session.physics is d2.session.physics is server.physics
+        assert d1.session.tab != d2.session.tab and server.physics.served[Turn.FIRST_MOTION] >= 2
     finally:
         c1.close()
         c2.close()
-    for _ in range(100):
-        if not server.clients:
-            break
-        time.sleep(0.05)
-    assert not server.clients  # disconnects clean up their designers
+    assert wait_until(lambda: not server.clients, 5)  # disconnects clean up their designers
     # ... which outlives them: a tab that leaves does not stop the others' physics.
-    assert not server.simulator._closed
+    assert not server.simulator._closed and not server.physics._closed
     c3, d3 = connect_headless(server)
     try:
         assert d3.wait_idle(60) and d3.simulated is not None
@@ -338,19 +335,20 @@ def test_a_replay_the_user_is_still_dragging_through_runs_below_settled_ones(che
     from snakeloco.app.session import GaitSession, Latents
     from snakeloco.model import load_pretrained
 
-    session = GaitSession(load_pretrained(checkpoint), ensemble=2, workers=1, replay_nice=2, drag_nice=6)
+    session = GaitSession(load_pretrained(checkpoint), ensemble=2, workers=1)
     try:
         gait = session.decode(Latents(z_b=(0.5, -0.5, 0.0)))
         whole = session.replay(gait)
-        ran = []
-        for runner, name in ((session._stream_runner, "replay"), (session._drag_runner, "drag")):
-            rollout = runner.rollout
-            runner.rollout = lambda *a, _r=rollout, _n=name, **k: ran.append(_n) or _r(*a, **k)
+        turns, runner = [], session.physics.runner
+        session.physics.runner = lambda tab, turn, wanted=None: (
+            turns.append(turn) or runner(tab, turn, wanted)
+        )
         settled = iter([False, False, True] + [True] * 100)  # held after its third chunk
         sim = session.replay_streamed(gait, lambda part: True, settled=lambda: next(settled))
-        # The first motion on the replay thread, then the drag thread until the value is held.
-        assert ran[:4] == ["replay", "drag", "drag", "replay"] and set(ran[4:]) == {"replay"}
-        np.testing.assert_array_equal(sim.body, whole.body)  # wherever a chunk ran, the same replay
+        # The first motion, then dragged-through turns (below every settled replay) until the value is held.
+        first, drag, held = Turn.FIRST_MOTION, Turn.DRAGGED, Turn.SETTLED
+        assert turns[:4] == [first, drag, drag, held] and set(turns[4:]) == {held}
+        np.testing.assert_array_equal(sim.body, whole.body)  # whichever turn a chunk ran in, the same replay
     finally:
         session.close()
 

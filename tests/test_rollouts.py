@@ -131,10 +131,11 @@ def test_a_batch_left_while_it_waits_for_its_turn_is_not_simulated(tiny_dataset)
         sim_physics.mj_rollout.rollout = rollout
 
 
-def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_left():
+def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_left(monkeypatch):
     from snakeloco.sim.gaits import PRESETS
     from snakeloco.sim.physics import STREAM_FIRST
-    from snakeloco.sim.threads import replay_runner
+    from snakeloco.sim import threads
+    from snakeloco.sim.threads import RolloutThreads
 
     simulator = Simulator(workers=1)
     commands = PRESETS["sidewind"].gait.commands()
@@ -158,7 +159,7 @@ def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_le
         sim_physics.mj_rollout.rollout = rollout
     assert len(calls) == 1
     # On a runner, a stream no longer wanted ends while its chunk is still in flight.
-    runner, parts = replay_runner(0), []
+    runner, parts = RolloutThreads(1, name="replay"), []
     try:
         for part in simulator.stream(commands, chunk_samples=500, runner=runner, wanted=lambda: not parts):
             parts.append(part)
@@ -170,8 +171,8 @@ def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_le
         # A chunk still queued behind the runner's other work (the chunk a left replay left running)
         # never runs once its stream is left: superseded gaits do not pile up physics in the queue.
         busy, ran = threading.Event(), []
-        one = runner._one
-        runner._one = lambda *a, **k: ran.append(1) or one(*a, **k)
+        one = threads.rollout_row
+        monkeypatch.setattr(threads, "rollout_row", lambda *a, **k: ran.append(1) or one(*a, **k))
         runner._executor.submit(busy.wait, 30)
         left = iter([True, False])
         assert list(simulator.stream(commands, runner=runner, wanted=lambda: next(left, False))) == []

@@ -1,0 +1,241 @@
+"""One pool of physics threads shared by every tab of a server, with fair turns.
+
+Each tab's physics comes as chunk-sized tasks: the chunks of a streamed replay (the first one, the
+first motion; the later ones of a gait the user has let go of; those of a gait still being dragged
+through) and the rows of an ensemble. ``FairPhysics`` runs them on ``threads`` niced rollout threads
+(``sim.threads``: MuJoCo's rollout with the GIL released) in this order:
+
+1. strictly by class: every waiting replay chunk of any tab before any tab's ensemble row (a new
+   gait's first motion first of all);
+2. inside a class, round robin between tabs: the tab served longest ago goes next, so a tab with a
+   long queue (an 8-member ensemble) cannot hold up a tab with one row, and no tab starves;
+   inverse design's replays come last (a search of seconds after every tab's ensembles);
+3. a task whose ``wanted()`` says no when its turn comes is dropped unrun (its future cancelled):
+   superseded work never takes a core. ``Future.cancel`` on a queued task does the same.
+
+A task that is running is not preempted: a replay chunk (~0.1 s of physics) or an ensemble row
+(~0.5 s) is the longest a waiting replay chunk waits for a free thread.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict, deque
+from collections.abc import Callable, Hashable
+from concurrent.futures import Future
+from concurrent.futures import wait as wait_futures
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import mujoco
+import numpy as np
+
+from snakeloco.sim.threads import lower_thread_priority, rollout_row
+
+
+class Turn(IntEnum):
+    """The classes of physics work, in the order they are served."""
+
+    FIRST_MOTION = 0  # a replay's first chunk: the snake starts to move
+    SETTLED = 1  # later chunks of a gait the user has let go of
+    DRAGGED = 2  # later chunks of a gait a slider is still passing through
+    ENSEMBLE = 3  # the perturbed copies that score a finished replay
+    DESIGN = 4  # inverse design's candidate replays (a search of several seconds)
+
+
+@dataclass
+class _Task:
+    future: Future
+    run: Callable[[], None]
+    wanted: Callable[[], bool] | None = None
+
+
+@dataclass
+class _Class:
+    """One class's queues: tab -> its tasks in order, tabs in the order they are to be served."""
+
+    queues: OrderedDict = field(default_factory=OrderedDict)
+
+    def pop(self) -> _Task | None:
+        for tab in list(self.queues):
+            queue = self.queues.pop(tab)  # served now: to the back of the line if it has more
+            task = queue.popleft()
+            if queue:
+                self.queues[tab] = queue
+            return task
+        return None
+
+
+class FairPhysics:
+    """``threads`` rollout threads at ``nice`` below their creator, serving tabs' tasks fairly.
+
+    ``runner(tab, turn, wanted)`` gives an object with ``RolloutThreads.rollout``'s signature, so
+    ``Simulator.stream`` and ``Simulator.simulate`` run on it unchanged (same results: each row is a
+    pool-less rollout on one thread, from its own initial state and warm start).
+    """
+
+    def __init__(self, threads: int, nice: int = 0, name: str = "physics") -> None:
+        self.threads = max(1, int(threads))
+        self._classes = {turn: _Class() for turn in Turn}
+        self._cond = threading.Condition()
+        self._closed = False
+        self.served: dict[Turn, int] = dict.fromkeys(Turn, 0)
+        self.dropped = 0
+        self._workers = [
+            threading.Thread(target=self._loop, args=(int(nice),), name=f"{name}-{i}", daemon=True)
+            for i in range(self.threads)
+        ]
+        for worker in self._workers:
+            worker.start()
+
+    def runner(self, tab: Hashable, turn: Turn, wanted: Callable[[], bool] | None = None) -> FairRunner:
+        """Where a tab's work of one class goes (``rollout`` as ``RolloutThreads.rollout``)."""
+        return FairRunner(self, tab, Turn(turn), wanted)
+
+    def submit(
+        self, tab: Hashable, turn: Turn, run: Callable[[], None], wanted: Callable[[], bool] | None = None
+    ) -> Future:
+        """Queue ``run()`` for ``tab`` in class ``turn``; its future completes when it has run (or is
+        cancelled: dropped as unwanted, or by ``Future.cancel`` while queued)."""
+        future: Future = Future()
+        with self._cond:
+            if self._closed:
+                raise RuntimeError("the physics pool was closed (the server is stopping)")
+            queues = self._classes[Turn(turn)].queues
+            queues.setdefault(tab, deque()).append(_Task(future, run, wanted))
+            self._cond.notify()
+        return future
+
+    def pending(self) -> dict[Turn, int]:
+        """Tasks waiting per class."""
+        with self._cond:
+            return {t: sum(map(len, c.queues.values())) for t, c in self._classes.items()}
+
+    def _next(self) -> _Task | None:
+        """The next task to run, None once closed (caller holds the condition)."""
+        while True:
+            for turn, cls in self._classes.items():
+                task = cls.pop()
+                if task is not None:
+                    self.served[turn] += 1
+                    return task
+            if self._closed:
+                return None
+            self._cond.wait()
+
+    def _loop(self, nice: int) -> None:
+        if nice > 0:
+            lower_thread_priority(nice)
+        while True:
+            with self._cond:
+                task = self._next()
+            if task is None:
+                return
+            if task.wanted is not None and not task.wanted():
+                _drop(task.future)
+                with self._cond:
+                    self.dropped += 1
+                continue
+            if not task.future.set_running_or_notify_cancel():
+                continue  # cancelled while queued
+            try:
+                task.run()
+            except BaseException as exc:  # handed to whoever waits on the future
+                task.future.set_exception(exc)
+            else:
+                task.future.set_result(None)
+
+    def close(self) -> None:
+        """Cancel what is queued, let running tasks finish, stop the threads."""
+        with self._cond:
+            self._closed = True
+            for cls in self._classes.values():
+                for queue in cls.queues.values():
+                    for task in queue:
+                        _drop(task.future)
+                cls.queues.clear()
+            self._cond.notify_all()
+        for worker in self._workers:
+            if worker is not threading.current_thread():
+                worker.join()
+
+
+def _drop(future: Future) -> None:
+    """Cancel a queued task's future and wake whoever waits on it (``concurrent.futures.wait``'s
+    waiters learn of a cancellation only from ``set_running_or_notify_cancel``)."""
+    future.cancel()
+    future.set_running_or_notify_cancel()
+
+
+class FairRunner:
+    """One tab's work of one class on a ``FairPhysics`` (``RolloutThreads.rollout``'s signature)."""
+
+    def __init__(self, pool: FairPhysics, tab: Hashable, turn: Turn, wanted: Callable[[], bool] | None):
+        self.pool, self.tab, self.turn, self.wanted = pool, tab, turn, wanted
+
+    def rollout(
+        self,
+        model: mujoco.MjModel,
+        initial: np.ndarray,
+        ctrl: np.ndarray,
+        warm: np.ndarray,
+        state: np.ndarray,
+        sensordata: np.ndarray,
+        data: mujoco.MjData | None = None,
+        wait: bool = True,
+        warm_out: np.ndarray | None = None,
+    ) -> list[Future]:
+        """As ``RolloutThreads.rollout``: one task per row; a row dropped as unwanted (or cancelled
+        while queued) has its future cancelled, and its arrays are left as they were."""
+        if data is not None and len(ctrl) != 1:
+            raise ValueError("a given MjData serves one row at a time")
+        futures = [
+            self.pool.submit(
+                self.tab,
+                self.turn,
+                lambda i=i: rollout_row(
+                    _THREAD,
+                    model,
+                    data,
+                    None if warm_out is None else warm_out[i],
+                    initial_state=initial[i : i + 1],
+                    control=ctrl[i : i + 1],
+                    initial_warmstart=warm[i : i + 1],
+                    state=state[i : i + 1],
+                    sensordata=sensordata[i : i + 1],
+                ),
+                self.wanted,
+            )
+            for i in range(len(ctrl))
+        ]
+        if wait:
+            wait_futures(futures)
+            for f in futures:
+                if not f.cancelled():
+                    f.result()  # a row's exception, raised here
+        return futures
+
+
+_THREAD = threading.local()
+"""Each pool thread's pool-less rollout and MjData per model (MjData is not shared between threads)."""
+
+
+class OnTurns:
+    """A ``Simulator`` whose batches run as one tab's tasks of one class on a ``FairPhysics``: for
+    code written against a simulator (``LocalBackend.on``, an ensemble's batches). ``workers`` is
+    the pool's thread count; everything else is the simulator's."""
+
+    def __init__(self, simulator, runner: FairRunner) -> None:
+        self._simulator, self._runner = simulator, runner
+        self.workers = runner.pool.threads
+
+    def simulate(self, commands, wanted=None, samples=None, resume=None):
+        """``Simulator.simulate`` on the pool's turns (None where a row was dropped as unwanted)."""
+        return self._simulator.simulate(commands, wanted, samples, resume, runner=self._runner)
+
+    def replay(self, commands):
+        """``Simulator.replay`` on the pool's turns."""
+        return self._simulator.replay(commands, runner=self._runner)
+
+    def __getattr__(self, name: str):
+        return getattr(self._simulator, name)

@@ -1,0 +1,115 @@
+"""The server's shared physics pool: fair turns between tabs, strict order between kinds of work,
+superseded work dropped unrun, results unchanged."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from snakeloco.sim import Simulator
+from snakeloco.sim.scheduler import FairPhysics, OnTurns, Turn
+
+
+def _blocked_pool() -> tuple[FairPhysics, threading.Event]:
+    """A one-thread pool whose thread is held until the returned event is set."""
+    pool, gate, started = FairPhysics(1), threading.Event(), threading.Event()
+    pool.submit("gate", Turn.FIRST_MOTION, lambda: (started.set(), gate.wait(10)))
+    assert started.wait(10)
+    return pool, gate
+
+
+def test_replays_go_before_any_ensemble_and_tabs_take_turns_within_a_kind():
+    pool, gate = _blocked_pool()
+    ran: list[str] = []
+    try:
+        futures = [
+            pool.submit(tab, turn, lambda name=name: ran.append(name))
+            for tab, turn, name in [
+                ("a", Turn.ENSEMBLE, "a-ens-1"),
+                ("a", Turn.ENSEMBLE, "a-ens-2"),
+                ("a", Turn.ENSEMBLE, "a-ens-3"),
+                ("b", Turn.ENSEMBLE, "b-ens-1"),
+                ("c", Turn.DESIGN, "c-design"),
+                ("b", Turn.DRAGGED, "b-dragged"),
+                ("c", Turn.SETTLED, "c-settled"),
+                ("a", Turn.FIRST_MOTION, "a-first"),
+            ]
+        ]
+        assert pool.pending() == {
+            Turn.FIRST_MOTION: 1,
+            Turn.SETTLED: 1,
+            Turn.DRAGGED: 1,
+            Turn.ENSEMBLE: 4,
+            Turn.DESIGN: 1,
+        }
+        gate.set()
+        for f in futures:
+            f.result(10)
+    finally:
+        pool.close()
+    # strictly by kind; inside the ensembles tab b's one row comes between tab a's, not after them
+    assert ran == [
+        "a-first",
+        "c-settled",
+        "b-dragged",
+        "a-ens-1",
+        "b-ens-1",
+        "a-ens-2",
+        "a-ens-3",
+        "c-design",
+    ]
+
+
+def test_unwanted_and_cancelled_work_never_runs_and_errors_reach_the_caller():
+    pool, gate = _blocked_pool()
+    ran: list[str] = []
+    wanted = {"old": True}
+    try:
+        old = pool.submit("a", Turn.SETTLED, lambda: ran.append("old"), lambda: wanted["old"])
+        withdrawn = pool.submit("b", Turn.SETTLED, lambda: ran.append("withdrawn"))
+        new = pool.submit("a", Turn.FIRST_MOTION, lambda: ran.append("new"))
+        broken = pool.submit("c", Turn.ENSEMBLE, lambda: 1 / 0)
+        wanted["old"] = False  # the tab moved on while the chunk waited
+        assert withdrawn.cancel()
+        gate.set()
+        new.result(10)
+        with pytest.raises(ZeroDivisionError):
+            broken.result(10)
+        assert old.cancelled() and withdrawn.cancelled()
+    finally:
+        pool.close()
+    assert ran == ["new"] and pool.dropped == 1
+
+
+def test_closing_cancels_queued_work_and_refuses_more():
+    pool, gate = _blocked_pool()
+    queued = pool.submit("a", Turn.ENSEMBLE, lambda: None)
+    gate.set()
+    pool.close()
+    assert queued.cancelled() or queued.done()
+    with pytest.raises(RuntimeError, match="closed"):
+        pool.submit("a", Turn.ENSEMBLE, lambda: None)
+
+
+@pytest.mark.slow
+def test_replays_and_batches_on_the_pool_are_bit_identical_to_the_simulators_own():
+    from snakeloco.sim.gaits import PRESETS
+
+    commands = np.stack([PRESETS[name].gait.commands() for name in list(PRESETS)[:3]])
+    sim = Simulator(workers=2)
+    pool = FairPhysics(2)
+    try:
+        own = sim.simulate(commands)
+        pooled = OnTurns(sim, pool.runner("tab", Turn.ENSEMBLE)).simulate(commands)
+        np.testing.assert_array_equal(pooled.body, own.body)
+        np.testing.assert_array_equal(pooled.joint_angles, own.joint_angles)
+        parts = list(sim.stream(commands[0], runner=lambda k: pool.runner("tab", Turn(min(k, 1)))))
+        np.testing.assert_array_equal(parts[-1].joint_angles, own.joint_angles[0])
+        assert pool.served[Turn.FIRST_MOTION] == 1 and pool.served[Turn.SETTLED] == len(parts) - 1
+        # a batch whose rows are no longer wanted is dropped: None, as a superseded batch
+        assert OnTurns(sim, pool.runner("tab", Turn.ENSEMBLE, lambda: False)).simulate(commands) is None
+    finally:
+        pool.close()
+        sim.close()
