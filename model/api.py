@@ -7,8 +7,8 @@ z_b (B, z_b_dim); z_j (B, 8, z_j_dim).
 A checkpoint of the structured family with ``members`` (schema 4) decodes *members*: each decoded
 shape is projected onto the family (``sim.members``), the shape returned is that member's (as the
 servos measure it) and the path is the member path head's prediction for it
-(``model.member_path``), so what is drawn, replayed and exported is one gait with its own path.
-``decode_raw`` keeps the network's own decode.
+(``model.member_path``), so what is drawn, replayed and exported is one gait with its own path
+(``model.member_decoding``). ``decode_raw`` keeps the network's own decode.
 """
 
 from __future__ import annotations
@@ -21,22 +21,14 @@ import numpy as np
 import torch
 
 from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint, load_member_head
-from snakeloco.model.member_path import MemberPathHead, member_inputs
+from snakeloco.model.member_decoding import MemberDecoding, _finite
+from snakeloco.model.member_path import MemberPathHead
 from snakeloco.model.network import HierarchicalVAE
 from snakeloco.model.stats import stats_dict
 from snakeloco.model.tracing import Graphs
-from snakeloco.sim.members import Member, project_many
 
 
-def _finite(name: str, a: np.ndarray) -> np.ndarray:
-    """``a`` unchanged; a ValueError naming ``name`` if it holds NaN or inf (they would decode to NaN
-    joint commands that no simulator can replay)."""
-    if not np.isfinite(a).all():
-        raise ValueError(f"{name} holds {int((~np.isfinite(a)).sum())} non-finite values (NaN or inf)")
-    return a
-
-
-class GaitModel:
+class GaitModel(MemberDecoding):
     """A loaded checkpoint ready for encoding and decoding. Thread-safe (calls are serialised)."""
 
     def __init__(
@@ -103,85 +95,6 @@ class GaitModel:
         members, _ = self.project(shape.reshape(-1, *shape.shape[-3:]))
         out = np.stack([m.commands() for m in members])
         return out.reshape(*shape.shape[:-3], *out.shape[1:])
-
-    # --- the slider density and the family's members ---------------------------------------------
-
-    @property
-    def projects(self) -> bool:
-        """Whether decodes are projected onto exact members of the structured family."""
-        return self.config.members is not None
-
-    def sample_z_b(self, n: int, seed: int = 0, component: int | None = None) -> np.ndarray:
-        """n slider positions (n, Db) from the shipped sampler: the density over the training
-        records' posterior z_B (``model.density``; one ``component`` of it, or all), deterministic in
-        ``seed``. A checkpoint without a density draws from the N(0, I) prior."""
-        if self.config.density is None:
-            if component is not None:
-                raise ValueError("this checkpoint has no density, so no components to draw from")
-            return np.random.default_rng(seed).standard_normal((n, self.z_b_dim))
-        return self.config.density.sample(n, seed, component)[0]
-
-    def off_data(self, z_b: np.ndarray) -> np.ndarray:
-        """Whether each z_B (B, Db) lies off the data (less dense than 99% of the training records'
-        posteriors): (B,) bool. All False without a density."""
-        z = self._check_z_b(z_b).astype(np.float64)
-        if self.config.density is None:
-            return np.zeros(len(z), bool)
-        return self.config.density.off_data(z)
-
-    def _gain(self) -> np.ndarray | None:
-        g = self._servo_response
-        return None if g is None else g[..., 0] + 1j * g[..., 1]  # (8, L)
-
-    def project(self, shape: np.ndarray) -> tuple[list[Member], np.ndarray]:
-        """Measured joint shapes (B, 8, L, 2) -> the members they project onto (their commanded
-        coefficients fitted, ``sim.members.project``) and the fits' relative residuals (B,)."""
-        if not self.projects:
-            raise ValueError("this checkpoint's family has no members to project onto")
-        shape = self._check_shape(shape)
-        c = shape[..., 0] + 1j * shape[..., 1]
-        if (g := self._gain()) is not None:
-            c = c / g
-        return project_many(np.stack([c.real, c.imag], axis=-1), self.config.members)
-
-    def member_shapes(self, members: list[Member]) -> np.ndarray:
-        """The joint shapes (B, 8, L, 2) the servos measure for members (commanded x servo gain)."""
-        c = np.stack([m.shape() for m in members])
-        c = c[..., 0] + 1j * c[..., 1]
-        if (g := self._gain()) is not None:
-            c = c * g
-        return np.stack([c.real, c.imag], axis=-1)
-
-    def predict_paths(self, members: list[Member]) -> np.ndarray:
-        """The body series (B, 500, 6) the member path head predicts for members (physical units)."""
-        if self.member_head is None:
-            raise ValueError("this checkpoint has no member path head")
-        x = member_inputs(np.stack([m.shape() for m in members]), np.asarray(self.config.member_head.support))
-        x = torch.as_tensor(x, dtype=torch.float32)
-        head = self._graphs.one_input("member_head", self.member_head, "forward", x) if len(x) == 1 else None
-        with self._lock, torch.inference_mode():
-            body = (head or self.member_head)(x).numpy().astype(np.float64)
-        return body * self._body_std + self._body_mean
-
-    def decode_members(
-        self, z_b: np.ndarray, z_j: np.ndarray | None = None, with_stats: bool = True
-    ) -> tuple[list[Member], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray] | None]:
-        """Decode, project and predict: the members (B), the projections' residuals (B,), the
-        members' measured shapes (B, 8, L, 2), the paths predicted for them (B, 500, 6) (the
-        network's own body decode where the checkpoint has no member head) and the statistics the
-        model predicts for the members' shapes {name: (B,)} (``predict_stats``; None without
-        ``with_stats``, which saves half a batch's time where only paths count: inverse design)."""
-        if self.member_head is None:
-            shape, body, stats = self.decode_raw(z_b, z_j, with_stats=True)
-            members, residuals = self.project(shape)
-            return members, residuals, self.member_shapes(members), body, stats if with_stats else None
-        # The network's own path and statistics would be thrown away: its joint decoder alone.
-        members, residuals = self.project(self.decode_shape(z_b, z_j))
-        # The statistics head judges the member's own shape: the predicted path's 5 Hz steps carry the
-        # head's small ripple, which a path length summed over 500 steps would count 3x over.
-        measured = self.member_shapes(members)
-        stats = self.predict_stats(measured) if with_stats else None
-        return members, residuals, measured, self.predict_paths(members), stats
 
     def robot_warning(self) -> str | None:
         """None if the checkpoint was trained on this robot (``sim/snake.xml``), else a warning.

@@ -4,10 +4,18 @@ The hierarchical VAE decodes a joint shape and a body path side by side from z_B
 replays the *member* the shape projects onto (``sim.members``), so the path it draws must be the
 path of that member, not a second decode beside the shape (a shape error or a blend of clusters
 then gives a path for a gait that is never replayed). ``MemberPathHead`` is that prediction: an
-MLP from the member's commanded coefficients on the family's support to the body series
-(500, 6) at 5 Hz, in the checkpoint's body normalisation. It is trained after the VAE on the
+MLP from the member's commanded coefficients on the family's support, and the slider position z_B
+the member was decoded from, to the body series (500, 6) at 5 Hz, in the checkpoint's body
+normalisation. It is trained after the VAE on the
 training records (each record is a member) and on MuJoCo replays of the members the sliders
 produce (``model.sampler``): physics is the teacher, never the predictor at run time.
+
+Why z_B beside the member: one member's replays spread (physics' floor, 24 held-out records
+replayed with 0.001 relative command noise: sideways R² 0.921, yaw 0.952), and z_B says on which
+side of that spread the slider sits (a record's posterior z_B has seen its path; a sampler draw's z_B
+is where the density put it). Held-out sideways 0.904 -> 0.93, yaw 0.942 -> 0.953 on the undulation
+checkpoint (docs/model.md). The member still decides the gait: the head is trained on the replays of
+the sampler's own members, so a z_B with another member's coefficients predicts that member's path.
 """
 
 from __future__ import annotations
@@ -35,8 +43,11 @@ class MemberHeadConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     support: list[list[bool]] = Field(description="(8, L) the coefficients fed in (the family's support).")
-    input_mean: list[float] = Field(description="(2 S,) mean of the inputs (rad) over the training set.")
-    input_std: list[float] = Field(description="(2 S,) their std (rad), floored at 1e-3.")
+    input_mean: list[float] = Field(
+        description="(2 S + z_b_dim,) mean of the inputs (rad, then z_B) over the training set."
+    )
+    input_std: list[float] = Field(description="(2 S + z_b_dim,) their std, floored at 1e-3.")
+    z_b_dim: int = Field(0, ge=0, description="z_B inputs after the coefficients (0: the member alone).")
     hidden: int = Field(256, ge=8, description="Width of the hidden layers.")
     layers: int = Field(3, ge=1, description="Hidden layers.")
     steps: int = Field(500, ge=1, description="Body steps predicted (5 Hz over 100 s).")
@@ -45,7 +56,7 @@ class MemberHeadConfig(BaseModel):
 
 
 class MemberPathHead(nn.Module):
-    """Commanded member coefficients (B, 2 S) rad -> normalised body series (B, 500, 6)."""
+    """Inputs (B, 2 S + z_b_dim) (``member_inputs``) -> normalised body series (B, 500, 6)."""
 
     def __init__(self, cfg: MemberHeadConfig) -> None:
         super().__init__()
@@ -65,10 +76,13 @@ class MemberPathHead(nn.Module):
         return y.view(-1, self.cfg.steps, self.cfg.channels)  # (B, T, C)
 
 
-def member_inputs(shapes: np.ndarray, support: np.ndarray) -> np.ndarray:
-    """Commanded member shapes (B, 8, L, 2) -> the head's inputs (B, 2 S): the coefficients on the
-    support (8, L), real and imaginary parts."""
-    return np.asarray(shapes, np.float64)[:, np.asarray(support, bool)].reshape(len(shapes), -1)
+def member_inputs(shapes: np.ndarray, support: np.ndarray, z_b: np.ndarray | None = None) -> np.ndarray:
+    """Commanded member shapes (B, 8, L, 2) (and their slider positions z_b (B, Db)) -> the head's
+    inputs (B, 2 S (+ Db)): the coefficients on the support (8, L), real and imaginary parts, then z_B."""
+    x = np.asarray(shapes, np.float64)[:, np.asarray(support, bool)].reshape(len(shapes), -1)
+    if z_b is None:
+        return x
+    return np.concatenate([x, np.asarray(z_b, np.float64).reshape(len(x), -1)], axis=1)
 
 
 def fit_member_head(
@@ -78,6 +92,7 @@ def fit_member_head(
     val_body: np.ndarray,
     support: np.ndarray,
     *,
+    z_b_dim: int = 0,
     epochs: int = 400,
     lr: float = 2e-3,
     batch_size: int = 128,
@@ -86,7 +101,7 @@ def fit_member_head(
     seed: int = 0,
     log: Callable[[str], None] | None = print,
 ) -> tuple[MemberPathHead, dict]:
-    """Fit a head on (inputs (N, 2 S), normalised body (N, 500, 6)) pairs, the epoch with the lowest
+    """Fit a head on (inputs (N, 2 S + z_b_dim), normalised body (N, 500, 6)) pairs, the epoch with the lowest
     validation loss kept (``model.fitting.fit_best``). Returns the head and what it scored."""
 
     torch.manual_seed(seed)
@@ -96,6 +111,7 @@ def fit_member_head(
         support=np.asarray(support, bool).tolist(),
         input_mean=x.mean(0).tolist(),
         input_std=x.std(0).clamp_min(1e-3).tolist(),
+        z_b_dim=z_b_dim,
         hidden=hidden,
         layers=layers,
         steps=y.shape[1],

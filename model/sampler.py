@@ -73,6 +73,11 @@ class SamplerConfig(BaseModel):
     epochs: int = Field(400, ge=1, description="Epochs of the member path head.")
     lr: float = Field(2e-3, gt=0, description="Peak learning rate of the head (Adam, cosine to 1%).")
     hidden: int = Field(256, ge=8, description="Width of the head's hidden layers.")
+    head_sees_z_b: bool = Field(
+        True,
+        description="The head reads the member's z_B beside its coefficients (a record's posterior, a "
+        "sampler gait's draw): which side of physics' spread the slider sits on.",
+    )
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
 
 
@@ -176,11 +181,21 @@ def fit_sampler(
             raise DatasetError(f"{data}: the member path head needs a structured-family dataset")
         members = ds.config.structured
         model = GaitModel(
-            model.net, config.model_copy(update={"density": density, "members": members}), model.path
+            model.net,
+            config.model_copy(update={"density": density, "members": members, "member_head": None}),
+            model.path,
         )
         gaits = None
         if gaits_path is not None and Path(gaits_path).exists():
             gaits = load_side_file(gaits_path, SAMPLER_GAITS, _drawn(cfg), list(GAIT_KEYS))
+            # The draws are this checkpoint's density's (a retrained model draws other z_B).
+            drawn_z = model.sample_z_b(cfg.samples, cfg.seed)[gaits["z_index"]]
+            gap = np.abs(gaits["z_b"] - drawn_z).max() if gaits["z_b"].shape == drawn_z.shape else np.inf
+            if gap > 1e-6:
+                raise DatasetError(
+                    f"{gaits_path}: its gaits were drawn from another checkpoint's slider density (z_B "
+                    f"differs by up to {gap:.3g}); remove the file or name another one to replay them"
+                )
             if log:
                 log(f"reusing {len(gaits['z_b'])} replayed sampler gaits from {gaits_path}")
         if gaits is None:
@@ -200,21 +215,34 @@ def fit_sampler(
         def norm(body: np.ndarray) -> np.ndarray:
             return (np.asarray(body, np.float64) - model._body_mean) / model._body_std
 
-        x = member_inputs(np.concatenate([rec_tr, gaits["shape"][~g_val]]), support)
+        z_va = model.encode(ds.shape[va_idx], ds.body_ds[va_idx])[0]
+        z_tr_all = np.concatenate([z_post, gaits["z_b"][~g_val]]) if cfg.head_sees_z_b else None
+        z_va_all = np.concatenate([z_va, gaits["z_b"][g_val]]) if cfg.head_sees_z_b else None
+        x = member_inputs(np.concatenate([rec_tr, gaits["shape"][~g_val]]), support, z_tr_all)
         y = norm(np.concatenate([ds.body_ds[tr_idx], gaits["body"][~g_val]]))
-        vx = member_inputs(np.concatenate([rec_va, gaits["shape"][g_val]]), support)
+        vx = member_inputs(np.concatenate([rec_va, gaits["shape"][g_val]]), support, z_va_all)
         vy = norm(np.concatenate([ds.body_ds[va_idx], gaits["body"][g_val]]))
         t0 = time.perf_counter()
         head, fit = fit_member_head(
-            x, y, vx, vy, support, epochs=cfg.epochs, lr=cfg.lr, hidden=cfg.hidden, seed=cfg.seed, log=log
+            x,
+            y,
+            vx,
+            vy,
+            support,
+            z_b_dim=model.z_b_dim if cfg.head_sees_z_b else 0,
+            epochs=cfg.epochs,
+            lr=cfg.lr,
+            hidden=cfg.hidden,
+            seed=cfg.seed,
+            log=log,
         )
         fit["fit_s"] = time.perf_counter() - t0
         model = GaitModel(
             model.net, model.config.model_copy(update={"member_head": head.cfg}), model.path, head
         )
-        pred = model.predict_paths(project_many(gaits["shape"][g_val], members)[0])
+        pred = model.predict_paths(project_many(gaits["shape"][g_val], members)[0], gaits["z_b"][g_val])
         fit["held_out_xy_r2_median"] = float(np.median(_path_r2(pred, gaits["body"][g_val])))
-        pred = model.predict_paths(project_many(rec_va, members)[0])
+        pred = model.predict_paths(project_many(rec_va, members)[0], z_va)
         fit["val_records_xy_r2_median"] = float(np.median(_path_r2(pred, ds.body_ds[va_idx])))
         head_cfg = head.cfg.model_copy(update={"summary": fit})
         summary["member_head"] = fit

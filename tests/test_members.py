@@ -165,7 +165,10 @@ def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predict
     s2, b2 = m.decode(z)
     np.testing.assert_array_equal(s2, shape)
     np.testing.assert_array_equal(b2, body)
-    np.testing.assert_allclose(body, m.predict_paths(members))  # the member's path, not a second decode
+    np.testing.assert_allclose(body, m.predict_paths(members, z))  # the member's path, not a second decode
+    assert m.config.member_head.z_b_dim == m.z_b_dim  # the head reads the slider position too
+    with pytest.raises(ValueError, match="reads each member's z_B"):
+        m.predict_paths(members)
     raw_shape, raw_body = m.decode_raw(z)
     assert not np.allclose(raw_body, body)
     # the shape-only decode (the slider's path on such a checkpoint) is the network's own, to the bit
@@ -195,6 +198,21 @@ def test_record_members_are_the_members_the_records_drew_and_a_non_member_is_ref
     ds.commands[1, :, 1] += 0.05 * np.sin(2 * np.pi * 0.52 * t)  # one yaw joint off the travelling wave
     with pytest.raises(DatasetError, match="record 1 is not a member"):
         record_members(ds, index, family)
+
+
+@pytest.mark.slow
+def test_sampler_gaits_replayed_for_another_density_are_refused_not_reused(member_checkpoint, tmp_path):
+    from snakeloco.model.sampler import SamplerConfig, fit_sampler
+    from snakeloco.sim import DatasetError, read_npz, write_npz
+
+    path, data = member_checkpoint
+    cfg, gaits = SamplerConfig(samples=2, epochs=2, hidden=16), tmp_path / "gaits.npz"
+    fit_sampler(path, data, tmp_path / "a", cfg, workers=2, log=None, gaits_path=gaits)
+    fit_sampler(path, data, tmp_path / "b", cfg, workers=2, log=None, gaits_path=gaits)  # its own: reused
+    stored = dict(read_npz(gaits, "sampler gaits", ["z_b"]))
+    write_npz(gaits, **{**stored, "z_b": stored["z_b"] + 0.5})  # as another checkpoint's density drew
+    with pytest.raises(DatasetError, match="another checkpoint's slider density"):
+        fit_sampler(path, data, tmp_path / "c", cfg, workers=2, log=None, gaits_path=gaits)
 
 
 @pytest.mark.slow
@@ -311,7 +329,9 @@ def test_calibrate_sampler_density_only_gives_the_paper_family_a_sampler_and_a_f
 def test_the_shipped_structured_path_of_a_members_own_gait_beats_the_path_of_another_member():
     """On the shipped structured checkpoint: six gaits of its family never seen in training (a draw
     seed no dataset used), each replayed once; the path the model predicts for each gait's own member
-    must fit its replay better than the path predicted for another member of the family."""
+    must fit its replay better than the path predicted for another member of the family. Where the
+    head also reads z_B, every prediction gets the same slider position (a sampler draw that is none
+    of these gaits'): the member, not z_B, must decide the path."""
     from snakeloco.model import load_pretrained
     from snakeloco.sim import BODY_DOWNSAMPLE, Simulator
     from snakeloco.sim.consistency import xy_r2
@@ -327,7 +347,8 @@ def test_the_shipped_structured_path_of_a_members_own_gait_beats_the_path_of_ano
         sim.close()
     assert all(f is None for f in result.failures)
     replays = result.body[:, ::BODY_DOWNSAMPLE].astype(np.float64)
-    predicted = m.predict_paths(members)
+    z_b = np.repeat(m.sample_z_b(1, seed=99), 6, axis=0) if m.config.member_head.z_b_dim else None
+    predicted = m.predict_paths(members, z_b)
     for i in range(6):
         own = xy_r2(predicted[i], replays[i])
         other = xy_r2(predicted[(i + 3) % 6], replays[i])
