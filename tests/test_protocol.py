@@ -48,6 +48,10 @@ def test_a_protocol_client_joins_drags_and_reads_the_decoded_view_and_replay(che
         assert [float(v.value) for v in d.sliders] == pytest.approx(s["final_values"])
         assert s["drags"] == 2 and len(s["decoded_ms"]) >= 1 and len(s["replay_ms"]) >= 1
         assert all(0 < ms < 120e3 for ms in s["decoded_ms"] + s["replay_ms"])
+        # The decoded view is timed from the first send of the drag's final value, so it is caught
+        # before the first motion (not taken from a later readout when it came before the last sends).
+        timed = [(d, f) for d, f, _ in s["stages_ms"] if np.isfinite(d) and np.isfinite(f)]
+        assert timed and all(d <= f for d, f in timed) and any(d < f for d, f in timed), timed
         assert s["bytes"] > 0 and s["frames"] > 0
         assert stream_problems(s) == []
         assert server_problems(d, s) == []

@@ -242,14 +242,22 @@ class ProtocolClient:
         lo, hi, step = float(props["min"]), float(props["max"]), float(props["step"])
         start, target = self.values[i], float(self.rng.uniform(lo, hi))
         n = int(self.rng.integers(10, 30))
-        for k in range(1, n + 1):
-            value = round(min(max(start + (target - start) * k / n, lo), hi) / step) * step
-            self.values[i] = round(value, 6)
-            await self.send(uuids[i], self.values[i])
+        path = [
+            round(round(min(max(start + (target - start) * k / n, lo), hi) / step) * step, 6)
+            for k in range(1, n + 1)
+        ]
+        final = [*self.values[:i], path[-1], *self.values[i + 1 :]]
+        drag = None
+        for value in path:
+            self.values[i] = value
+            if drag is None and self.values == final:
+                # Timed from the first send of the final value (the server may draw its view before
+                # the drag's last sends go out): registered before it goes, so no view is missed.
+                drag = Drag(i, tuple(final), time.perf_counter())
+                self.drags.append(drag)
+            await self.send(uuids[i], value)
             await asyncio.sleep(SEND_PERIOD_S)
         await self.send(uuids[i], self.values[i])  # viser's trailing send
-        drag = Drag(i, tuple(self.values), time.perf_counter())
-        self.drags.append(drag)
         await asyncio.sleep(dwell)
         return drag
 
