@@ -23,14 +23,10 @@ import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable
 from concurrent.futures import Future
-from concurrent.futures import wait as wait_futures
 from dataclasses import dataclass, field
 from enum import IntEnum
 
-import mujoco
-import numpy as np
-
-from snakeloco.sim.threads import lower_thread_priority, rollout_row
+from snakeloco.sim.threads import RowRunner, lower_thread_priority
 
 
 class Turn(IntEnum):
@@ -167,57 +163,14 @@ def _drop(future: Future) -> None:
     future.set_running_or_notify_cancel()
 
 
-class FairRunner:
+class FairRunner(RowRunner):
     """One tab's work of one class on a ``FairPhysics`` (``RolloutThreads.rollout``'s signature)."""
 
     def __init__(self, pool: FairPhysics, tab: Hashable, turn: Turn, wanted: Callable[[], bool] | None):
         self.pool, self.tab, self.turn, self.wanted = pool, tab, turn, wanted
 
-    def rollout(
-        self,
-        model: mujoco.MjModel,
-        initial: np.ndarray,
-        ctrl: np.ndarray,
-        warm: np.ndarray,
-        state: np.ndarray,
-        sensordata: np.ndarray,
-        data: mujoco.MjData | None = None,
-        wait: bool = True,
-        warm_out: np.ndarray | None = None,
-    ) -> list[Future]:
-        """As ``RolloutThreads.rollout``: one task per row; a row dropped as unwanted (or cancelled
-        while queued) has its future cancelled, and its arrays are left as they were."""
-        if data is not None and len(ctrl) != 1:
-            raise ValueError("a given MjData serves one row at a time")
-        futures = [
-            self.pool.submit(
-                self.tab,
-                self.turn,
-                lambda i=i: rollout_row(
-                    _THREAD,
-                    model,
-                    data,
-                    None if warm_out is None else warm_out[i],
-                    initial_state=initial[i : i + 1],
-                    control=ctrl[i : i + 1],
-                    initial_warmstart=warm[i : i + 1],
-                    state=state[i : i + 1],
-                    sensordata=sensordata[i : i + 1],
-                ),
-                self.wanted,
-            )
-            for i in range(len(ctrl))
-        ]
-        if wait:
-            wait_futures(futures)
-            for f in futures:
-                if not f.cancelled():
-                    f.result()  # a row's exception, raised here
-        return futures
-
-
-_THREAD = threading.local()
-"""Each pool thread's pool-less rollout and MjData per model (MjData is not shared between threads)."""
+    def _submit(self, call: Callable[[], None]) -> Future:
+        return self.pool.submit(self.tab, self.turn, call, self.wanted)
 
 
 class OnTurns:

@@ -6,9 +6,12 @@ Linux only where it matters (per-thread nice); elsewhere the priorities are left
 
 from __future__ import annotations
 
+import functools
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import wait as wait_futures
 
 import mujoco
 import numpy as np
@@ -57,33 +60,13 @@ class _FifoLock:
             self._cond.notify_all()
 
 
-class RolloutThreads:
-    """``n`` Python threads, ``nice`` below their creator, that run MuJoCo rollouts one record each.
+class RowRunner:
+    """Where rollouts run, one record (row) a task: ``rollout`` submits each row's pool-less rollout
+    (``rollout_row``) through ``_submit`` and, with ``wait``, blocks until all are in. A row whose
+    future is cancelled (never run) leaves its arrays as they were."""
 
-    Why not ``mujoco.rollout.Rollout(nthread=n)``: its caller waits for the pool by spinning
-    (``std::this_thread::yield``) at the caller's own priority, so a server thread waiting for a
-    niced ensemble burnt a core at full priority for the whole batch (measured: the waiting thread
-    used 0.82 s of CPU in a 0.82 s rollout). Here each thread calls a pool-less rollout, which runs
-    on that thread with the GIL released, and the caller blocks on a future without using the CPU.
-    The threads take the GIL only to enter and leave a rollout. Rows are independent (each from its
-    own initial state and warm start), so the results do not depend on which thread ran them.
-    """
-
-    def __init__(self, n: int, nice: int = 0, name: str = "rollout") -> None:
-        self.n = max(1, int(n))
-        self._local = threading.local()
-        self._executor = ThreadPoolExecutor(
-            self.n, thread_name_prefix=name, initializer=self._start_thread, initargs=(int(nice),)
-        )
-        started = threading.Barrier(self.n + 1)  # all threads now (an executor starts them lazily)
-        for _ in range(self.n):
-            self._executor.submit(started.wait)
-        started.wait()
-
-    @staticmethod
-    def _start_thread(nice: int) -> None:
-        if nice > 0:  # lowering needs no privilege; the creator's priority is untouched
-            lower_thread_priority(nice)
+    def _submit(self, call: Callable[[], None]) -> Future:
+        raise NotImplementedError
 
     def rollout(
         self,
@@ -105,24 +88,59 @@ class RolloutThreads:
         if data is not None and len(ctrl) != 1:
             raise ValueError("a given MjData serves one row at a time")
         futures = [
-            self._executor.submit(
-                rollout_row,
-                self._local,
-                model,
-                data,
-                None if warm_out is None else warm_out[i],
-                initial_state=initial[i : i + 1],
-                control=ctrl[i : i + 1],
-                initial_warmstart=warm[i : i + 1],
-                state=state[i : i + 1],
-                sensordata=sensordata[i : i + 1],
+            self._submit(
+                functools.partial(
+                    rollout_row,
+                    _THREAD,
+                    model,
+                    data,
+                    None if warm_out is None else warm_out[i],
+                    initial_state=initial[i : i + 1],
+                    control=ctrl[i : i + 1],
+                    initial_warmstart=warm[i : i + 1],
+                    state=state[i : i + 1],
+                    sensordata=sensordata[i : i + 1],
+                )
             )
             for i in range(len(ctrl))
         ]
         if wait:
+            wait_futures(futures)
             for f in futures:
-                f.result()
+                if not f.cancelled():
+                    f.result()  # a row's exception, raised here
         return futures
+
+
+class RolloutThreads(RowRunner):
+    """``n`` Python threads, ``nice`` below their creator, that run MuJoCo rollouts one record each.
+
+    Why not ``mujoco.rollout.Rollout(nthread=n)``: its caller waits for the pool by spinning
+    (``std::this_thread::yield``) at the caller's own priority, so a server thread waiting for a
+    niced ensemble burnt a core at full priority for the whole batch (measured: the waiting thread
+    used 0.82 s of CPU in a 0.82 s rollout). Here each thread calls a pool-less rollout, which runs
+    on that thread with the GIL released, and the caller blocks on a future without using the CPU.
+    The threads take the GIL only to enter and leave a rollout. Rows are independent (each from its
+    own initial state and warm start), so the results do not depend on which thread ran them.
+    """
+
+    def __init__(self, n: int, nice: int = 0, name: str = "rollout") -> None:
+        self.n = max(1, int(n))
+        self._executor = ThreadPoolExecutor(
+            self.n, thread_name_prefix=name, initializer=self._start_thread, initargs=(int(nice),)
+        )
+        started = threading.Barrier(self.n + 1)  # all threads now (an executor starts them lazily)
+        for _ in range(self.n):
+            self._executor.submit(started.wait)
+        started.wait()
+
+    @staticmethod
+    def _start_thread(nice: int) -> None:
+        if nice > 0:  # lowering needs no privilege; the creator's priority is untouched
+            lower_thread_priority(nice)
+
+    def _submit(self, call: Callable[[], None]) -> Future:
+        return self._executor.submit(call)
 
     def close(self) -> None:
         """Finish the rollouts in progress and stop the threads."""
@@ -155,3 +173,7 @@ def rollout_row(
     local.runner.rollout(model, data, **arrays)
     if warm_out is not None:
         warm_out[:] = data.qacc_warmstart
+
+
+_THREAD = threading.local()
+"""Each rollout thread's pool-less rollout and its MjData per model (MjData is never shared)."""
