@@ -38,6 +38,9 @@ def test_bench_load_two_tabs(checkpoint, capsys):
         [r["single_decoded_p95_ms"], *r["multi_decoded_p95_ms"], r["rss_peak_mb"], r["rss_idle_after_mb"]]
     ).all()
     assert min(r["mouse_moves"]) > 0  # every page dragged, each from its own driver process
+    # Each page's own state was sampled while it dragged (what a long run's slowing is read from).
+    for samples in r["page_samples"]:
+        assert len(samples) >= 2 and all(x["heap_mb"] > 0 and x["dom_nodes"] > 50 for x in samples), samples
     assert np.isfinite(  # server side: first motion and replay per client, and their fairness; browser side
         [
             r["single_first_motion_p95_ms"],

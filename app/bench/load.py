@@ -175,6 +175,8 @@ def bench_load(
         "mouse_moves": [c["mouse_moves"] for c in multi["clients"]],
         "slowest_move_s": [c["slowest_move_s"] for c in multi["clients"]],
         "page_stalls": [c["stalls"] for c in multi["clients"]],
+        # Each page's own state every 30 s of its drags (JS heap, DOM size, long tasks, pointer moves).
+        "page_samples": [c.get("page_samples", []) for c in multi["clients"]],
         # Browser side: how long a page took to take a pointer move (dispatch -> handled).
         # Cores used over the drags (of ``cpus``): the server's process and the browsers'.
         "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),

@@ -48,6 +48,23 @@ DWELL_S = 3.0
 gait they let go of. Without rests (0) a replay finishes only when the drags stop (1-4 a page in
 60 s), and the replay-ready figures are a handful of samples."""
 VIEWPORT = {"width": 960, "height": 600}
+PAGE_SAMPLE_S = 30.0
+"""How often a dragging page's own state is sampled (JS heap, DOM size, long tasks, pointer moves);
+a third of the drags' time where that is shorter."""
+PAGE_PROBE = """() => {
+  if (!window.__slLong) {
+    window.__slLong = [];
+    new PerformanceObserver((l) => { for (const e of l.getEntries()) window.__slLong.push(e.duration); })
+      .observe({type: "longtask", buffered: true});
+  }
+  const long = window.__slLong.splice(0);
+  return {heap_mb: performance.memory ? performance.memory.usedJSHeapSize / 1e6 : null,
+          dom_nodes: document.getElementsByTagName("*").length,
+          long_tasks: long.length, long_ms: long.reduce((a, b) => a + b, 0)};
+}"""
+"""Page-side figures since the last probe: the JS heap in use, the DOM's element count and the main
+thread's long tasks (> 50 ms; Chromium's Long Tasks API), so a page that slows over a long run shows
+where its time goes."""
 """Each page's size: software WebGL's cost grows with the pixels, and the browsers are only load."""
 
 
@@ -73,6 +90,7 @@ class _Dragger:
         self.moves = 0
         self.slowest_step_s = 0.0  # the longest a page took to take one pointer move
         self.step_s: list[float] = []  # each pointer move: dispatched until the page took it
+        self.sampled = 0  # moves already in a page sample
         self.stalls = 0  # times the page did not show its sliders within 30 s
         self._steps_left = 0
         self._x = self._y = 0.0
@@ -180,8 +198,25 @@ class _Driver:
             for p, s in zip(self.pages, seeds, strict=True)
         ]
         start = time.perf_counter()
+        samples: list[list[dict]] = [[] for _ in draggers]
+        for page in self.pages:
+            page.evaluate(PAGE_PROBE)  # installs the long-task observer
+        period = min(PAGE_SAMPLE_S, seconds / 3)  # a short run gets its samples too
+        next_sample = start + period
         while time.perf_counter() - start < seconds:
             round_start = time.perf_counter()
+            if round_start >= next_sample:
+                next_sample += period
+                for dr, page, out in zip(draggers, self.pages, samples, strict=True):
+                    window, dr.sampled = dr.step_s[dr.sampled :], len(dr.step_s)
+                    out.append(
+                        page.evaluate(PAGE_PROBE)
+                        | {
+                            "t_s": round_start - start,
+                            "moves": len(window),
+                            "move_p95_ms": float(np.percentile(window, 95)) * 1e3 if window else float("nan"),
+                        }
+                    )
             for dr in draggers:
                 t0 = time.perf_counter()
                 if not dr.step():
@@ -198,8 +233,9 @@ class _Driver:
                 "slowest_move_s": dr.slowest_step_s,
                 "move_p50_ms": float(np.percentile(dr.step_s, 50)) * 1e3 if dr.step_s else float("nan"),
                 "move_p95_ms": float(np.percentile(dr.step_s, 95)) * 1e3 if dr.step_s else float("nan"),
+                "page_samples": out,
             }
-            for dr in draggers
+            for dr, out in zip(draggers, samples, strict=True)
         ]
 
     def shown(self, index: int) -> list[float]:

@@ -136,6 +136,18 @@ def load(r: dict) -> None:
                 else ""
             )
         )
+    pages = [("the Chromium page", (r["browser_page"] or {}).get("page_samples"))]
+    pages += [(f"page {i + 1}", samples) for i, samples in enumerate(r.get("page_samples", []))]
+    for name, samples in pages:
+        if samples:
+            print(
+                f"{name} over time (s: JS heap MB / DOM elements / long tasks ms / pointer move p95 ms): "
+                + "; ".join(
+                    f"{x['t_s']:.0f}: {x['heap_mb'] or float('nan'):.0f} / {x['dom_nodes']} / "
+                    f"{x['long_ms']:.0f} / {x['move_p95_ms']:.0f}"
+                    for x in samples
+                )
+            )
     if r.get("minute_p95_ms"):
         print(
             "per minute of the multi-client phase, p95 (ms): "
