@@ -74,9 +74,9 @@ class SamplerConfig(BaseModel):
     lr: float = Field(2e-3, gt=0, description="Peak learning rate of the head (Adam, cosine to 1%).")
     hidden: int = Field(256, ge=8, description="Width of the head's hidden layers.")
     head_sees_z_b: bool = Field(
-        True,
-        description="The head reads the member's z_B beside its coefficients (a record's posterior, a "
-        "sampler gait's draw): which side of physics' spread the slider sits on.",
+        False,
+        description="The head also reads the member's z_B (a record's posterior, a sampler gait's draw). "
+        "Off for the shipped checkpoint: its path is then the member's alone (docs/model.md).",
     )
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
 

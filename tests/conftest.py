@@ -65,5 +65,6 @@ def member_checkpoint(tmp_path_factory):
         data, trained, TrainConfig(epochs=2, batch_size=2, val_fraction=0.34), SMALL, log=None, progress=False
     )
     out = tmp_path_factory.mktemp("ckpt_structured")
-    fit_sampler(trained, data, out, SamplerConfig(samples=4, epochs=3, hidden=16), workers=2, log=None)
+    cfg = SamplerConfig(samples=4, epochs=3, hidden=16, head_sees_z_b=True)  # the shipped head: member alone
+    fit_sampler(trained, data, out, cfg, workers=2, log=None)
     return out, data
