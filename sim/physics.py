@@ -104,9 +104,7 @@ class Simulator:
         batch = ctrl.shape[0]
         if start is None:
             initial = np.broadcast_to(self.initial_state, (batch, self.initial_state.size))
-            # A zero warm start for every rollout, as mj_resetData leaves it: results then do not
-            # depend on which thread ran the previous rollout.
-            warm = np.zeros((batch, self.model.nv))
+            warm = np.zeros((batch, self.model.nv))  # as mj_resetData: no thread's history in it
         else:
             initial, warm = start.state, start.warm
         m, n_steps = self.model, ctrl.shape[1]
@@ -168,16 +166,14 @@ class Simulator:
                 ``samples``: the results are the whole series from the record's start, bit-identical
                 to one uninterrupted call's (tested); only the steps after the pause are simulated.
             wanted: asked each time a part of the batch gets its turn (callers sharing the
-                simulator roll out first come, first served); False: the rest is not simulated
-                and None is returned (a batch whose gait was left while it waited in line).
-            runner: run the rows on a shared pool's turns (``Simulator.rollout``); None returned
-                where one was dropped as unwanted.
+                simulator roll out first come, first served); False: the rest is not simulated (None).
+            runner: on a shared pool's turns (``rollout``); None where a row was dropped.
 
         Returns:
             BatchResult with (B, T, 8) joint angles and (B, T, 6) body states; a failed row's
             ``failures`` entry names the problem (its measurements are then meaningless).
             Records are independent (same start, zero warm start): rolled out ``max_batch`` at a
-            time, the results are those of one call.
+            time, the results are one call's.
         """
         commands = np.asarray(commands, dtype=np.float64)
         expected = (self.excitation.n_samples, N_JOINTS)
@@ -343,16 +339,16 @@ class Simulator:
                     m, initial, ctrl[:, done:end], warm, out_state, out_sens, data=data, wait=False
                 )
                 while wanted is not None and not chunk.done():
-                    if not wanted():
-                        # Still queued (the runner busy with another chunk): it never runs. Else it
-                        # finishes on its thread, unread (its arrays and MjData are this stream's).
+                    if not wanted():  # queued: never runs; running: finishes unread
                         chunk.cancel()
                         return
                     wait_futures([chunk], timeout=STREAM_POLL_S, return_when=FIRST_COMPLETED)
+                wait_futures([chunk])
+                if chunk.cancelled():
+                    return  # dropped unrun when its turn came: the stream was no longer wanted
                 chunk.result()
             warm = data.qacc_warmstart[None].copy()
-            # The steps before passed their checks: only this chunk's are new (same verdict and
-            # message as checking the whole prefix, at a chunk's cost instead of the prefix's).
+            # Only this chunk's steps are new to the checks (the same verdict as the whole prefix's).
             failure = self._diagnose_one(state[done:end], sens[done:end], m.opt.timestep, first=done)
             initial, done = state[None, end - 1], end
             n = int(np.searchsorted(record, done))  # samples whose step has been simulated

@@ -173,6 +173,11 @@ class FairRunner(RowRunner):
         return self.pool.submit(self.tab, self.turn, call, self.wanted)
 
 
+SEGMENT_SAMPLES = 500
+"""Record samples (25 s) of a batch row per task on the pool (~0.1 s of physics; a whole 100 s row
+is ~0.4 s): how long a new gait's first motion can wait for a thread behind an ensemble."""
+
+
 class OnTurns:
     """A ``Simulator`` whose batches run as one tab's tasks of one class on a ``FairPhysics``: for
     code written against a simulator (``LocalBackend.on``, an ensemble's batches). ``workers`` is
@@ -183,8 +188,18 @@ class OnTurns:
         self.workers = runner.pool.threads
 
     def simulate(self, commands, wanted=None, samples=None, resume=None):
-        """``Simulator.simulate`` on the pool's turns (None where a row was dropped as unwanted)."""
-        return self._simulator.simulate(commands, wanted, samples, resume, runner=self._runner)
+        """``Simulator.simulate`` on the pool's turns (None where a row was dropped as unwanted). A
+        whole batch runs in segments of ``SEGMENT_SAMPLES`` per row and task (paused and carried on:
+        the same numbers as one rollout), so no task holds a thread long."""
+        if samples is not None or resume is not None:
+            return self._simulator.simulate(commands, wanted, samples, resume, runner=self._runner)
+        total, result = self._simulator.excitation.n_samples, None
+        for end in range(SEGMENT_SAMPLES, total + SEGMENT_SAMPLES, SEGMENT_SAMPLES):
+            paused = None if result is None else result.paused
+            result = self._simulator.simulate(commands, wanted, min(end, total), paused, runner=self._runner)
+            if result is None:
+                return None
+        return result
 
     def replay(self, commands):
         """``Simulator.replay`` on the pool's turns."""

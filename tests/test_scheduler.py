@@ -108,8 +108,12 @@ def test_replays_and_batches_on_the_pool_are_bit_identical_to_the_simulators_own
         parts = list(sim.stream(commands[0], runner=lambda k: pool.runner("tab", Turn(min(k, 1)))))
         np.testing.assert_array_equal(parts[-1].joint_angles, own.joint_angles[0])
         assert pool.served[Turn.FIRST_MOTION] == 1 and pool.served[Turn.SETTLED] == len(parts) - 1
-        # a batch whose rows are no longer wanted is dropped: None, as a superseded batch
+        # batches run in 25 s segments per task (4 tasks a row), the same numbers as one rollout
+        assert pool.served[Turn.ENSEMBLE] == len(commands) * 4
+        # a batch whose rows are no longer wanted is dropped: None, as a superseded batch; a stream
+        # whose chunk is dropped when its turn comes ends there (no error)
         assert OnTurns(sim, pool.runner("tab", Turn.ENSEMBLE, lambda: False)).simulate(commands) is None
+        assert list(sim.stream(commands[0], runner=pool.runner("tab", Turn.SETTLED, lambda: False))) == []
     finally:
         pool.close()
         sim.close()
