@@ -1,6 +1,5 @@
 """Designer users without a browser: viser's wire protocol from asyncio (``bench load --driver
-protocol``). A Chromium per user on the benchmark machine competes with the server it measures; a
-protocol client costs next to nothing, as a load tool's clients should. Against viser 1.1.x it does
+protocol``), costing next to nothing beside the server they measure. Against viser 1.1.x it does
 what a page does on the wire: joins with the subprotocol ``viser-v{version}`` and a
 ``ViewerCameraMessage`` (no client exists until one arrives) and keeps reading; keeps the GUI it is
 sent (creation messages by uuid, ``GuiUpdateMessage`` merges) and finds controls by label; pauses
@@ -11,8 +10,8 @@ Server frames: two little-endian u64 lengths, a zstd msgpack body (``messages``,
 from the server's ``perf_counter``, the system's monotonic clock, ``binaryBufferLengths``) and
 8-byte aligned buffers its ``{"__binary_index", "dtype"}`` placeholders point to. The timestamp
 splits a latency into server time and delivery. A drag is matched to what it caused by the readout
-(``app.readout``), which carries its gait's slider values and the replay's state. Imports numpy,
-msgspec, zstandard and websockets only (viser's own dependencies): the clients' process stays small.
+(``app.readout``), which carries its gait's slider values and the replay's state. Imports only
+numpy and viser's own dependencies (msgspec, zstandard, websockets).
 """
 
 from __future__ import annotations
