@@ -249,10 +249,8 @@ class ProtocolClient:
         drag = None
         for value in path:
             self.values[i] = value
-            if drag is None and self.values == final:
-                # Timed from the first send of the final value (the server may draw its view before
-                # the drag's last sends go out): registered before it goes, so no view is missed.
-                drag = Drag(i, tuple(final), time.perf_counter())
+            if drag is None and self.values == final:  # timed from the final value's first send
+                drag = Drag(i, tuple(final), time.perf_counter())  # (its view can beat the last sends)
                 self.drags.append(drag)
             await self.send(uuids[i], value)
             await asyncio.sleep(SEND_PERIOD_S)
