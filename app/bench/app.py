@@ -34,7 +34,7 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, s
         rng = np.random.default_rng(seed)
         model = load_model()
         data = mujoco.MjData(model)
-        bare_sim = Simulator(workers=server.simulator.workers)
+        bare_sim = Simulator(workers=server.physics.threads)  # the ensemble baseline on as many threads
         rows = []
         for _ in range(moves):
             designer.sliders[int(rng.integers(len(designer.sliders)))].value = float(
