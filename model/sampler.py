@@ -217,9 +217,11 @@ def fit_sampler(
         def norm(body: np.ndarray) -> np.ndarray:
             return (np.asarray(body, np.float64) - model._body_mean) / model._body_std
 
-        z_va = model.encode(ds.shape[va_idx], ds.body_ds[va_idx])[0]
-        z_tr_all = np.concatenate([z_post, gaits["z_b"][~g_val]]) if cfg.head_sees_z_b else None
-        z_va_all = np.concatenate([z_va, gaits["z_b"][g_val]]) if cfg.head_sees_z_b else None
+        z_va, z_tr_all, z_va_all, z_g_val = None, None, None, None  # z_B inputs: only a head that reads them
+        if cfg.head_sees_z_b:
+            z_va, z_g_val = model.encode(ds.shape[va_idx], ds.body_ds[va_idx])[0], gaits["z_b"][g_val]
+            z_tr_all = np.concatenate([z_post, gaits["z_b"][~g_val]])
+            z_va_all = np.concatenate([z_va, z_g_val])
         x = member_inputs(np.concatenate([rec_tr, gaits["shape"][~g_val]]), support, z_tr_all)
         y = norm(np.concatenate([ds.body_ds[tr_idx], gaits["body"][~g_val]]))
         vx = member_inputs(np.concatenate([rec_va, gaits["shape"][g_val]]), support, z_va_all)
@@ -242,7 +244,7 @@ def fit_sampler(
         model = GaitModel(
             model.net, model.config.model_copy(update={"member_head": head.cfg}), model.path, head
         )
-        pred = model.predict_paths(project_many(gaits["shape"][g_val], members)[0], gaits["z_b"][g_val])
+        pred = model.predict_paths(project_many(gaits["shape"][g_val], members)[0], z_g_val)
         fit["held_out_xy_r2_median"] = float(np.median(_path_r2(pred, gaits["body"][g_val])))
         pred = model.predict_paths(project_many(rec_va, members)[0], z_va)
         fit["val_records_xy_r2_median"] = float(np.median(_path_r2(pred, ds.body_ds[va_idx])))
