@@ -83,8 +83,9 @@ class MemberDecoding:
                 f"this checkpoint's member path head reads each member's z_B: pass z_b of shape "
                 f"({len(members)}, {head_cfg.z_b_dim})"
             )
-        shapes = np.stack([m.shape() for m in members])
-        x = member_inputs(shapes, np.asarray(head_cfg.support), z_b if head_cfg.z_b_dim else None)
+        x = member_inputs(
+            members, np.asarray(head_cfg.support), z_b if head_cfg.z_b_dim else None, head_cfg.inputs
+        )
         x = torch.as_tensor(_finite("z_b", x), dtype=torch.float32)
         head = self._graphs.one_input("member_head", self.member_head, "forward", x) if len(x) == 1 else None
         with self._lock, torch.inference_mode():

@@ -23,19 +23,20 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.density import fit_density, name_components
-from snakeloco.model.member_path import fit_member_head, member_inputs
+from snakeloco.model.member_path import fit_member_head, member_inputs, with_mirror_images
 from snakeloco.model.replays import load_side_file, replay_shapes, save_side_file
 from snakeloco.model.train import split_records
 from snakeloco.sim import DatasetError, joint_shape, load_dataset
 from snakeloco.sim.backend import BackendConfig, open_backend
-from snakeloco.sim.members import project_many
+from snakeloco.sim.members import Member, project_many
 
 SAMPLER_GAITS = "sampler-gaits"
 GAIT_KEYS = ("z_b", "mode", "z_index", "shape", "body")
@@ -80,7 +81,26 @@ class SamplerConfig(BaseModel):
         description="The head also reads the member's z_B (a record's posterior, a sampler gait's draw). "
         "Off for the shipped checkpoint: its path is then the member's alone (docs/model.md).",
     )
+    head_inputs: Literal["coefficients", "named"] = Field(
+        "coefficients",
+        description="What describes a member to the head: its coefficients (the shipped undulation "
+        "checkpoint) or its named parameters (kind, amplitudes, wavenumbers, phases, frequency, "
+        "steering; the every family's, docs/every-model.md).",
+    )
+    mirror: bool = Field(
+        False,
+        description="Train the head on each member's mirror image too (yaw joints negated: the path "
+        "mirrored) where it is a member (every kind but undulation): more examples at no replay cost.",
+    )
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
+
+    @model_validator(mode="after")
+    def _mirror_has_no_z_b(self) -> SamplerConfig:
+        if self.mirror and self.head_sees_z_b:
+            raise ValueError(
+                "a mirrored member has no z_B of its own: mirror and head_sees_z_b exclude each other"
+            )
+        return self
 
 
 def _drawn(cfg: SamplerConfig) -> dict:
@@ -118,9 +138,9 @@ def replay_sampler_gaits(
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
-def record_members(ds, index: np.ndarray, family) -> np.ndarray:
-    """The commanded member shapes (n, 8, L, 2) of dataset records: each record's commands
-    transformed (``sim.joint_shape``: exact for its periodic commands) and projected onto its family."""
+def record_members(ds, index: np.ndarray, family) -> list[Member]:
+    """The members of dataset records: each record's commands transformed (``sim.joint_shape``: exact
+    for its periodic commands) and projected onto its family."""
     commanded = joint_shape(ds.commands[index].astype(np.float64), ds.config.excitation)
     members, residuals = project_many(commanded, family)
     if residuals.max() > 1e-4:
@@ -128,7 +148,7 @@ def record_members(ds, index: np.ndarray, family) -> np.ndarray:
             f"record {int(index[residuals.argmax()])} is not a member of its family (residual "
             f"{residuals.max():.2g}): the dataset and the family config disagree"
         )
-    return np.stack([m.shape() for m in members])
+    return members
 
 
 def _path_r2(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -222,10 +242,15 @@ def fit_sampler(
             z_va, z_g_val = model.encode(ds.shape[va_idx], ds.body_ds[va_idx])[0], gaits["z_b"][g_val]
             z_tr_all = np.concatenate([z_post, gaits["z_b"][~g_val]])
             z_va_all = np.concatenate([z_va, z_g_val])
-        x = member_inputs(np.concatenate([rec_tr, gaits["shape"][~g_val]]), support, z_tr_all)
-        y = norm(np.concatenate([ds.body_ds[tr_idx], gaits["body"][~g_val]]))
-        vx = member_inputs(np.concatenate([rec_va, gaits["shape"][g_val]]), support, z_va_all)
-        vy = norm(np.concatenate([ds.body_ds[va_idx], gaits["body"][g_val]]))
+        g_members = project_many(gaits["shape"], members)[0]  # exact: each projects onto itself
+        tr_members = rec_tr + [m for m, v in zip(g_members, g_val, strict=True) if not v]
+        va_members = rec_va + [m for m, v in zip(g_members, g_val, strict=True) if v]
+        y = np.concatenate([ds.body_ds[tr_idx], gaits["body"][~g_val]])
+        if cfg.mirror:
+            tr_members, y = with_mirror_images(tr_members, y)
+        x = member_inputs(tr_members, support, z_tr_all, cfg.head_inputs)
+        vx = member_inputs(va_members, support, z_va_all, cfg.head_inputs)
+        y, vy = norm(y), norm(np.concatenate([ds.body_ds[va_idx], gaits["body"][g_val]]))
         t0 = time.perf_counter()
         head, fit = fit_member_head(
             x,
@@ -233,6 +258,8 @@ def fit_sampler(
             vx,
             vy,
             support,
+            input_kind=cfg.head_inputs,
+            mirrored=cfg.mirror,
             z_b_dim=model.z_b_dim if cfg.head_sees_z_b else 0,
             epochs=cfg.epochs,
             lr=cfg.lr,
@@ -244,9 +271,9 @@ def fit_sampler(
         model = GaitModel(
             model.net, model.config.model_copy(update={"member_head": head.cfg}), model.path, head
         )
-        pred = model.predict_paths(project_many(gaits["shape"][g_val], members)[0], z_g_val)
+        pred = model.predict_paths([m for m, v in zip(g_members, g_val, strict=True) if v], z_g_val)
         fit["held_out_xy_r2_median"] = float(np.median(_path_r2(pred, gaits["body"][g_val])))
-        pred = model.predict_paths(project_many(rec_va, members)[0], z_va)
+        pred = model.predict_paths(rec_va, z_va)
         fit["val_records_xy_r2_median"] = float(np.median(_path_r2(pred, ds.body_ds[va_idx])))
         head_cfg = head.cfg.model_copy(update={"summary": fit})
         summary["member_head"] = fit

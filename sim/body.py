@@ -14,6 +14,14 @@ import numpy as np
 
 BODY_CHANNELS = ("vertical", "forward", "sideways", "roll", "pitch", "yaw")
 """Order of the 6 body channels: 3 positions (m), then 3 angles (rad)."""
+MIRROR_SIGNS = np.array([1.0, 1.0, -1.0, -1.0, 1.0, -1.0])
+"""Per body channel, its sign in the mirror image of a path (y -> -y): sideways, roll and yaw flip."""
+
+
+def mirror_body(body: np.ndarray) -> np.ndarray:
+    """The mirror image (y -> -y) of body series (..., 6): what the mirrored gait does
+    (``sim.members.Member.mirrored``)."""
+    return np.asarray(body) * MIRROR_SIGNS
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:

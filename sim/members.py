@@ -42,6 +42,13 @@ SPECIFIC_FIRST = ("undulate", "roll", "sidewind", "turn")
 so a shape both fit equally well is called by the more specific name."""
 FREQS = RECORD.freqs
 """(L,) excited frequencies (Hz)."""
+SPECIFIC_MARGIN = 1.5
+"""A less constrained kind must fit a shape this many times better (relative residual) than a more
+specific one to be chosen. A decoded shape is never exactly one kind's, and the kind with the most
+freedom (turning: free pitch and yaw waves) absorbs the most of any shape: on 96 held-out records of
+the every family, the least residual alone named the record's own kind for 28% of their decoded
+shapes, this margin for 92% (docs/every-model.md). An exact member still projects onto itself (its
+own kind's residual is 0)."""
 GRID = 721
 """Spatial-frequency grid points per fit before Newton's polish (0.003 rad per module apart on the
 widest range): fine enough that the grid's best lies in the basin of the global optimum."""
@@ -68,6 +75,26 @@ class Member(BaseModel):
         """Its joint commands (2000, 8) rad at 20 Hz: what is replayed, drawn and exported."""
         return shape_to_commands(self.shape())
 
+    def mirrored(self) -> Member:
+        """The member's mirror image: its yaw joints' commands negated (the yaw wave's offset and the
+        steering phase turned by pi), which the robot's left-right symmetry answers with the mirror
+        image of the path (``sim.body.mirror_body``; measured on 6 every-family members: final
+        positions equal to 0.01 m with sideways, roll and yaw negated). A member of the family again
+        where its kind's offset is free (``mirror_in_family``); an undulation's is fixed at 0, so
+        its image (the same yaw wave half a period later) is no member."""
+        w = self.wave
+        return self.model_copy(
+            update={
+                "wave": w.model_copy(update={"delta": _turned(w.delta)}),
+                "steering_phase": _turned(self.steering_phase) if self.steering_amplitude > 0 else 0.0,
+            }
+        )
+
+    @property
+    def mirror_in_family(self) -> bool:
+        """Whether ``mirrored`` is a member of the family again (every kind but undulation)."""
+        return self.kind != "undulate"
+
     def params(self) -> dict:
         """JSON-ready parameters; ``Member.model_validate(params)`` gives the same member back."""
         return self.model_dump(mode="json")
@@ -90,6 +117,11 @@ class Member(BaseModel):
             f0 = FREQS[STEERING_BIN]
             text += f"; steering {self.steering_amplitude:.2f} rad at {f0:.2f} Hz"
         return text
+
+
+def _turned(phase: float) -> float:
+    """phase + pi, wrapped to [-pi, pi)."""
+    return float((phase + 2 * np.pi) % (2 * np.pi) - np.pi)
 
 
 def member_from_draw(drawn: dict) -> Member:
@@ -260,19 +292,24 @@ def residual(shape: np.ndarray, member: Member) -> float:
     return float(np.linalg.norm(shape - member.shape()) / max(np.linalg.norm(shape), 1e-12))
 
 
-def project(shape: np.ndarray, cfg: StructuredConfig) -> tuple[Member, float]:
+def project(
+    shape: np.ndarray, cfg: StructuredConfig, margin: float = SPECIFIC_MARGIN
+) -> tuple[Member, float]:
     """The member of family ``cfg`` closest to a commanded joint shape (8, L, 2) rad, and the fit's
-    relative residual (0 for a member: projecting a member gives it back)."""
+    relative residual (0 for a member: projecting a member gives it back). Of the kinds, the most
+    specific one whose fit is within ``margin`` times the best fit's residual (``SPECIFIC_MARGIN``;
+    1: the least residual)."""
     shape = np.asarray(shape, np.float64)
     if shape.shape != (len(MODULES), RECORD.n_components, 2) or not np.isfinite(shape).all():
         raise ValueError(f"a joint shape must be finite ({len(MODULES)}, {RECORD.n_components}, 2)")
     c = shape[..., 0] + 1j * shape[..., 1]  # (8, L)
     amplitude, phase = _steering(c[:, STEERING_BIN], cfg)
-    best: tuple[float, Member] | None = None
+    fits: list[tuple[float, Member]] = []  # each kind's best, most specific kind first
     weights = dict(zip(KINDS, cfg.kind_weights, strict=True))
     for kind in SPECIFIC_FIRST:
         if weights[kind] <= 0:
             continue
+        best: tuple[float, Member] | None = None
         for f in cfg.frequencies[kind]:
             b = int(np.argmin(np.abs(FREQS - f)))
             wave = _fit_wave(kind, c[:, b], float(FREQS[b]), cfg)
@@ -280,11 +317,15 @@ def project(shape: np.ndarray, cfg: StructuredConfig) -> tuple[Member, float]:
                 Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase)
             )
             r = residual(shape, member)
-            if best is None or r < best[0] - 1e-9:  # ties go to the more specific kind
+            if best is None or r < best[0] - 1e-9:
                 best = (r, member)
-    if best is None:
+        if best is not None:
+            fits.append(best)
+    if not fits:
         raise ValueError("the family allows no kind of wave (every kind weight is 0)")
-    return best[1], best[0]
+    least = min(r for r, _ in fits)
+    r, member = next(fit for fit in fits if fit[0] <= margin * least + 1e-9)
+    return member, r
 
 
 def project_many(shapes: np.ndarray, cfg: StructuredConfig) -> tuple[list[Member], np.ndarray]:

@@ -170,9 +170,7 @@ def test_one_members_path_and_statistics_run_traced_and_match_eager_exactly():
     members, _, measured, body, stats = m.decode_members(z_b)
     assert m._graphs.made["member_head"] is not None and m._graphs.made["predict_stats"] is not None
     head = m.config.member_head
-    x = member_inputs(
-        np.stack([q.shape() for q in members]), np.asarray(head.support), z_b if head.z_b_dim else None
-    )
+    x = member_inputs(members, np.asarray(head.support), z_b if head.z_b_dim else None, head.inputs)
     with torch.inference_mode():
         eager_body = m.member_head(torch.as_tensor(x, dtype=torch.float32)).numpy().astype(np.float64)
         eager_stats = m.stats_from_network(m.net.predict_stats(m.normalize_shape(measured)).numpy())
