@@ -42,6 +42,8 @@ from snakeloco.sim.members import Member
 from snakeloco.sim.structured import KINDS
 
 MEMBER_HEAD_WEIGHTS = "member_head.safetensors"
+HeadInputs = Literal["coefficients", "named"]
+"""What describes a member to the head (``member_inputs``)."""
 CHANNEL_WEIGHTS = (1.0, 4.0, 4.0, 1.0, 1.0, 4.0)
 """Loss weight per body channel (vertical, forward, sideways, roll, pitch, yaw): the path in the
 plane and the heading are what the designer draws and scores; the oscillating channels still count
@@ -54,9 +56,7 @@ class MemberHeadConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     support: list[list[bool]] = Field(description="(8, L) the coefficients fed in (the family's support).")
-    inputs: Literal["coefficients", "named"] = Field(
-        "coefficients", description="What describes a member to the head (``member_inputs``)."
-    )
+    inputs: HeadInputs = Field("coefficients", description="What describes a member to the head.")
     mirrored: bool = Field(False, description="Trained on every member and its mirror image too.")
     input_mean: list[float] = Field(
         description="(2 S + z_b_dim,) mean of the inputs (rad, then z_B) over the training set."
@@ -120,7 +120,7 @@ def member_inputs(
     members: list[Member],
     support: np.ndarray,
     z_b: np.ndarray | None = None,
-    inputs: Literal["coefficients", "named"] = "coefficients",
+    inputs: HeadInputs = "coefficients",
 ) -> np.ndarray:
     """Members (and their slider positions z_b (B, Db)) -> the head's inputs: their commanded
     coefficients on the support (8, L), real and imaginary parts (B, 2 S), or their named parameters
@@ -142,7 +142,7 @@ def fit_member_head(
     val_body: np.ndarray,
     support: np.ndarray,
     *,
-    input_kind: Literal["coefficients", "named"] = "coefficients",
+    input_kind: HeadInputs = "coefficients",
     mirrored: bool = False,
     z_b_dim: int = 0,
     epochs: int = 400,

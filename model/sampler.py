@@ -23,7 +23,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -31,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.density import fit_density, name_components
-from snakeloco.model.member_path import fit_member_head, member_inputs, with_mirror_images
+from snakeloco.model.member_path import HeadInputs, fit_member_head, member_inputs, with_mirror_images
 from snakeloco.model.replays import load_side_file, replay_shapes, save_side_file
 from snakeloco.model.train import split_records
 from snakeloco.sim import DatasetError, joint_shape, load_dataset
@@ -81,7 +80,7 @@ class SamplerConfig(BaseModel):
         description="The head also reads the member's z_B (a record's posterior, a sampler gait's draw). "
         "Off for the shipped checkpoint: its path is then the member's alone (docs/model.md).",
     )
-    head_inputs: Literal["coefficients", "named"] = Field(
+    head_inputs: HeadInputs = Field(
         "coefficients",
         description="What describes a member to the head: its coefficients (the shipped undulation "
         "checkpoint) or its named parameters (kind, amplitudes, wavenumbers, phases, frequency, "

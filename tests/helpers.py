@@ -23,6 +23,15 @@ SMALL = TINY
 """A network small enough to train in seconds on the 4-record test dataset."""
 
 
+def random_commands(n: int, seed: int = 0) -> np.ndarray:
+    """n random-phase multisine command records (n, T, 8) of the record's excitation (the paper
+    family's gaits)."""
+    from snakeloco.sim import multisine, random_phases
+
+    rng = np.random.default_rng(seed)
+    return np.stack([multisine(random_phases(rng, RECORD), RECORD)[0] for _ in range(n)])
+
+
 def free_port() -> int:
     """A TCP port nothing listens on right now."""
     with socket.socket() as s:

@@ -18,16 +18,9 @@ from snakeloco.sim import (
     generate_dataset,
     joint_shape,
     load_dataset,
-    multisine,
-    random_phases,
 )
 
 EXC = ExcitationConfig()
-
-
-def _commands(n: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    return np.stack([multisine(random_phases(rng, EXC), EXC)[0] for _ in range(n)])  # (n, T, 8)
 
 
 def test_dataset_contents(tiny_dataset):

@@ -17,19 +17,14 @@ from snakeloco.sim import (
     Simulator,
     body_states,
     joint_shape,
-    multisine,
-    random_phases,
     replay,
     shape_to_commands,
 )
 from snakeloco.sim.command_rule import expand_commands
 
+from helpers import random_commands
+
 EXC = ExcitationConfig()
-
-
-def _commands(n: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    return np.stack([multisine(random_phases(rng, EXC), EXC)[0] for _ in range(n)])  # (n, T, 8)
 
 
 # --- robot -----------------------------------------------------------------------------------------
@@ -79,7 +74,7 @@ def test_excitation_bins_are_distinct_log_spaced_and_leak_free():
     # Log-spaced up to the 0.01 Hz bin rounding.
     target = np.geomspace(0.05, 3.0, 8)
     assert np.all(np.abs(freqs - target) <= 0.5 * EXC.sample_rate / EXC.n_samples + 1e-12)
-    commands = _commands(8)
+    commands = random_commands(8)
     assert np.abs(commands).max() <= COMMAND_LIMIT + 1e-12
     np.testing.assert_allclose(np.abs(commands).max(axis=(1, 2)), COMMAND_LIMIT)
     power = np.abs(np.fft.rfft(commands, axis=1)) ** 2  # (n, T/2+1, 8)
@@ -98,7 +93,7 @@ def test_excitation_config_rejects_colliding_bins():
 
 
 def test_shape_round_trip_reproduces_commands():
-    commands = _commands(3, seed=5)
+    commands = random_commands(3, seed=5)
     shape = joint_shape(commands)  # (3, 8, L, 2)
     assert shape.shape == (3, 8, 8, 2)
     back = shape_to_commands(shape, EXC.freqs)
@@ -132,7 +127,7 @@ def test_shape_to_commands_clips_and_checks_shape():
 
 def test_command_rule_lead_in_and_linear_interpolation():
     cfg = SimConfig()
-    commands = _commands(1)
+    commands = random_commands(1)
     ctrl = expand_commands(commands, 20, cfg)
     assert ctrl.shape == (1, (cfg.lead_in + EXC.n_samples) * 20, 8)
     np.testing.assert_array_equal(ctrl[0, 0], 0.0)  # starts from the straight pose
@@ -144,7 +139,7 @@ def test_command_rule_lead_in_and_linear_interpolation():
 
 
 def test_joint_tracking_at_excited_frequencies():
-    commands = _commands(4, seed=2)
+    commands = random_commands(4, seed=2)
     result = Simulator(workers=2).simulate(commands)
     assert result.failures == [None] * 4
     gain = joint_shape(result.joint_angles) / 1.0
@@ -174,13 +169,13 @@ def test_diverging_simulation_raises_a_specific_error():
     qvel = 1 + simulator.model.nq  # state = (time, qpos, qvel, ...)
     simulator.initial_state[qvel : qvel + 3] = 1e12  # the snake launched at 1e12 m/s
     with pytest.raises(SimulationError, match=r"non-finite|reset|diverged|thrown"):
-        simulator.replay(_commands(1)[0])
+        simulator.replay(random_commands(1)[0])
 
 
 def test_thrown_snake_is_detected():
     simulator = Simulator(workers=1, config=SimConfig(max_com_height=0.03))
     with pytest.raises(SimulationError, match="thrown into the air"):
-        simulator.replay(_commands(1)[0])
+        simulator.replay(random_commands(1)[0])
 
 
 def test_body_states_frame():
