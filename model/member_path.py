@@ -39,7 +39,7 @@ from torch import nn
 from snakeloco.model.fitting import fit_best
 from snakeloco.sim.body import mirror_body
 from snakeloco.sim.members import Member
-from snakeloco.sim.structured import KINDS
+from snakeloco.sim.structured import KINDS, StructuredConfig
 
 MEMBER_HEAD_WEIGHTS = "member_head.safetensors"
 HeadInputs = Literal["coefficients", "named"]
@@ -108,10 +108,12 @@ def named_inputs(members: list[Member]) -> np.ndarray:
     return np.array(rows, np.float64).reshape(len(members), NAMED_INPUTS)
 
 
-def with_mirror_images(members: list[Member], body: np.ndarray) -> tuple[list[Member], np.ndarray]:
+def with_mirror_images(
+    members: list[Member], body: np.ndarray, family: StructuredConfig
+) -> tuple[list[Member], np.ndarray]:
     """Training pairs (members, body series (N, T, 6)) and, after them, the mirror image of each pair
-    whose mirrored member is a member of the family (``Member.mirror_in_family``)."""
-    images = np.array([m.mirror_in_family for m in members], bool)
+    whose mirrored member is a member of ``family`` too (``StructuredConfig.mirrors``)."""
+    images = np.array([family.mirrors(m.kind) for m in members], bool)
     mirrored = [m.mirrored() for m, image in zip(members, images, strict=True) if image]
     return members + mirrored, np.concatenate([body, mirror_body(np.asarray(body)[images])])
 

@@ -246,7 +246,7 @@ def fit_sampler(
         va_members = rec_va + [m for m, v in zip(g_members, g_val, strict=True) if v]
         y = np.concatenate([ds.body_ds[tr_idx], gaits["body"][~g_val]])
         if cfg.mirror:
-            tr_members, y = with_mirror_images(tr_members, y)
+            tr_members, y = with_mirror_images(tr_members, y, members)
         x = member_inputs(tr_members, support, z_tr_all, cfg.head_inputs)
         vx = member_inputs(va_members, support, z_va_all, cfg.head_inputs)
         y, vy = norm(y), norm(np.concatenate([ds.body_ds[va_idx], gaits["body"][g_val]]))

@@ -32,7 +32,7 @@ from snakeloco.sim.excitation import RECORD
 from snakeloco.sim.gaits import MODULES, PITCH, GaitEquation
 from snakeloco.sim.robot import COMMAND_LIMIT
 from snakeloco.sim.spectra import shape_to_commands
-from snakeloco.sim.structured import KINDS, NU_RANGES, StructuredConfig
+from snakeloco.sim.structured import KINDS, NU_RANGES, StructuredConfig, library_gait
 
 STEERING_BIN = 0
 """The steering wave runs at the lowest excited frequency (0.05 Hz: 20 s periods)."""
@@ -80,8 +80,9 @@ class Member(BaseModel):
         steering phase turned by pi), which the robot's left-right symmetry answers with the mirror
         image of the path (``sim.body.mirror_body``; measured on 6 every-family members: final
         positions equal to 0.01 m with sideways, roll and yaw negated). A member of the family again
-        where its kind's offset is free (``mirror_in_family``); an undulation's is fixed at 0, so
-        its image (the same yaw wave half a period later) is no member."""
+        where the family says so (``StructuredConfig.mirrors``): an undulation's offset is fixed at 0
+        outside a library family, so there its image (the same yaw wave half a period later) is no
+        member."""
         w = self.wave
         return self.model_copy(
             update={
@@ -89,11 +90,6 @@ class Member(BaseModel):
                 "steering_phase": _turned(self.steering_phase) if self.steering_amplitude > 0 else 0.0,
             }
         )
-
-    @property
-    def mirror_in_family(self) -> bool:
-        """Whether ``mirrored`` is a member of the family again (every kind but undulation)."""
-        return self.kind != "undulate"
 
     def params(self) -> dict:
         """JSON-ready parameters; ``Member.model_validate(params)`` gives the same member back."""
@@ -259,6 +255,53 @@ def _fit_wave(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig)
     return GaitEquation(a_pitch=a_p, a_yaw=a_y, nu_pitch=nu_p, nu_yaw=nu_y, delta=delta, frequency=frequency)
 
 
+def _fit_library(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig) -> GaitEquation:
+    """The library family's ``kind`` wave at ``frequency`` closest to coefficients c (8,) complex at
+    its bin: the library gait's pitch and yaw templates, the yaw one forward or backward
+    (undulation), at the offset that fits (free in its drawn range and that range + pi where
+    ``library_offsets`` names the kind, else the gait's own or + pi), and the least-squares scale
+    in ``amplitude_scale``. Closed forms throughout: a member projects onto itself to rounding."""
+    base = library_gait(kind)
+    z = c * 1j  # A e^{i phi_k} (``_fit_wave``)
+    k = MODULES.astype(float)
+    pitch = np.where(PITCH, base.a_pitch * np.exp(1j * base.nu_pitch * k), 0)
+    lo, hi = cfg.amplitude_scale
+    best: tuple[float, GaitEquation] | None = None
+    for sign in (1.0, -1.0) if kind == "undulate" else (1.0,):
+        yaw = np.where(PITCH, 0, base.a_yaw * np.exp(1j * sign * base.nu_yaw * k))
+        if kind in cfg.library_offsets:
+            found = float(np.angle((z * np.conj(yaw)).sum()))
+            ranges = [cfg.library_offsets[kind], tuple(np.add(cfg.library_offsets[kind], np.pi))]
+            deltas = [_nearest_in(found, r) for r in ranges]
+        else:
+            deltas = [base.delta, base.delta + np.pi]
+        for delta in deltas:
+            template = pitch + yaw * np.exp(1j * delta)
+            s = float(np.clip((np.conj(template) * z).sum().real / (np.abs(template) ** 2).sum(), lo, hi))
+            r = float(np.linalg.norm(z - s * template))
+            if best is None or r < best[0] - 1e-12:
+                wave = base.model_copy(
+                    update={
+                        "a_pitch": s * base.a_pitch,
+                        "a_yaw": s * base.a_yaw,
+                        "nu_yaw": sign * base.nu_yaw,
+                        "delta": float(np.angle(np.exp(1j * delta))),
+                        "frequency": frequency,
+                    }
+                )
+                best = (r, wave)
+    return best[1]
+
+
+def _nearest_in(angle: float, bounds: tuple[float, float]) -> float:
+    """The angle in [lo, hi] (rad) nearest to ``angle`` on the circle."""
+    lo, hi = bounds
+    a = lo + (angle - lo) % (2 * np.pi)  # the same angle in [lo, lo + 2 pi)
+    if a <= hi:
+        return float(a)
+    return lo if (lo + 2 * np.pi - a) <= (a - hi) else hi
+
+
 def _steering(c0: np.ndarray, cfg: StructuredConfig) -> tuple[float, float]:
     """The steering wave (amplitude, phase) closest to the yaw joints' lowest-bin coefficients: their
     mean, its amplitude snapped to the family's {0} u [lo, hi]."""
@@ -312,7 +355,8 @@ def project(
         best: tuple[float, Member] | None = None
         for f in cfg.frequencies[kind]:
             b = int(np.argmin(np.abs(FREQS - f)))
-            wave = _fit_wave(kind, c[:, b], float(FREQS[b]), cfg)
+            fit = _fit_library if cfg.library else _fit_wave
+            wave = fit(kind, c[:, b], float(FREQS[b]), cfg)
             member = _within_limit(
                 Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase)
             )

@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.sim.excitation import RECORD
-from snakeloco.sim.gaits import GaitEquation
+from snakeloco.sim.gaits import PRESETS, GaitEquation
 from snakeloco.sim.robot import COMMAND_LIMIT, N_JOINTS
 from snakeloco.sim.spectra import shape_to_commands
 
@@ -106,6 +106,19 @@ class StructuredConfig(BaseModel):
         description="Range of a factor on the main wave's amplitudes (drawn per record where the range "
         "is not (1, 1)): slow gaits as well as fast ones, the waves' shapes unchanged.",
     )
+    library: bool = Field(
+        False,
+        description="Draw the gait library's gaits (``sim.gaits.PRESETS``, one a kind) instead of random "
+        "waves: each at amplitude_scale times its amplitudes, at one of its kind's frequencies, as tuned "
+        "or mirrored (yaw joints negated), undulation forward or backward, sidewinding's yaw offset "
+        "drawn in library_offsets. A few smooth parameters a kind, so the records sample each densely "
+        "(docs/every-model.md).",
+    )
+    library_offsets: dict[str, tuple[float, float]] = Field(
+        {},
+        description="In a library family: the yaw-offset range (rad) drawn per kind (its mirror image "
+        "adds pi); kinds not named keep the library gait's offset.",
+    )
     early_seconds: float = Field(
         0.0,
         ge=0,
@@ -131,6 +144,11 @@ class StructuredConfig(BaseModel):
         if spread > self.max_spread:
             return "redraw"
         return "keep" if replays >= self.members or spread <= self.sure_spread else "more"
+
+    def mirrors(self, kind: str) -> bool:
+        """Whether the mirror image of a ``kind`` member (yaw joints negated) is a member too: in a
+        library family every kind's; otherwise every kind's but undulation's (its offset is fixed)."""
+        return self.library or kind != "undulate"
 
     def amplitude_ranges(self, kind: str) -> tuple[tuple[float, float], tuple[float, float]]:
         """(pitch, yaw) amplitude ranges (rad) of a ``kind`` member of this family: what
@@ -158,6 +176,24 @@ STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
         early_max_spread=0.3,
         sure_spread=0.07,
     ),
+    "library": StructuredConfig(
+        kind_weights=(1.0, 2.0, 0.5, 0.5),
+        frequencies={
+            "undulate": (0.52, 0.93),
+            "sidewind": (0.52,),
+            "roll": (0.29, 0.52),
+            "turn": (0.29, 0.52),
+        },
+        second_wave=0.0,
+        steering=0.0,
+        amplitude_scale=(0.3, 1.0),
+        library=True,
+        library_offsets={"sidewind": (0.2, 1.1)},
+        max_draws=80,
+        early_seconds=20.0,
+        early_max_spread=0.3,
+        sure_spread=0.07,
+    ),
     "mixed": StructuredConfig(),
     "undulate": StructuredConfig(
         kind_weights=(1.0, 0.0, 0.0, 0.0),
@@ -175,7 +211,9 @@ every (the default): one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.5
 draws at 0.93 Hz passed the screen, 23 of 33 at 0.52 Hz) and 0.35-1 of its amplitude range (slow
 to fast, forward, backward, sideways, rolling, turning), with steering in 30% of the draws, screened
 against command noise by the cheap screen (a pause at 20 s, a 2-replay verdict where it is clear;
-docs/gaits.md). mixed: every kind with second waves, screened in full (the first structured
+docs/gaits.md). library: the gait library's four gaits at 0.3-1 of their amplitudes, mirrored or
+not, undulation either way, sidewinding's offset swept over 0.2-1.1 rad (its direction of travel
+over -15 to 150 deg), no steering (it spins sidewinding and rolling in place), screened alike. mixed: every kind with second waves, screened in full (the first structured
 dataset's). undulate:
 lateral undulation at 0.52 Hz, forward or backward, with slow steering in half the draws, each kept
 only if it also survives 10% errors on its joint shape (a model's decoding error): the family whose
@@ -229,6 +267,32 @@ def draw_wave(
     raise ValueError(f"unknown wave kind {kind!r}; one of {KINDS}")
 
 
+def library_gait(kind: str) -> GaitEquation:
+    """The gait library's ``kind`` gait (``sim.gaits.PRESETS``), which a library family scales."""
+    return PRESETS[kind].gait
+
+
+def draw_library_wave(kind: str, rng: np.random.Generator, cfg: StructuredConfig) -> GaitEquation:
+    """A library family's ``kind`` wave (``StructuredConfig.library``): the library gait scaled by s
+    in amplitude_scale, at one of the kind's frequencies, its offset drawn where library_offsets
+    names the kind, mirrored (offset + pi) or not, an undulation forward or backward."""
+    base = library_gait(kind)
+    f = float(rng.choice(cfg.frequencies[kind]))
+    s = rng.uniform(*cfg.amplitude_scale)
+    delta = rng.uniform(*cfg.library_offsets[kind]) if kind in cfg.library_offsets else base.delta
+    delta += np.pi * float(rng.integers(2))  # the mirror image
+    nu_yaw = base.nu_yaw * (float(rng.choice([-1.0, 1.0])) if kind == "undulate" else 1.0)
+    return base.model_copy(
+        update={
+            "a_pitch": s * base.a_pitch,
+            "a_yaw": s * base.a_yaw,
+            "nu_yaw": nu_yaw,
+            "delta": float(np.angle(np.exp(1j * delta))),
+            "frequency": f,
+        }
+    )
+
+
 def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) -> tuple[np.ndarray, dict]:
     """Record ``index``'s gait at ``attempt``: its commanded joint shape (8, L, 2) rad and what was
     drawn (kinds, waves, steering, scale), JSON-ready."""
@@ -236,8 +300,11 @@ def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) 
     weights = np.asarray(cfg.kind_weights, np.float64)
     kind = str(rng.choice(KINDS, p=weights / weights.sum()))
     undulation = (cfg.undulate_amplitude, cfg.undulate_wavenumber)
-    main = draw_wave(kind, rng, cfg.frequencies[kind], undulation)
-    if cfg.amplitude_scale != (1.0, 1.0):  # no draw at (1, 1): older families' streams unchanged
+    if cfg.library:
+        main = draw_library_wave(kind, rng, cfg)
+    else:
+        main = draw_wave(kind, rng, cfg.frequencies[kind], undulation)
+    if cfg.amplitude_scale != (1.0, 1.0) and not cfg.library:  # no draw at (1, 1): streams unchanged
         s = rng.uniform(*cfg.amplitude_scale)
         main = main.model_copy(update={"a_pitch": s * main.a_pitch, "a_yaw": s * main.a_yaw})
     shape = main.shape()

@@ -31,10 +31,11 @@ def test_a_record_projects_onto_its_own_member_and_a_member_onto_itself():
         assert r2 < 1e-12
 
 
-@pytest.mark.parametrize("preset", ["mixed", "every"])
+@pytest.mark.parametrize("preset", ["mixed", "every", "library"])
 def test_every_kind_of_a_family_projects_to_its_own_kind(preset):
-    """Exact members hold for every kind: the mixed family's one-wave draws, and the default family's
-    (whose amplitudes are also scaled 0.35-1: the fit's ranges widen with it)."""
+    """Exact members hold for every kind: the mixed family's one-wave draws, the every family's
+    (whose amplitudes are also scaled 0.35-1: the fit's ranges widen with it) and the library
+    family's (scaled library gaits, mirrored or not, sidewinding's offset free in its range)."""
     family = STRUCTURED_PRESETS[preset]
     seen = set()
     for index in range(120):
@@ -78,13 +79,17 @@ def test_a_members_mirror_image_negates_its_yaw_joints_and_named_inputs_flip_onl
         np.testing.assert_array_equal(image.shape()[PITCH], m.shape()[PITCH])
         np.testing.assert_allclose(image.mirrored().shape(), m.shape(), atol=1e-14)
         in_family = project(image.shape(), family)[1] < 1e-9
-        assert image.kind == m.kind and in_family == m.mirror_in_family == (m.kind != "undulate")
+        assert image.kind == m.kind and in_family == family.mirrors(m.kind) == (m.kind != "undulate")
     bodies = np.random.default_rng(0).standard_normal((len(members), 5, 6))
-    pairs, body = with_mirror_images(members, bodies)
+    pairs, body = with_mirror_images(members, bodies, family)
     kept = [i for i, m in enumerate(members) if m.kind != "undulate"]
     assert 0 < len(kept) < len(members)  # both cases are seen
     assert pairs == members + [members[i].mirrored() for i in kept]
     np.testing.assert_array_equal(body, np.concatenate([bodies, bodies[kept] * [1, 1, -1, -1, 1, -1]]))
+    library = STRUCTURED_PRESETS["library"]
+    for i in range(40):  # in the library family every kind's mirror image is a member
+        m = member_from_draw(draw_structured(library, 3, i, 0)[1])
+        assert library.mirrors(m.kind) and project(m.mirrored().shape(), library)[1] < 1e-9
     x, xm = named_inputs(members), named_inputs([m.mirrored() for m in members])
     flips = np.zeros(x.shape[1], bool)
     flips[[8, 9, 12, 13]] = True  # cos, sin of the offset; the steering's two components
@@ -285,7 +290,7 @@ def test_sampler_gaits_of_another_density_are_refused_and_a_named_mirrored_head_
     plain = fit_sampler(path, data, tmp_path / "d", named, workers=2, log=None, gaits_path=fresh)
     mirrored = named.model_copy(update={"mirror": True})
     both = fit_sampler(path, data, tmp_path / "e", mirrored, workers=2, log=None, gaits_path=fresh)
-    # This family is undulation alone: no mirror image is a member, none is added.
+    # This family is undulation alone, not the library's: no mirror image is a member, none is added.
     assert both["member_head"]["train_examples"] == plain["member_head"]["train_examples"] > 0
     m = load_pretrained(tmp_path / "e")
     head = m.config.member_head
