@@ -102,6 +102,8 @@ class Member(BaseModel):
         if self.kind == "undulate":
             way = "wave to the tail (forward)" if w.nu_yaw > 0 else "wave to the head (backward)"
             text = f"undulation, {way}, {w.a_yaw:.2f} rad, {abs(w.nu_yaw):.2f} rad/module"
+            if abs(w.delta) > np.pi / 2:
+                text += ", mirrored"  # the library family's: yaw joints negated
         else:
             text = (
                 f"{ {'sidewind': 'sidewinding', 'roll': 'rolling', 'turn': 'turning'}[self.kind] }, pitch "
