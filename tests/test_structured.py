@@ -273,18 +273,19 @@ def test_each_kind_replays_to_its_documented_direction_within_the_spread():
 
 LIBRARY_EXAMPLES = [
     # kind, a_pitch, a_yaw, nu_pitch, nu_yaw, delta, f (Hz), heading of the end (deg) or the way it turns
-    ("undulate", 0.0, 0.306, 0.0, 0.7, 0.0, 0.93, -3),  # forward, 15.1 m
-    ("undulate", 0.0, 0.654, 0.0, 0.7, 3.142, 0.93, 24),  # forward, mirrored: drifts left, 32.0 m
-    ("undulate", 0.0, 0.5, 0.0, -0.7, 0.0, 0.93, -171),  # backward, 30.5 m
-    ("undulate", 0.0, 0.218, 0.0, -0.7, 3.142, 0.52, 176),  # backward, mirrored, 4.9 m
-    ("sidewind", 0.204, 0.356, 0.8, 0.8, 0.933, 0.52, 113),  # left, 7.1 m
-    ("sidewind", 0.189, 0.331, 0.8, 0.8, -2.111, 0.52, -126),  # right (mirrored), 6.5 m
-    ("roll", 0.205, 0.205, 0.71, 0.71, 1.571, 0.52, -90),  # right, 8.6 m
-    ("roll", 0.198, 0.198, 0.71, 0.71, -1.571, 0.29, 91),  # left (mirrored), 4.6 m
-    ("turn", 0.07, 0.551, 1.95, -0.66, -1.9, 0.52, "right"),  # in place, cw (-24 rad)
-    ("turn", 0.053, 0.422, 1.95, -0.66, 1.242, 0.29, "left"),  # in place, ccw, mirrored (+8.5 rad)
+    ("undulate", 0.0, 0.36574012255332233, 0.0, 0.7, 0.0, 0.93, -11),  # forward, 19.6 m
+    ("undulate", 0.0, 0.3020959734821988, 0.0, 0.7, np.pi, 0.93, 6),  # forward, mirrored, 14.8 m
+    ("undulate", 0.0, 0.2615238942488645, 0.0, -0.7, 0.0, 0.52, -177),  # backward, 7.2 m
+    ("undulate", 0.0, 0.21780085767750373, 0.0, -0.7, np.pi, 0.52, 176),  # backward, mirrored, 4.9 m
+    ("sidewind", 0.233432453263781, 0.4085067932116167, 0.8, 0.8, 0.43184828558497873, 0.52, 99),  # 5.6 m
+    ("sidewind", 0.23461256864936272, 0.4105719951363847, 0.8, 0.8, -2.2910720668500444, 0.52, -91),
+    ("roll", 0.342004320724247, 0.342004320724247, 0.71, 0.71, 1.5708, 0.52, -115),  # 8.4 m
+    ("roll", 0.24638556595488673, 0.24638556595488673, 0.71, 0.71, -1.5707926535897931, 0.52, 100),
+    ("turn", 0.05773219487471832, 0.4570465427581867, 1.95, -0.66, -1.9, 0.29, "right"),  # -9.4 rad
+    ("turn", 0.04972085407426025, 0.3936234280878937, 1.95, -0.66, 1.2415926535897932, 0.29, "left"),  # 8.0
 ]
-"""Members of the library family kept by its screen in the held-out set (seed 2), each kind each way."""
+"""Members of the library family kept by its screen in the held-out set (seed 2, records 11, 90, 31, 29,
+9, 19, 86, 46, 71, 53), each kind each way (the second of each pair its mirror image)."""
 
 
 def _replays_to_their_directions(family, members, ways) -> None:
@@ -321,7 +322,7 @@ def test_each_library_kind_replays_to_its_direction_within_the_spread():
     for kind, a_p, a_y, nu_p, nu_y, delta, f, _ in LIBRARY_EXAMPLES:
         wave = GaitEquation(a_pitch=a_p, a_yaw=a_y, nu_pitch=nu_p, nu_yaw=nu_y, delta=delta, frequency=f)
         again, r = project(Member(kind=kind, wave=wave).shape(), library)
-        assert r < 0.01 and again.kind == kind  # a member (to the 3 decimals written here)
+        assert r < 1e-9 and again.kind == kind  # a member of the family
         members.append(again)
     _replays_to_their_directions(library, members, [e[-1] for e in LIBRARY_EXAMPLES])
 
