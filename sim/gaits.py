@@ -146,55 +146,39 @@ def measure_gait(gait: GaitEquation, simulator, ensemble: int = 4, seed: int = 0
     return gait_figures(result.body[ok])
 
 
+_LIBRARY = (
+    # name, gait, what it is for, measured: displacement (m), straightness, heading (deg), net roll
+    # (rad), net yaw (rad), spread
+    (
+        "sidewind",
+        GaitEquation(a_pitch=0.4, a_yaw=0.7, nu_pitch=0.8, nu_yaw=0.8, delta=0.7854, frequency=0.93),
+        "sidewinding: the fastest straight non-rolling gait of the search that physics predicts to 5%; travels sideways",
+        (23.96, 0.8557, 93.38, -0.1552, 1.349, 0.016),
+    ),
+    (
+        "undulate",
+        GaitEquation(a_yaw=0.7, nu_yaw=0.7, frequency=0.93),
+        "lateral undulation (yaw wave only): the fastest forward gait found",
+        (32.63, 0.8098, 0.02802, 0.00253, 0.2155, 0.06386),
+    ),
+    (
+        "roll",
+        GaitEquation(a_pitch=0.35, a_yaw=0.35, nu_pitch=0.71, nu_yaw=0.71, delta=1.5708, frequency=0.52),
+        "lateral rolling: rolls over and over and moves sideways, the straightest gait found",
+        (8.444, 0.9718, -95.12, 326.6, -0.6007, 0.01082),
+    ),
+    (
+        "turn",
+        GaitEquation(a_pitch=0.12, a_yaw=0.95, nu_pitch=1.95, nu_yaw=-0.66, delta=-1.9, frequency=0.52),
+        "turning in place (clockwise): the largest heading change found without rolling",
+        (0.6414, 0.02623, -157.3, -0.01751, -40.12, 0.03566),
+    ),
+)
 PRESETS: dict[str, GaitPreset] = {
-    "sidewind": GaitPreset(
-        gait=GaitEquation(a_pitch=0.4, a_yaw=0.7, nu_pitch=0.8, nu_yaw=0.8, delta=0.7854, frequency=0.93),
-        about="sidewinding: the fastest straight non-rolling gait of the search that physics predicts to 5%; travels sideways",
-        measured=GaitFigures(
-            displacement=23.96,
-            straightness=0.8557,
-            heading_deg=93.38,
-            net_roll=-0.1552,
-            net_yaw=1.349,
-            spread=0.016,
-        ),
-    ),
-    "undulate": GaitPreset(
-        gait=GaitEquation(a_yaw=0.7, nu_yaw=0.7, frequency=0.93),
-        about="lateral undulation (yaw wave only): the fastest forward gait found",
-        measured=GaitFigures(
-            displacement=32.63,
-            straightness=0.8098,
-            heading_deg=0.02802,
-            net_roll=0.00253,
-            net_yaw=0.2155,
-            spread=0.06386,
-        ),
-    ),
-    "roll": GaitPreset(
-        gait=GaitEquation(a_pitch=0.35, a_yaw=0.35, nu_pitch=0.71, nu_yaw=0.71, delta=1.5708, frequency=0.52),
-        about="lateral rolling: rolls over and over and moves sideways, the straightest gait found",
-        measured=GaitFigures(
-            displacement=8.444,
-            straightness=0.9718,
-            heading_deg=-95.12,
-            net_roll=326.6,
-            net_yaw=-0.6007,
-            spread=0.01082,
-        ),
-    ),
-    "turn": GaitPreset(
-        gait=GaitEquation(a_pitch=0.12, a_yaw=0.95, nu_pitch=1.95, nu_yaw=-0.66, delta=-1.9, frequency=0.52),
-        about="turning in place (clockwise): the largest heading change found without rolling",
-        measured=GaitFigures(
-            displacement=0.6414,
-            straightness=0.02623,
-            heading_deg=-157.3,
-            net_roll=-0.01751,
-            net_yaw=-40.12,
-            spread=0.03566,
-        ),
-    ),
+    name: GaitPreset(
+        gait=gait, about=about, measured=GaitFigures(**dict(zip(GaitFigures.model_fields, m, strict=True)))
+    )
+    for name, gait, about, m in _LIBRARY
 }
 """The library: gait-equation gaits tuned on this robot, each with the figures it was measured to
 give (``measure_gait``: a 4-member ensemble, seed 0, MuJoCo 4.0.0). docs/gaits.md has the search that
