@@ -89,7 +89,7 @@ class SamplerConfig(BaseModel):
     mirror: bool = Field(
         False,
         description="Train the head on each member's mirror image too (yaw joints negated: the path "
-        "mirrored) where it is a member (every kind but undulation): more examples at no replay cost.",
+        "mirrored) where it is a member (``StructuredConfig.mirrors``): more examples at no replay cost.",
     )
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
 
@@ -242,8 +242,9 @@ def fit_sampler(
             z_tr_all = np.concatenate([z_post, gaits["z_b"][~g_val]])
             z_va_all = np.concatenate([z_va, z_g_val])
         g_members = project_many(gaits["shape"], members)[0]  # exact: each projects onto itself
+        g_va_members = [m for m, v in zip(g_members, g_val, strict=True) if v]
         tr_members = rec_tr + [m for m, v in zip(g_members, g_val, strict=True) if not v]
-        va_members = rec_va + [m for m, v in zip(g_members, g_val, strict=True) if v]
+        va_members = rec_va + g_va_members
         y = np.concatenate([ds.body_ds[tr_idx], gaits["body"][~g_val]])
         if cfg.mirror:
             tr_members, y = with_mirror_images(tr_members, y, members)
@@ -270,7 +271,7 @@ def fit_sampler(
         model = GaitModel(
             model.net, model.config.model_copy(update={"member_head": head.cfg}), model.path, head
         )
-        pred = model.predict_paths([m for m, v in zip(g_members, g_val, strict=True) if v], z_g_val)
+        pred = model.predict_paths(g_va_members, z_g_val)
         fit["held_out_xy_r2_median"] = float(np.median(_path_r2(pred, gaits["body"][g_val])))
         pred = model.predict_paths(rec_va, z_va)
         fit["val_records_xy_r2_median"] = float(np.median(_path_r2(pred, ds.body_ds[va_idx])))
