@@ -333,6 +333,8 @@ class LatestWorker:
             except Exception as exc:  # a job's failure must never kill the worker
                 import traceback
 
+                if self._closed:
+                    continue  # closed mid-job (the tab went away): its failure is no one's error
                 traceback.print_exc()
                 if self._on_error is not None:
                     try:

@@ -158,7 +158,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         c.import_button.on_upload(g(lambda _e: self._on_upload()))
 
     def _report(self, message: str) -> None:
-        if self._on_error is not None:
+        if self._on_error is not None and not self._closed.is_set():  # not a gone tab's
             self._on_error(f"client {self.client.client_id}: {message}")
 
     def _guarded(self, fn: Callable) -> Callable:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -70,6 +71,25 @@ def test_latest_worker_runs_only_the_newest_request():
     assert worker.wait_idle(10)
     worker.close()
     assert ran == [(0, False), (19, True)]
+
+
+def test_latest_worker_reports_failures_but_not_those_of_a_job_closed_under_it():
+    errors: list[BaseException] = []
+    started = threading.Event()
+
+    def job(version, request, is_current):
+        if request == "slow":  # a replay still running when its tab goes away
+            started.set()
+            time.sleep(0.3)
+        raise RuntimeError(f"{request} failed")
+
+    worker = LatestWorker(job, on_error=errors.append)
+    worker.submit("open")
+    assert worker.wait_idle(10) and [str(e) for e in errors] == ["open failed"]
+    worker.submit("slow")
+    assert started.wait(10)
+    worker.close()  # closes while the job runs; the job then fails
+    assert [str(e) for e in errors] == ["open failed"]
 
 
 def test_gait_csv_round_trip():

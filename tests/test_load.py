@@ -101,4 +101,4 @@ def test_bench_tabs_two_rendering_tabs_in_one_browser(checkpoint, capsys):
     assert sum(r["lost_presses"]) < 4 and np.isfinite(r["press_to_server_p95_all_ms"])
     # each tab's export is a valid file of its own current gait
     assert r["export_ok"] == [True, True], r["export_errors"]
-    assert r["server_exceptions"] == 0
+    assert r["server_exceptions"] == 0, r["exception_messages"]

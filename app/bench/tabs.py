@@ -191,4 +191,5 @@ def bench_tabs(
         "export_ok": export_ok,
         "export_errors": export_errors,
         "server_exceptions": len(server.errors),
+        "exception_messages": server.errors[:10],
     }
