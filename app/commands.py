@@ -123,7 +123,7 @@ class Gait(Command):
     name: Annotated[Literal[tuple(GAIT_PRESETS)] | None, tyro.conf.Positional] = None  # type: ignore[valid-type]
     """The library gait to write (docs/gaits.md)."""
     out: Path | None = None
-    """Destination gait CSV (the format Export CSV writes; Import CSV and snakeloco.sim.replay take it)."""
+    """Destination gait CSV (the format Export CSV writes; Import CSV and snakeloco.sim.physics.replay take it)."""
     list: bool = False
     """Print the library: each gait's parameters and what it was measured to do on this robot."""
 

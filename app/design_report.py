@@ -21,7 +21,7 @@ def write_design(cmd) -> dict:
     for rank, c in enumerate(result.candidates, start=1):
         csv = cmd.out / f"candidate_{rank}.csv"
         comments = {
-            "snakeloco gait": "commands (rad) at 20 Hz, replay with `snakeloco` or sim.replay",
+            "snakeloco gait": "commands (rad) at 20 Hz, replay with `snakeloco` or sim.physics.replay",
             "designed for": _target_text(cmd.target),
             "z_B": "[" + ", ".join(f"{v:.4f}" for v in c.z_b) + "]",
             "z_k mode": "zero",

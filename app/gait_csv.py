@@ -179,7 +179,7 @@ def gait_comments(
 
     ``gait``: the tab's ``DecodedGait``; ``sim``: its ``SimulatedGait`` or None.
     """
-    comments = {"snakeloco gait": "commands (rad) at 20 Hz, replay with `snakeloco` or sim.replay"}
+    comments = {"snakeloco gait": "commands (rad) at 20 Hz, replay with `snakeloco` or sim.physics.replay"}
     if gait.latents is not None:
         lat = gait.latents
         comments["z_B"] = "[" + ", ".join(f"{v:.4f}" for v in lat.z_b) + "]"

@@ -14,7 +14,8 @@ import viser
 from snakeloco.app.session import DecodedGait, SimulatedGait
 from snakeloco.app.view import Framer, MetreGrid
 from snakeloco.app.viser_patches import set_arrays
-from snakeloco.sim import BODY_DOWNSAMPLE, N_LINKS, LinkPoses
+from snakeloco.sim import BODY_DOWNSAMPLE, N_LINKS
+from snakeloco.sim.kinematics import LinkPoses
 
 JOINT_COLORS = np.array(
     [

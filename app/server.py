@@ -25,8 +25,8 @@ from snakeloco.app.tab import PHYSICS_NICE, DesignerClient
 from snakeloco.app.viser_patches import refuse_large_uploads
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import SHIPPED, CheckpointError, resolve_checkpoint
-from snakeloco.sim import Simulator
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.sim.physics import Simulator
 from snakeloco.sim.scheduler import FairPhysics
 from snakeloco.sim.threads import resolve_workers
 

@@ -33,8 +33,9 @@ from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorke
 from snakeloco.app.tab_jobs import TabJobs
 from snakeloco.app.viser_patches import run_javascript
 from snakeloco.model.api import GaitModel
-from snakeloco.sim import BODY_DOWNSAMPLE, Simulator
+from snakeloco.sim import BODY_DOWNSAMPLE
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.sim.physics import Simulator
 from snakeloco.sim.scheduler import FairPhysics
 
 PHYSICS_NICE = 10

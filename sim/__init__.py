@@ -2,14 +2,13 @@
 
 Imports neither ``snakeloco.model`` nor ``snakeloco.app``. Units: metres, seconds, radians, Hz.
 
-Importing this package does not import MuJoCo. The numpy-only parts (robot constants, excitation,
-spectra, the command rule, body states, path statistics, the dataset reader and writer) load at
-once; the names that run the simulator (``Simulator``, ``replay``, ``generate_dataset``,
-``LinkPoses``, ...) load MuJoCo on first use. So the model package and training, which need only
-the former, never load the simulator.
+Importing this package does not import MuJoCo: it exports the numpy-only parts (robot constants,
+excitation, spectra, the command rule, body states, path statistics, the dataset reader and
+writer), which the model package and training need. What runs the simulator is imported from its
+own module, where MuJoCo loads with it: ``sim.physics`` (``Simulator``, ``replay``,
+``ReplayResult``), ``sim.generate`` (``generate_dataset``), ``sim.kinematics`` (``LinkPoses``),
+``sim.threads`` (``resolve_workers``).
 """
-
-from importlib import import_module
 
 from snakeloco.sim.body import BODY_CHANNELS, body_states
 from snakeloco.sim.command_rule import SimConfig, SimulationError, expand_commands
@@ -41,25 +40,6 @@ from snakeloco.sim.robot import (
 )
 from snakeloco.sim.spectra import joint_shape, servo_response, shape_to_commands, synthesis_phase
 
-_NEEDS_MUJOCO = {
-    "ReplayResult": "snakeloco.sim.physics",
-    "Simulator": "snakeloco.sim.physics",
-    "replay": "snakeloco.sim.physics",
-    "resolve_workers": "snakeloco.sim.threads",
-    "generate_dataset": "snakeloco.sim.generate",
-    "LinkPoses": "snakeloco.sim.kinematics",
-}
-
-
-def __getattr__(name: str):
-    """The simulator's names, imported (with MuJoCo) the first time one is asked for."""
-    if name in _NEEDS_MUJOCO:
-        value = getattr(import_module(_NEEDS_MUJOCO[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'snakeloco.sim' has no attribute {name!r}")
-
-
 __all__ = [
     "BODY_CHANNELS",
     "BODY_DOWNSAMPLE",
@@ -80,14 +60,10 @@ __all__ = [
     "DatasetError",
     "ExcitationConfig",
     "GenerateConfig",
-    "LinkPoses",
-    "ReplayResult",
     "SimConfig",
     "SimulationError",
-    "Simulator",
     "body_states",
     "expand_commands",
-    "generate_dataset",
     "joint_shape",
     "load_dataset",
     "load_model",
@@ -95,8 +71,6 @@ __all__ = [
     "multisine",
     "random_phases",
     "read_npz",
-    "replay",
-    "resolve_workers",
     "servo_response",
     "shape_to_commands",
     "synthesis_phase",

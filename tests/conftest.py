@@ -7,7 +7,8 @@ import os
 
 import pytest
 
-from snakeloco.sim import GenerateConfig, generate_dataset, load_dataset
+from snakeloco.sim import GenerateConfig, load_dataset
+from snakeloco.sim.generate import generate_dataset
 
 from helpers import SMALL
 

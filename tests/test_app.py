@@ -16,7 +16,7 @@ from snakeloco.app.gait_csv import read_gait_csv, write_gait_csv
 from snakeloco.app.scene import FAN_STEP
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.session import Latents
-from snakeloco.sim import replay
+from snakeloco.sim.physics import replay
 from snakeloco.sim.scheduler import Turn
 
 from helpers import apply, connect_headless

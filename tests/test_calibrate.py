@@ -29,7 +29,8 @@ def test_calibration_counts_are_checked_in_the_config():
 def test_calibration_tunes_only_the_head_and_body_decoder(checkpoint, tiny_dataset_path, tmp_path):
     from snakeloco.model.calibrate import MODES, CalibrateConfig, calibrate
     from snakeloco.model.checkpoint import load_checkpoint
-    from snakeloco.sim import DatasetError, GenerateConfig, generate_dataset
+    from snakeloco.sim import DatasetError, GenerateConfig
+    from snakeloco.sim.generate import generate_dataset
 
     out, gaits = tmp_path / "calibrated", tmp_path / "gaits.npz"
     cfg = CalibrateConfig(prior_samples=4, epochs=3)

@@ -9,16 +9,9 @@ import numpy as np
 import pytest
 
 import snakeloco.sim as sim
-from snakeloco.sim import (
-    DatasetError,
-    ExcitationConfig,
-    GenerateConfig,
-    SimConfig,
-    Simulator,
-    generate_dataset,
-    joint_shape,
-    load_dataset,
-)
+from snakeloco.sim import DatasetError, ExcitationConfig, GenerateConfig, SimConfig, joint_shape, load_dataset
+from snakeloco.sim.generate import generate_dataset
+from snakeloco.sim.physics import Simulator
 
 EXC = ExcitationConfig()
 

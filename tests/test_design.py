@@ -22,10 +22,10 @@ from snakeloco.model.design import (
     verify,
 )
 from snakeloco.model.design_config import DesignConfig, Target
-from snakeloco.sim import replay
 from snakeloco.sim.backend import open_backend
 from snakeloco.sim.dataset import BODY_DOWNSAMPLE
 from snakeloco.sim.gaits import PRESETS
+from snakeloco.sim.physics import replay
 
 QUICK = DesignConfig(candidates=2, screen=64, starts=2, generations=15, population=8)
 REPORT_KEYS = {"target", "tolerance_m", "met", "candidates", "seconds"}

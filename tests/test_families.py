@@ -9,7 +9,8 @@ import pytest
 from snakeloco.app.gait_csv import read_gait_csv
 from snakeloco.app.server import DesignerServer
 from snakeloco.model import TrainConfig, load_pretrained, train
-from snakeloco.sim import GenerateConfig, generate_dataset
+from snakeloco.sim import GenerateConfig
+from snakeloco.sim.generate import generate_dataset
 
 from helpers import SMALL, apply, connect_headless
 

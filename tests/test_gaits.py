@@ -9,8 +9,9 @@ from pydantic import ValidationError
 
 from snakeloco.app.cli import main
 from snakeloco.app.gait_csv import read_gait_csv
-from snakeloco.sim import RECORD, Simulator, joint_shape, replay
+from snakeloco.sim import RECORD, joint_shape
 from snakeloco.sim.gaits import PRESETS, GaitEquation, measure_gait
+from snakeloco.sim.physics import Simulator, replay
 
 from helpers import apply, connect_headless
 

@@ -11,8 +11,9 @@ import pytest
 
 from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, read_member, write_gait_csv
 from snakeloco.model.density import LatentDensity, fit_density, name_components
-from snakeloco.sim import GenerateConfig, generate_dataset, shape_to_commands
+from snakeloco.sim import GenerateConfig, shape_to_commands
 from snakeloco.sim.gaits import GaitEquation
+from snakeloco.sim.generate import generate_dataset
 from snakeloco.sim.members import Member, member_from_draw, project, residual
 from snakeloco.sim.structured import STRUCTURED_PRESETS, draw_structured
 
@@ -102,8 +103,8 @@ def test_a_members_mirror_image_replays_to_the_mirror_image_of_its_path():
     """The symmetry the every family's head is trained with: a sidewinding member with steering (8.4 m
     in 100 s) and its mirror image; sideways, roll and yaw flip, the rest stays (to 1 cm, 0.01 rad;
     measured: to the bit, where a chaotic draw (not screened) parts by metres)."""
-    from snakeloco.sim import Simulator
     from snakeloco.sim.body import mirror_body
+    from snakeloco.sim.physics import Simulator
 
     m = member_from_draw(draw_structured(STRUCTURED_PRESETS["every"], 3, 44, 0)[1])
     assert m.kind == "sidewind" and m.steering_amplitude > 0
@@ -417,8 +418,9 @@ def test_the_shipped_structured_path_of_a_members_own_gait_beats_the_path_of_ano
     head also reads z_B, every prediction gets the same slider position (a sampler draw that is none
     of these gaits'): the member, not z_B, must decide the path."""
     from snakeloco.model import load_pretrained
-    from snakeloco.sim import BODY_DOWNSAMPLE, Simulator
+    from snakeloco.sim import BODY_DOWNSAMPLE
     from snakeloco.sim.consistency import xy_r2
+    from snakeloco.sim.physics import Simulator
 
     m = load_pretrained("structured")
     assert m.projects and m.member_head is not None

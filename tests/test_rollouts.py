@@ -12,12 +12,8 @@ import numpy as np
 import pytest
 
 import snakeloco.sim.physics as sim_physics
-from snakeloco.sim import (
-    SimConfig,
-    SimulationError,
-    Simulator,
-    replay,
-)
+from snakeloco.sim import SimConfig, SimulationError
+from snakeloco.sim.physics import Simulator, replay
 
 
 def test_large_batches_roll_out_in_chunks_with_the_same_results(tiny_dataset):

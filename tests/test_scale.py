@@ -20,9 +20,10 @@ from conftest import TINY
 from snakeloco.app.cli import main
 from snakeloco.model import TrainConfig, train
 from snakeloco.model.evaluate import ConsistencyConfig
-from snakeloco.sim import GenerateConfig, generate_dataset, load_dataset
+from snakeloco.sim import GenerateConfig, load_dataset
 from snakeloco.sim.backend import RAY_MISSING, BackendConfig
 from snakeloco.sim.dataset import ZARR_MISSING, DatasetError
+from snakeloco.sim.generate import generate_dataset
 from snakeloco.sim.structured import DEFAULT_PRESET, STRUCTURED_PRESETS
 
 from helpers import SMALL

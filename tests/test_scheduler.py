@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from snakeloco.sim import Simulator
+from snakeloco.sim.physics import Simulator
 from snakeloco.sim.scheduler import FairPhysics, OnTurns, Turn
 
 

@@ -14,13 +14,12 @@ from snakeloco.sim import (
     ExcitationConfig,
     SimConfig,
     SimulationError,
-    Simulator,
     body_states,
     joint_shape,
-    replay,
     shape_to_commands,
 )
 from snakeloco.sim.command_rule import expand_commands
+from snakeloco.sim.physics import Simulator, replay
 
 from helpers import random_commands
 
@@ -240,7 +239,8 @@ def test_servo_lag_compensation_brings_the_measured_shape_to_the_target(tiny_dat
 
 
 def test_the_scene_draws_the_links_as_the_mjcf_compiles_them():
-    from snakeloco.sim import LINK_LENGTH, LINK_RADIUS, LinkPoses
+    from snakeloco.sim import LINK_LENGTH, LINK_RADIUS
+    from snakeloco.sim.kinematics import LinkPoses
 
     poses = LinkPoses()
     assert poses.capsule() == pytest.approx((LINK_RADIUS, LINK_LENGTH))

@@ -10,19 +10,14 @@ import numpy as np
 import pytest
 
 from snakeloco.app.cli import main
-from snakeloco.sim import (
-    GenerateConfig,
-    SimulationError,
-    Simulator,
-    generate_dataset,
-    joint_shape,
-    load_dataset,
-)
+from snakeloco.sim import GenerateConfig, SimulationError, joint_shape, load_dataset
 from snakeloco.sim.chunks import simulate_structured
 from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
 from snakeloco.sim.dataset import DatasetError
 from snakeloco.sim.gaits import GaitEquation
+from snakeloco.sim.generate import generate_dataset
 from snakeloco.sim.members import Member, project
+from snakeloco.sim.physics import Simulator
 from snakeloco.sim.structured import (
     KINDS,
     STRUCTURED_PRESETS,

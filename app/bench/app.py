@@ -9,8 +9,9 @@ import numpy as np
 
 from snakeloco.app.bench.headless import HeadlessClient
 from snakeloco.app.server import DesignerServer, tune_process
-from snakeloco.sim import Simulator, expand_commands, load_model
+from snakeloco.sim import expand_commands, load_model
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, perturbed_commands
+from snakeloco.sim.physics import Simulator
 
 
 def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, seed: int = 0) -> dict:

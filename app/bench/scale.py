@@ -25,9 +25,9 @@ import numpy as np
 
 from snakeloco.model import TrainConfig, train
 from snakeloco.model.config import TINY
-from snakeloco.sim import GenerateConfig, generate_dataset, load_dataset
+from snakeloco.sim import GenerateConfig, load_dataset
 from snakeloco.sim.backend import BackendConfig, open_backend
-from snakeloco.sim.generate import default_chunk_size
+from snakeloco.sim.generate import default_chunk_size, generate_dataset
 from snakeloco.sim.writer import open_writer
 
 KEYS = ("commands", "joint_angles", "body", "body_ds", "phases", "amplitude", "attempts", "shape")

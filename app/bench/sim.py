@@ -7,16 +7,9 @@ import time
 import mujoco
 import numpy as np
 
-from snakeloco.sim import (
-    BODY_DOWNSAMPLE,
-    GenerateConfig,
-    Simulator,
-    expand_commands,
-    joint_shape,
-    load_model,
-    replay,
-)
+from snakeloco.sim import BODY_DOWNSAMPLE, GenerateConfig, expand_commands, joint_shape, load_model
 from snakeloco.sim.chunks import draw_sample, simulate_samples
+from snakeloco.sim.physics import Simulator, replay
 
 
 def _best(fn, repeats: int) -> float:
