@@ -11,7 +11,7 @@ own module, where MuJoCo loads with it: ``sim.physics`` (``Simulator``, ``replay
 """
 
 from snakeloco.sim.body import BODY_CHANNELS, body_states
-from snakeloco.sim.command_rule import SimConfig, SimulationError, expand_commands
+from snakeloco.sim.command_rule import CommandRule, expand_commands
 from snakeloco.sim.dataset import (
     BODY_DOWNSAMPLE,
     BODY_RATE,
@@ -26,6 +26,7 @@ from snakeloco.sim.dataset import (
     write_npz,
 )
 from snakeloco.sim.excitation import RECORD, ExcitationConfig, multisine, random_phases
+from snakeloco.sim.results import SimulationError
 from snakeloco.sim.robot import (
     BODY_LENGTH,
     COMMAND_LIMIT,
@@ -56,11 +57,11 @@ __all__ = [
     "N_LINKS",
     "RECORD",
     "SCHEMA_VERSION",
+    "CommandRule",
     "Dataset",
     "DatasetError",
     "ExcitationConfig",
     "GenerateConfig",
-    "SimConfig",
     "SimulationError",
     "body_states",
     "expand_commands",

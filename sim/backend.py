@@ -25,7 +25,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from snakeloco.sim.command_rule import SimConfig
+from snakeloco.sim.command_rule import CommandRule
 from snakeloco.sim.dataset import BODY_DOWNSAMPLE
 from snakeloco.sim.excitation import RECORD, ExcitationConfig
 
@@ -74,7 +74,7 @@ class LocalBackend:
 
     name = "local"
 
-    def __init__(self, workers: int | None, excitation: ExcitationConfig, sim: SimConfig) -> None:
+    def __init__(self, workers: int | None, excitation: ExcitationConfig, sim: CommandRule) -> None:
         from snakeloco.sim.physics import Simulator
         from snakeloco.sim.threads import resolve_workers
 
@@ -109,7 +109,7 @@ def _worker_simulator(excitation_json: str, sim_json: str):
     from snakeloco.sim.physics import Simulator
 
     return Simulator(
-        1, ExcitationConfig.model_validate_json(excitation_json), SimConfig.model_validate_json(sim_json)
+        1, ExcitationConfig.model_validate_json(excitation_json), CommandRule.model_validate_json(sim_json)
     )
 
 
@@ -164,7 +164,7 @@ class RayBackend:
     """Replays per task: ~8 s of physics on one core, so task overhead (~200 us) stays below 0.01%."""
 
     def __init__(
-        self, address: str | None, workers: int | None, excitation: ExcitationConfig, sim: SimConfig
+        self, address: str | None, workers: int | None, excitation: ExcitationConfig, sim: CommandRule
     ):
         try:
             import ray
@@ -235,12 +235,12 @@ def open_backend(
     cfg: BackendConfig | None,
     workers: int | None = None,
     excitation: ExcitationConfig = RECORD,
-    sim: SimConfig | None = None,
+    sim: CommandRule | None = None,
 ) -> LocalBackend | RayBackend:
     """The backend ``cfg`` names (default local); ``workers``: local threads, or the CPUs of a Ray
     instance started here. Close it (``close``) when done."""
     cfg = cfg or BackendConfig()
-    sim = sim or SimConfig()
+    sim = sim or CommandRule()
     if cfg.backend == "local":
         if cfg.ray_address is not None:
             raise BackendError("--ray-address is for --backend ray")

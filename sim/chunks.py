@@ -16,11 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from snakeloco.sim.command_rule import SimulationError
 from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
 from snakeloco.sim.dataset import N_BODY, DatasetError, GenerateConfig
 from snakeloco.sim.excitation import RECORD, multisine, random_phases
 from snakeloco.sim.physics import Simulator
+from snakeloco.sim.results import SimulationError
 from snakeloco.sim.robot import N_JOINTS
 from snakeloco.sim.spectra import shape_to_commands
 from snakeloco.sim.structured import draw_structured, perturbed_shapes

@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from snakeloco.sim.robot import N_JOINTS
 
 
-class SimConfig(BaseModel):
+class CommandRule(BaseModel):
     """How commands are applied and when a simulation counts as broken."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -42,17 +42,13 @@ class SimConfig(BaseModel):
     )
 
 
-class SimulationError(RuntimeError):
-    """A simulation diverged or threw the snake; the message says how and when."""
-
-
-def lead_in_window(cfg: SimConfig) -> np.ndarray:
+def lead_in_window(cfg: CommandRule) -> np.ndarray:
     """Fade-in weights of the lead-in samples, shape (lead_in,), from 0 up to 1."""
     j = np.arange(cfg.lead_in)
     return np.where(j < cfg.ramp, 0.5 - 0.5 * np.cos(np.pi * j / cfg.ramp), 1.0)
 
 
-def expand_commands(commands: np.ndarray, substeps: int, cfg: SimConfig) -> np.ndarray:
+def expand_commands(commands: np.ndarray, substeps: int, cfg: CommandRule) -> np.ndarray:
     """Per-physics-step servo targets for a batch of records (the command rule above).
 
     Args:
@@ -74,7 +70,7 @@ def expand_commands(commands: np.ndarray, substeps: int, cfg: SimConfig) -> np.n
 
 
 def why_broken(
-    config: SimConfig,
+    config: CommandRule,
     state: np.ndarray,
     height: np.ndarray,
     speed: np.ndarray,

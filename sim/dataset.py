@@ -43,7 +43,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from snakeloco.sim.body import BODY_CHANNELS
-from snakeloco.sim.command_rule import SimConfig
+from snakeloco.sim.command_rule import CommandRule
 from snakeloco.sim.excitation import RECORD, ExcitationConfig
 from snakeloco.sim.robot import N_JOINTS
 from snakeloco.sim.structured import StructuredConfig
@@ -74,8 +74,8 @@ class GenerateConfig(BaseModel):
         "the model's 500 body steps assume it), so not a command-line option.",
         json_schema_extra={"cli": False},
     )
-    sim: SimConfig = Field(
-        SimConfig(),
+    sim: CommandRule = Field(
+        CommandRule(),
         description="The command rule and break limits (``sim.command_rule``); fixed like the excitation.",
         json_schema_extra={"cli": False},
     )

@@ -136,8 +136,8 @@ def measure_gait(gait: GaitEquation, simulator, ensemble: int = 4, seed: int = 0
     """Replay a gait with ``ensemble`` - 1 perturbed copies (``sim.consistency``) on ``simulator`` (a
     ``sim.Simulator``) and measure it. Raises SimulationError if the unperturbed replay breaks;
     perturbed members that break leave the ensemble."""
-    from snakeloco.sim.command_rule import SimulationError
     from snakeloco.sim.consistency import perturbed_commands
+    from snakeloco.sim.results import SimulationError
 
     result = simulator.simulate(perturbed_commands(gait.commands(), ensemble, seed=seed))
     if result.failures[0] is not None:

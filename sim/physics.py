@@ -2,7 +2,7 @@
 
 Commands become servo targets by the command rule (``sim.command_rule``); the measured body states
 are those of ``sim.body``. A rollout that diverges, is reset by MuJoCo or throws the snake counts
-as broken (``SimConfig`` holds the limits) and is named, never returned as data.
+as broken (``CommandRule`` holds the limits) and is named, never returned as data.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 from mujoco import rollout as mj_rollout
 
 from snakeloco.sim.body import body_states
-from snakeloco.sim.command_rule import SimConfig, SimulationError, expand_commands, why_broken
+from snakeloco.sim.command_rule import CommandRule, expand_commands, why_broken
 from snakeloco.sim.excitation import ExcitationConfig
 from snakeloco.sim.results import (
     STREAM_CHUNK,
@@ -26,6 +26,7 @@ from snakeloco.sim.results import (
     BatchResult,
     Paused,
     ReplayResult,
+    SimulationError,
     StreamedReplay,
 )
 from snakeloco.sim.robot import BODY_SITE, N_JOINTS, load_model
@@ -50,12 +51,12 @@ class Simulator:
         self,
         workers: int | None = 1,
         excitation: ExcitationConfig | None = None,
-        config: SimConfig | None = None,
+        config: CommandRule | None = None,
         nice: int = 0,
         max_batch: int | None = None,
     ) -> None:
         self.excitation = excitation or ExcitationConfig()
-        self.config = config or SimConfig()
+        self.config = config or CommandRule()
         self.model = load_model()
         self.workers = resolve_workers(workers)
         # Records rolled out per call: a rollout keeps every physics step (~16 MB per record), so a

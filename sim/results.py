@@ -1,5 +1,5 @@
 """What the simulator returns: a replay's measurements, a streamed replay's so far, a batch's, and
-where a paused batch stopped (``sim.physics``)."""
+where a paused batch stopped (``sim.physics``); what it raises where a replay breaks."""
 
 from __future__ import annotations
 
@@ -9,6 +9,11 @@ from functools import cached_property
 import numpy as np
 
 from snakeloco.sim.body import body_states
+
+
+class SimulationError(RuntimeError):
+    """A simulation diverged or threw the snake (``command_rule.why_broken``), or the simulator
+    was closed under it; the message says how and when."""
 
 
 @dataclass(frozen=True)

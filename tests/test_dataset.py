@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 
 import snakeloco.sim as sim
-from snakeloco.sim import DatasetError, ExcitationConfig, GenerateConfig, SimConfig, joint_shape, load_dataset
+from snakeloco.sim import (
+    CommandRule,
+    DatasetError,
+    ExcitationConfig,
+    GenerateConfig,
+    joint_shape,
+    load_dataset,
+)
 from snakeloco.sim.generate import generate_dataset
 from snakeloco.sim.physics import Simulator
 
@@ -46,7 +53,7 @@ def test_generation_is_deterministic_and_independent_of_workers(tmp_path, tiny_d
 
 def test_broken_samples_are_regenerated_and_logged(tmp_path):
     # A CoM ceiling of 0.27 m is below the peak of about half of all healthy gaits: those get new phases.
-    cfg = GenerateConfig(num_samples=4, seed=3, sim=SimConfig(max_com_height=0.27), max_attempts=8)
+    cfg = GenerateConfig(num_samples=4, seed=3, sim=CommandRule(max_com_height=0.27), max_attempts=8)
     ds = load_dataset(generate_dataset(cfg, tmp_path / "r.npz", workers=2))
     failures = ds.meta["failures"]
     assert failures and all("thrown" in f["reason"] for f in failures)
@@ -60,7 +67,7 @@ def test_broken_samples_are_regenerated_and_logged(tmp_path):
 
 
 def test_unrecoverable_generation_fails_clearly_and_writes_nothing(tmp_path):
-    cfg = GenerateConfig(num_samples=2, seed=0, sim=SimConfig(max_com_height=0.03), max_attempts=2)
+    cfg = GenerateConfig(num_samples=2, seed=0, sim=CommandRule(max_com_height=0.03), max_attempts=2)
     out = tmp_path / "never.npz"
     with pytest.raises(RuntimeError, match="all 2 phase draws"):
         generate_dataset(cfg, out, workers=2)

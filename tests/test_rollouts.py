@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import snakeloco.sim.physics as sim_physics
-from snakeloco.sim import SimConfig, SimulationError
+from snakeloco.sim import CommandRule, SimulationError
 from snakeloco.sim.physics import Simulator, replay
 
 
@@ -178,7 +178,7 @@ def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_le
     finally:
         runner.close()
     # A gait that breaks the physics ends its stream with the reason, as replay raises it.
-    strict = Simulator(workers=1, config=SimConfig(max_com_height=0.03))
+    strict = Simulator(workers=1, config=CommandRule(max_com_height=0.03))
     last = list(strict.stream(commands, chunk_samples=300))[-1]
     assert last.failure is not None and "thrown" in last.failure and not last.done
     with pytest.raises(SimulationError) as broken:  # the same words, time included

@@ -11,8 +11,8 @@ import pytest
 import snakeloco.sim as sim
 from snakeloco.sim import (
     COMMAND_LIMIT,
+    CommandRule,
     ExcitationConfig,
-    SimConfig,
     SimulationError,
     body_states,
     joint_shape,
@@ -125,7 +125,7 @@ def test_shape_to_commands_clips_and_checks_shape():
 
 
 def test_command_rule_lead_in_and_linear_interpolation():
-    cfg = SimConfig()
+    cfg = CommandRule()
     commands = random_commands(1)
     ctrl = expand_commands(commands, 20, cfg)
     assert ctrl.shape == (1, (cfg.lead_in + EXC.n_samples) * 20, 8)
@@ -172,7 +172,7 @@ def test_diverging_simulation_raises_a_specific_error():
 
 
 def test_thrown_snake_is_detected():
-    simulator = Simulator(workers=1, config=SimConfig(max_com_height=0.03))
+    simulator = Simulator(workers=1, config=CommandRule(max_com_height=0.03))
     with pytest.raises(SimulationError, match="thrown into the air"):
         simulator.replay(random_commands(1)[0])
 
