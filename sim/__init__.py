@@ -20,12 +20,12 @@ from snakeloco.sim.dataset import (
     SCHEMA_VERSION,
     Dataset,
     DatasetError,
-    GenerateConfig,
     load_dataset,
     read_npz,
     write_npz,
 )
 from snakeloco.sim.excitation import RECORD, ExcitationConfig, multisine, random_phases
+from snakeloco.sim.generate_config import GenerateConfig
 from snakeloco.sim.results import SimulationError
 from snakeloco.sim.robot import (
     BODY_LENGTH,

@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
-from snakeloco.sim.dataset import N_BODY, DatasetError, GenerateConfig
+from snakeloco.sim.dataset import N_BODY, DatasetError
 from snakeloco.sim.excitation import RECORD, multisine, random_phases
+from snakeloco.sim.generate_config import GenerateConfig
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.results import SimulationError
 from snakeloco.sim.robot import N_JOINTS

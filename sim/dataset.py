@@ -1,4 +1,5 @@
-"""Training dataset files: the format, its config and the validated reader (numpy only; zarr on demand).
+"""Training dataset files: the format and the validated reader (numpy only; zarr on demand); what
+generated a file is its ``sim.generate_config.GenerateConfig``, stored in its meta.
 
 Generation (``sim.generate``) simulates the records and writes them with ``sim.writer``; a dataset
 is an ``.npz`` file or, for sets that outgrow memory, a zarr store (``PATH.zarr``, a folder: the same
@@ -37,16 +38,14 @@ import zipfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ValidationError
 
 from snakeloco.sim.body import BODY_CHANNELS
-from snakeloco.sim.command_rule import CommandRule
-from snakeloco.sim.excitation import RECORD, ExcitationConfig
+from snakeloco.sim.excitation import RECORD
+from snakeloco.sim.generate_config import GenerateConfig
 from snakeloco.sim.robot import N_JOINTS
-from snakeloco.sim.structured import StructuredConfig
 
 SCHEMA_VERSION = 1
 BODY_DOWNSAMPLE = 4
@@ -58,58 +57,6 @@ BODY_STEPS = -(-RECORD.n_samples // BODY_DOWNSAMPLE)
 BODY_TIMES = RECORD.times[::BODY_DOWNSAMPLE]
 """(500,) time stamps (s) of the model's body series: 0, 0.2, ... 99.8."""
 N_BODY = len(BODY_CHANNELS)
-
-
-class GenerateConfig(BaseModel):
-    """Everything that determines a dataset's contents (worker count does not: results are identical)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    num_samples: int = Field(4096, ge=1, description="Number of records N.")
-    seed: int = Field(0, ge=0, description="Seed of the phase draws; sample i, attempt a uses (seed, i, a).")
-    max_attempts: int = Field(5, ge=1, description="Phase draws tried per sample before giving up.")
-    excitation: ExcitationConfig = Field(
-        RECORD,
-        description="The record's sampling grid and multisine; fixed by the product (the gait CSV and "
-        "the model's 500 body steps assume it), so not a command-line option.",
-        json_schema_extra={"cli": False},
-    )
-    sim: CommandRule = Field(
-        CommandRule(),
-        description="The command rule and break limits (``sim.command_rule``); fixed like the excitation.",
-        json_schema_extra={"cli": False},
-    )
-    family: Literal["paper", "structured"] = Field(
-        "paper",
-        description="paper: the paper's random-phase multisines (chaotic on this robot); structured: "
-        "randomised travelling-wave gaits that physics can predict (sim/structured.py).",
-    )
-    structured: StructuredConfig = Field(
-        StructuredConfig(),
-        description="How the structured family draws and screens its gaits (its defaults are documented "
-        "in docs/gaits.md).",
-        json_schema_extra={"cli": False},
-    )
-
-    def to_meta(self) -> dict:
-        """The config as a dataset's meta stores it. A paper-family config leaves the family fields
-        out, exactly as datasets written before the structured family hold it, so their meta hash
-        (which a checkpoint records) is unchanged."""
-        paper = self.family == "paper"
-        meta = self.model_dump(mode="json", exclude={"family", "structured"} if paper else None)
-        if not paper:  # undulation ranges at their defaults are left out the same way (older files)
-            default = StructuredConfig()
-            for name in (
-                "undulate_amplitude",
-                "undulate_wavenumber",
-                "amplitude_scale",
-                "early_seconds",
-                "early_max_spread",
-                "sure_spread",
-            ):
-                if getattr(self.structured, name) == getattr(default, name):
-                    meta["structured"].pop(name)
-        return meta
 
 
 ZARR_MISSING = "zarr stores need the scale extra: pip install 'snakeloco[scale]'"

@@ -16,11 +16,8 @@ import numpy as np
 
 from snakeloco.sim.backend import BackendConfig, open_backend
 from snakeloco.sim.chunks import rebuild_chunk, simulate_samples, simulate_structured
-from snakeloco.sim.dataset import (
-    BODY_DOWNSAMPLE,
-    DatasetError,
-    GenerateConfig,
-)
+from snakeloco.sim.dataset import BODY_DOWNSAMPLE, DatasetError
+from snakeloco.sim.generate_config import GenerateConfig
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.robot import load_model, mjcf_sha256
 from snakeloco.sim.spectra import joint_shape

@@ -19,13 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.sim.dataset import (
-    SCHEMA_VERSION,
-    DatasetError,
-    GenerateConfig,
-    dataset_members,
-    import_zarr,
-)
+from snakeloco.sim.dataset import SCHEMA_VERSION, DatasetError, dataset_members, import_zarr
+from snakeloco.sim.generate_config import GenerateConfig
 
 
 def is_zarr_path(path: str | Path) -> bool:

@@ -10,7 +10,7 @@ import numpy as np
 
 from snakeloco.sim.chunks import _ensemble, draw_record, simulate_structured
 from snakeloco.sim.consistency import ensemble_spread
-from snakeloco.sim.dataset import GenerateConfig
+from snakeloco.sim.generate_config import GenerateConfig
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.structured import DEFAULT_PRESET, STRUCTURED_PRESETS, StructuredConfig
 
