@@ -16,7 +16,7 @@ from pathlib import Path
 import tyro
 
 from snakeloco.app.bench import report
-from snakeloco.app.bench.options import BENCH_HELP, BENCHES
+from snakeloco.app.bench.options import BENCH_HELP, BENCH_MODULES, BENCHES
 from snakeloco.app.commands import (
     COMMANDS,
     Calibrate,
@@ -271,12 +271,12 @@ def run_serve(cmd: Serve) -> None:
 
 
 def run_bench(cmd: Command) -> dict:
-    """Run a benchmark (``app/bench/NAME.py``), print its summary (``app/bench/report.py``) and, with
+    """Run a benchmark (``BENCH_MODULES[NAME]``), print its summary (``app/bench/report.py``) and, with
     --json, its figures as one JSON object on the last line."""
     import importlib
 
     name = next(n for n, command in BENCHES.items() if command is type(cmd))
-    bench = getattr(importlib.import_module(f"snakeloco.app.bench.{name}"), f"bench_{name}")
+    bench = getattr(importlib.import_module(BENCH_MODULES[name]), f"bench_{name}")
     result = bench(**report.options(cmd))
     getattr(report, name)(result)
     if cmd.json:

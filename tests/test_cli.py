@@ -284,11 +284,11 @@ def test_every_bench_option_is_the_parameter_of_its_function():
     import importlib
     import inspect
 
-    from snakeloco.app.bench.options import BENCHES
+    from snakeloco.app.bench.options import BENCH_MODULES, BENCHES
     from snakeloco.app.bench.report import options
 
     for name, command in BENCHES.items():
-        fn = getattr(importlib.import_module(f"snakeloco.app.bench.{name}"), f"bench_{name}")
+        fn = getattr(importlib.import_module(BENCH_MODULES[name]), f"bench_{name}")
         params = inspect.signature(fn).parameters
         fields = set(command.model_fields) - {"json"}
         assert fields <= set(params), (name, fields - set(params))

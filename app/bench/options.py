@@ -162,4 +162,12 @@ BENCHES: dict[str, type[Command]] = {
     "design": BenchDesign,
     "screen": BenchScreen,
 }
+BENCH_MODULES: dict[str, str] = {name: f"snakeloco.app.bench.{name}" for name in BENCHES} | {
+    "sim": "snakeloco.sim.bench",
+    "model": "snakeloco.model.bench",
+}
+"""Where ``bench_NAME`` lives: the simulator's and the model's benchmarks in their own layers (they
+import nothing of ``app``), the designer's, load, design and data-engine ones in ``app/bench/``.
+Imported by name when the command runs: importing every benchmark (viser, Playwright) would add up
+to a second to the start of every command."""
 BENCH_HELP = Bench.__doc__

@@ -1,6 +1,6 @@
 """``snakeloco bench NAME``: the figures of a benchmark, printed for a person.
 
-``snakeloco bench NAME`` calls ``bench_NAME`` of ``app/bench/NAME.py`` with the command's options
+``snakeloco bench NAME`` calls ``bench_NAME`` of ``BENCH_MODULES[NAME]`` (``app/bench/NAME.py``, ``sim/bench.py``, ``model/bench.py``) with the command's options
 (``options``) and prints the figures it returns with the function ``NAME`` here (and as JSON with
 ``--json``).
 """
@@ -17,7 +17,7 @@ def options(cmd) -> dict:
 
 
 def sim(r: dict) -> None:
-    """The simulator against bare MuJoCo (``bench/sim.py``)."""
+    """The simulator against bare MuJoCo (``sim/bench.py``)."""
     print(
         f"threads {r['workers']}, {r['samples']} records of {r['steps_per_sample']} steps\n"
         f"raw mujoco.rollout   {r['raw_steps_per_s']:12.0f} steps/s\n"
@@ -30,7 +30,7 @@ def sim(r: dict) -> None:
 
 
 def model(r: dict) -> None:
-    """Decode latency and throughput (``bench/model.py``)."""
+    """Decode latency and throughput (``model/bench.py``)."""
     print(
         f"decode one z_B: p50 {r['decode_p50_ms']:.2f} ms, p95 {r['decode_p95_ms']:.2f} ms; "
         f"batch of {r['batch']}: {r['batch_decodes_per_s']:.0f} decodes/s"
