@@ -83,7 +83,8 @@ def consistency_lines(consistency: dict) -> list[str]:
             lines.append(
                 f"  kind {kind}: {p['n_gaits']} gaits (of {p['n_drawn']} drawn), xy-path R^2 {p['xy_r2']:.3f}, "
                 f"final-position error {100 * p['final_error_rel']:.1f}% of the distance, ensemble spread "
-                f"{p['final_spread']:.3f}, {p['displacement_m']:.1f} m travelled (median)"
+                f"{p['final_spread']:.3f}, {p['displacement_m']:.1f} m travelled, net yaw error "
+                f"{100 * p.get('net_yaw_error_rel', float('nan')):.1f}% (medians)"
                 + (f"; {_where(p['diversity'])}" if p["diversity"] else "")
             )
         lines.append(

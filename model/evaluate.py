@@ -294,7 +294,7 @@ def _per_kind(rows: list[dict], kinds: list[str]) -> dict:
             "n_gaits": len(mine),
             **{
                 k: float(np.median([r[k] for r in mine])) if mine else float("nan")
-                for k in ("xy_r2", "final_error_rel", "final_spread", "displacement_m")
+                for k in ("xy_r2", "final_error_rel", "final_spread", "displacement_m", "net_yaw_error_rel")
             },
             "diversity": diversity(mine),
         }

@@ -104,7 +104,8 @@ def compare(
     the RMS distance of the ensemble's final positions from their mean, or 5 cm, whichever is
     larger), with that distance in units of the spread (``final_z``), the decoded final position's
     distance from the replay's (``final_error_m``; over the replay's displacement:
-    ``final_error_rel``), and where the replay went (``where_it_went``).
+    ``final_error_rel``), the decoded net yaw's relative error (``net_yaw_error_rel``: the figure of
+    a gait that turns in place) and where the replay went (``where_it_went``).
     """
     dec = path_stats(decoded, sample_rate)
     dec.update({k: np.asarray(v, np.float64) for k, v in (decoded_stats or {}).items() if k in PREDICTABLE})
@@ -124,6 +125,9 @@ def compare(
     travelled = float(ens["displacement"][0])
     out["final_error_rel"] = out["final_error_m"] / max(travelled, 1e-9)
     out["xy_r2"] = xy_r2(decoded, ensemble[0])
+    # Turning in place travels little: its figure is the net yaw (rad, unwrapped), not the end.
+    yaw_decoded, yaw_simulated = decoded[-1, 5] - decoded[0, 5], ensemble[0, -1, 5] - ensemble[0, 0, 5]
+    out["net_yaw_error_rel"] = float(_rel(yaw_decoded, yaw_simulated))
     out.update(where_it_went(ensemble[0], sample_rate))
     return out
 

@@ -97,6 +97,12 @@ def test_where_gaits_went_and_their_diversity():
     c = compare(_straight(0, 0.09), ens, 5.0)
     assert c["final_error_rel"] == pytest.approx(0.1)
     assert c["heading_deg"] == pytest.approx(0.0)
+    # A gait turning in place is scored on its net yaw: 9 rad decoded against 10 simulated.
+    turning = _straight(0, 0.001)
+    turning[:, 5] = np.linspace(0.0, 10.0, len(turning))
+    decoded = turning.copy()
+    decoded[:, 5] *= 0.9
+    assert compare(decoded, np.stack([turning, turning]), 5.0)["net_yaw_error_rel"] == pytest.approx(0.1)
 
 
 def test_physics_floor_scores_noisy_replays_of_the_records(tiny_dataset):
