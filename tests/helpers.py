@@ -69,12 +69,13 @@ def connect_headless(srv):
 def apply(d, control, value, timeout: float = 60.0) -> bool:
     """Set a GUI control of tab ``d`` as a user would and wait, on the tab's request version and not
     a clock, until the request it caused is the tab's newest and every job of it finished. False if
-    no request came within 10 s (the control changed nothing) or it did not finish."""
+    no request came or it did not finish within ``timeout`` s each (viser runs the control's
+    callback on its thread pool: on a starved machine that alone took over 10 s)."""
     from snakeloco.app.bench.load_driver import wait_until
 
     before = d.version
     control.value = value
-    return wait_until(lambda: d.version > before, 10.0) and d.wait_idle(timeout)
+    return wait_until(lambda: d.version > before, timeout) and d.wait_idle(timeout)
 
 
 def unit_normalization() -> Normalization:
