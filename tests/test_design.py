@@ -39,7 +39,11 @@ def test_the_search_reaches_an_end_the_decoder_can_draw(checkpoint):
     target = Target(forward=float(end[0]), sideways=float(end[1]))
     best = search(model, target, QUICK)[0]
     assert np.hypot(best.predicted[0] - target.forward, best.predicted[1] - target.sideways) < 0.01
-    np.testing.assert_allclose(path_end(model.decode(best.z_b[None])[1])[0], best.predicted, atol=1e-5)
+    # The search decodes whole populations: a batch's float32 sums may differ from one decode's in
+    # the last bits (measured 2e-5 m on a 7 m end), never more.
+    np.testing.assert_allclose(
+        path_end(model.decode(best.z_b[None])[1])[0], best.predicted, rtol=1e-5, atol=1e-5
+    )
     assert search(model, target, QUICK)[0].z_b.tolist() == best.z_b.tolist()  # seeded: reproducible
 
 
