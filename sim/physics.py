@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Iterator
-from concurrent.futures import FIRST_COMPLETED
 from concurrent.futures import wait as wait_futures
 
 import mujoco
@@ -343,7 +342,7 @@ class Simulator:
                     if not wanted():  # queued: never runs; running: finishes unread
                         chunk.cancel()
                         return
-                    wait_futures([chunk], timeout=STREAM_POLL_S, return_when=FIRST_COMPLETED)
+                    wait_futures([chunk], timeout=STREAM_POLL_S)  # one future: done or the poll's time
                 wait_futures([chunk])
                 if chunk.cancelled():
                     return  # dropped unrun when its turn came: the stream was no longer wanted
