@@ -63,7 +63,8 @@ class DatasetWriter:
 
     Each array is filled in a memory-mapped ``.npy`` in the work folder (``PATH.partial``); after each
     chunk, ``done`` records it (with what the chunk logged) in the folder's ``progress.json``.
-    ``finish`` streams the arrays into the zip, renames it to ``out`` and removes the folder. A run that
+    ``finish`` streams the arrays into the zip, renames it to ``out``, keeps a structured run's log
+    beside it (``OUT.screening.json``) and removes the folder. A run that
     stops (an error, Ctrl-C) leaves ``out`` as it was and keeps the folder where at least one chunk
     finished: the same config writing to the same ``out`` again resumes from there and gives the same
     file as an uninterrupted run.
@@ -139,6 +140,13 @@ class DatasetWriter:
         """What every written chunk logged, in record order."""
         return [self.chunks[s] for s in sorted(self.chunks)]
 
+    def _keep_screening_log(self) -> None:
+        """Copy the run's ``progress.json`` beside ``out`` as ``OUT.screening.json`` (structured family):
+        screening is most of a run's physics, and ``generate --screened`` rebuilds the same file from
+        the log with one replay per record."""
+        if self.cfg.family == "structured" and self._progress.is_file():
+            shutil.copyfile(self._progress, self.out.with_name(self.out.name + ".screening.json"))
+
     def _full_meta(self, meta: dict) -> dict:
         return {"schema_version": SCHEMA_VERSION, "config": self.cfg.to_meta(), **meta}
 
@@ -153,6 +161,7 @@ class DatasetWriter:
             for key in [*self._members, "freqs", "meta"]:
                 zf.write(self.work / f"{key}.npy", arcname=f"{key}.npy")
         os.replace(tmp_file, self.out)
+        self._keep_screening_log()
         self.chunks = {}
         shutil.rmtree(self.work, ignore_errors=True)
         return self.out
@@ -208,6 +217,7 @@ class ZarrDatasetWriter(DatasetWriter):
         if self.out.exists():
             os.replace(self.out, old)  # a directory cannot be renamed onto another
         os.replace(store, self.out)
+        self._keep_screening_log()
         self.chunks = {}
         shutil.rmtree(self.work, ignore_errors=True)
         return self.out

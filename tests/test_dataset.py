@@ -47,6 +47,7 @@ def test_generation_is_deterministic_and_independent_of_workers(tmp_path, tiny_d
     for key in ("commands", "joint_angles", "body", "shape", "phases"):
         np.testing.assert_array_equal(getattr(a, key), getattr(tiny_dataset, key)[:2])
     assert a.meta["config"]["seed"] == 11
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz"]  # no screening log: nothing was screened
     b = load_dataset(generate_dataset(GenerateConfig(num_samples=2, seed=12), tmp_path / "b.npz", workers=2))
     assert not np.array_equal(a.commands, b.commands)
 
