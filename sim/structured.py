@@ -207,18 +207,19 @@ STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
     ),
 }
 """Named structured families (``snakeloco generate --family structured --structured-preset NAME``).
-every (the default): one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.52 Hz only: 11 of 28
+library (the default, ``DEFAULT_PRESET``): described below. every: one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.52 Hz only: 11 of 28
 draws at 0.93 Hz passed the screen, 23 of 33 at 0.52 Hz) and 0.35-1 of its amplitude range (slow
 to fast, forward, backward, sideways, rolling, turning), with steering in 30% of the draws, screened
 against command noise by the cheap screen (a pause at 20 s, a 2-replay verdict where it is clear;
-docs/gaits.md). library: the gait library's four gaits at 0.3-1 of their amplitudes, mirrored or
+docs/gaits.md; its model could not learn where its gaits end: docs/every-model.md). library: the
+gait library's four gaits at 0.3-1 of their amplitudes, mirrored or
 not, undulation either way, sidewinding's offset swept over 0.2-1.1 rad (its direction of travel
 over -15 to 150 deg), no steering (it spins sidewinding and rolling in place), screened alike. mixed: every kind with second waves, screened in full (the first structured
 dataset's). undulate:
 lateral undulation at 0.52 Hz, forward or backward, with slow steering in half the draws, each kept
 only if it also survives 10% errors on its joint shape (a model's decoding error): the family whose
 decoded gaits replay as decoded, used for inverse design (docs/design.md)."""
-DEFAULT_PRESET = "every"
+DEFAULT_PRESET = "library"
 """What ``snakeloco generate --family structured`` draws with no preset flag: the family the shipped
 structured checkpoint is trained on."""
 

@@ -188,9 +188,12 @@ def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
     assert by_name.path == default.path == PRETRAINED_DIR and by_name.config == default.config
     structured = load_pretrained("structured")
     assert structured.family == "structured" and structured.robot_warning() is None
-    # The undulation family: only the yaw joints' steering (0.05 Hz) and wave (0.52 Hz) coefficients.
-    support = np.asarray(structured.config.shape_support)
-    assert support.sum() == 8 and support[1::2, 0].all() and support[1::2, 4].all()
+    # The library family: the pitch joints' waves at 0.29 and 0.52 Hz (rolling, turning, sidewinding),
+    # the yaw joints' also at 0.93 Hz (undulation); no steering bin.
+    support = np.asarray(structured.config.shape_support, bool)
+    freqs = np.asarray(structured.config.freqs)
+    assert [freqs[row].tolist() for row in support[0::2]] == [[0.29, 0.52]] * 4
+    assert [freqs[row].tolist() for row in support[1::2]] == [[0.29, 0.52, 0.93]] * 4
     # Both ship a slider density; the structured one decodes exact members with their predicted paths.
     assert by_name.config.density is not None and not by_name.projects
     assert (

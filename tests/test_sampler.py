@@ -257,7 +257,7 @@ def test_calibrate_sampler_density_only_gives_the_paper_family_a_sampler_and_a_f
 def test_the_shipped_structured_path_of_a_members_own_gait_beats_the_path_of_another_member():
     """On the shipped structured checkpoint: six gaits of its family never seen in training (a draw
     seed no dataset used), each replayed once; the path the model predicts for each gait's own member
-    must fit its replay better than the path predicted for another member of the family. Where the
+    must fit its replay better than the path predicted for any member that goes elsewhere. Where the
     head also reads z_B, every prediction gets the same slider position (a sampler draw that is none
     of these gaits'): the member, not z_B, must decide the path."""
     from snakeloco.model import load_pretrained
@@ -278,8 +278,13 @@ def test_the_shipped_structured_path_of_a_members_own_gait_beats_the_path_of_ano
     replays = result.body[:, ::BODY_DOWNSAMPLE].astype(np.float64)
     z_b = np.repeat(m.sample_z_b(1, seed=99), 6, axis=0) if m.config.member_head.z_b_dim else None
     predicted = m.predict_paths(members, z_b)
+    ends = replays[:, -1, 1:3]
     for i in range(6):
         own = xy_r2(predicted[i], replays[i])
-        other = xy_r2(predicted[(i + 3) % 6], replays[i])
-        assert own > other, (i, own, other)
+        # Another member's path, wherever that member's replay ends more than 1 m from this one's (two
+        # members may go the same way: a rolling and a sidewinding one both 4.6-4.9 m left).
+        elsewhere = [j for j in range(6) if j != i and np.linalg.norm(ends[j] - ends[i]) > 1.0]
+        assert len(elsewhere) >= 3, (i, ends)
+        for j in elsewhere:
+            assert own > xy_r2(predicted[j], replays[i]), (i, j, own)
     assert np.median([xy_r2(p, r) for p, r in zip(predicted, replays, strict=True)]) > 0.8
