@@ -2,7 +2,7 @@
 
 Frame: the snake's initial heading frame (x forward, y left, z up; metres), the frame the body
 channels are expressed in (``sim.body``), so decoded and simulated paths start at the origin heading
-+x. Link poses come from the simulator's kinematics (``sim.LinkPoses``); no robot geometry lives here.
++x. Link poses come from the simulator's kinematics (``sim.kinematics.LinkPoses``); no robot geometry lives here.
 """
 
 from __future__ import annotations

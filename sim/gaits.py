@@ -23,6 +23,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from snakeloco.sim.excitation import RECORD
+from snakeloco.sim.results import SimulationError
 from snakeloco.sim.robot import BODY_LENGTH, COMMAND_LIMIT, N_JOINTS
 from snakeloco.sim.spectra import shape_to_commands
 
@@ -134,10 +135,9 @@ class GaitPreset(BaseModel):
 
 def measure_gait(gait: GaitEquation, simulator, ensemble: int = 4, seed: int = 0) -> GaitFigures:
     """Replay a gait with ``ensemble`` - 1 perturbed copies (``sim.consistency``) on ``simulator`` (a
-    ``sim.Simulator``) and measure it. Raises SimulationError if the unperturbed replay breaks;
+    ``sim.physics.Simulator``) and measure it. Raises SimulationError if the unperturbed replay breaks;
     perturbed members that break leave the ensemble."""
     from snakeloco.sim.consistency import perturbed_commands
-    from snakeloco.sim.results import SimulationError
 
     result = simulator.simulate(perturbed_commands(gait.commands(), ensemble, seed=seed))
     if result.failures[0] is not None:
