@@ -137,6 +137,13 @@ def member_inputs(
     return np.concatenate([x, np.asarray(z_b, np.float64).reshape(len(x), -1)], axis=1)
 
 
+def path_scales(body: np.ndarray) -> np.ndarray:
+    """(N, T, 6) body series (m, rad) -> (N,) each path's scale: the RMS distance (m) of its plane
+    position from its start."""
+    d = np.asarray(body, np.float64)[:, :, 1:3] - np.asarray(body, np.float64)[:, :1, 1:3]
+    return np.sqrt((d**2).sum(-1).mean(-1))
+
+
 def fit_member_head(
     inputs: np.ndarray,
     body: np.ndarray,
@@ -153,12 +160,18 @@ def fit_member_head(
     hidden: int = 256,
     layers: int = 3,
     seed: int = 0,
+    xy_scale: tuple[np.ndarray, np.ndarray] | None = None,
+    xy_floor: float = 0.0,
     log: Callable[[str], None] | None = print,
 ) -> tuple[MemberPathHead, dict]:
     """Fit a head on (inputs (N, I) from ``member_inputs`` with ``input_kind``, normalised body (N,
     500, 6)) pairs, the epoch with the lowest validation loss kept (``model.fitting.fit_best``);
-    ``mirrored`` records that the pairs include the members' mirror images. Returns the head and what
-    it scored."""
+    ``mirrored`` records that the pairs include the members' mirror images. ``xy_scale`` (training,
+    validation), each (N,) m: every example's own path scale (``path_scales``); given, an example's
+    forward and sideways errors are weighted by 1 / (scale² + ``xy_floor``²), normalised to a mean of
+    1 over the training examples, so the loss scores a path's shape relative to its own size, as
+    the designer's figures do (xy R², final-position error over the distance). Returns the head and
+    what it scored."""
 
     torch.manual_seed(seed)
     x, y = torch.as_tensor(inputs, dtype=torch.float32), torch.as_tensor(body, dtype=torch.float32)
@@ -178,19 +191,28 @@ def fit_member_head(
     head = MemberPathHead(cfg)
     w = torch.tensor(CHANNEL_WEIGHTS[: y.shape[2]], dtype=torch.float32)
 
-    def loss(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
-        return (((pred - true) ** 2).mean(dim=(0, 1)) * w).sum() / w.sum()
+    xy = torch.zeros(y.shape[2], dtype=torch.bool)
+    xy[1:3] = True  # forward, sideways
+    ew, vew = torch.ones(len(x)), torch.ones(len(vx))
+    if xy_scale is not None:
+        inv, vinv = (1.0 / (np.asarray(s, np.float64) ** 2 + xy_floor**2) for s in xy_scale)
+        ew, vew = (torch.as_tensor(i / inv.mean(), dtype=torch.float32) for i in (inv, vinv))
+
+    def loss(pred: torch.Tensor, true: torch.Tensor, ex_w: torch.Tensor) -> torch.Tensor:
+        per = ((pred - true) ** 2).mean(dim=1)  # (B, C)
+        per = torch.where(xy, per * ex_w[:, None], per)
+        return (per.mean(dim=0) * w).sum() / w.sum()
 
     def val_loss() -> float:
         head.eval()
         with torch.no_grad():
-            return float(loss(head(vx), vy))
+            return float(loss(head(vx), vy, vew))
 
     best_epoch, history = fit_best(
         head,
         head,
         len(x),
-        lambda idx: loss(head(x[idx]), y[idx]),
+        lambda idx: loss(head(x[idx]), y[idx], ew[idx]),
         val_loss,
         epochs,
         lr,
@@ -207,6 +229,7 @@ def fit_member_head(
         "val_examples": len(vx),
         "lr": lr,
         "seed": seed,
+        "xy_floor": xy_floor if xy_scale is not None else None,
     }
     if log:
         log(f"member path head: best epoch {best_epoch} of {epochs}, val loss {summary['val_loss']:.4f}")

@@ -30,7 +30,13 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.density import fit_density, name_components
-from snakeloco.model.member_path import HeadInputs, fit_member_head, member_inputs, with_mirror_images
+from snakeloco.model.member_path import (
+    HeadInputs,
+    fit_member_head,
+    member_inputs,
+    path_scales,
+    with_mirror_images,
+)
 from snakeloco.model.replays import load_side_file, replay_shapes, save_side_file
 from snakeloco.model.train import split_records
 from snakeloco.sim import DatasetError, joint_shape, load_dataset
@@ -92,6 +98,14 @@ class SamplerConfig(BaseModel):
         "mirrored) where it is a member (``StructuredConfig.mirrors``): more examples at no replay cost.",
     )
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
+    xy_floor: float | None = Field(
+        None,
+        gt=0,
+        description="Weight each example's forward and sideways errors by 1 / (its path's scale² + "
+        "this²) (m; ``model.member_path.fit_member_head``), so a turn in place that wanders half a "
+        "metre is fitted as closely, relative to its size, as a 15 m undulation. None: errors in "
+        "the family's metres (the library checkpoint's head).",
+    )
 
     @model_validator(mode="after")
     def _mirror_has_no_z_b(self) -> SamplerConfig:
@@ -250,7 +264,9 @@ def fit_sampler(
             tr_members, y = with_mirror_images(tr_members, y, members)
         x = member_inputs(tr_members, support, z_tr_all, cfg.head_inputs)
         vx = member_inputs(va_members, support, z_va_all, cfg.head_inputs)
-        y, vy = norm(y), norm(np.concatenate([ds.body_ds[va_idx], gaits["body"][g_val]]))
+        vy = np.concatenate([ds.body_ds[va_idx], gaits["body"][g_val]])
+        scales = None if cfg.xy_floor is None else (path_scales(y), path_scales(vy))
+        y, vy = norm(y), norm(vy)
         t0 = time.perf_counter()
         head, fit = fit_member_head(
             x,
@@ -265,6 +281,8 @@ def fit_sampler(
             lr=cfg.lr,
             hidden=cfg.hidden,
             seed=cfg.seed,
+            xy_scale=scales,
+            xy_floor=cfg.xy_floor or 0.0,
             log=log,
         )
         fit["fit_s"] = time.perf_counter() - t0

@@ -160,6 +160,27 @@ class StructuredConfig(BaseModel):
         return (p_lo * s_lo, p_hi * s_hi), (y_lo * s_lo, y_hi * s_hi)
 
 
+LIBRARY = StructuredConfig(
+    kind_weights=(1.0, 2.0, 0.5, 0.5),
+    frequencies={
+        "undulate": (0.52, 0.93),
+        "sidewind": (0.52,),
+        "roll": (0.29, 0.52),
+        "turn": (0.29, 0.52),
+    },
+    second_wave=0.0,
+    steering=0.0,
+    amplitude_scale=(0.3, 1.0),
+    library=True,
+    library_offsets={"sidewind": (0.2, 1.1)},
+    max_draws=80,
+    early_seconds=20.0,
+    early_max_spread=0.3,
+    sure_spread=0.07,
+)
+"""The library family (``STRUCTURED_PRESETS["library"]``), which ``compass`` widens."""
+
+
 STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
     "every": StructuredConfig(
         kind_weights=(1.0, 1.5, 1.0, 1.0),
@@ -176,23 +197,12 @@ STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
         early_max_spread=0.3,
         sure_spread=0.07,
     ),
-    "library": StructuredConfig(
-        kind_weights=(1.0, 2.0, 0.5, 0.5),
-        frequencies={
-            "undulate": (0.52, 0.93),
-            "sidewind": (0.52,),
-            "roll": (0.29, 0.52),
-            "turn": (0.29, 0.52),
-        },
-        second_wave=0.0,
-        steering=0.0,
-        amplitude_scale=(0.3, 1.0),
-        library=True,
-        library_offsets={"sidewind": (0.2, 1.1)},
-        max_draws=80,
-        early_seconds=20.0,
-        early_max_spread=0.3,
-        sure_spread=0.07,
+    "library": LIBRARY,
+    "compass": LIBRARY.model_copy(
+        update={
+            "kind_weights": (1.5, 2.0, 0.5, 0.5),
+            "frequencies": LIBRARY.frequencies | {"undulate": (0.29, 0.52, 0.93)},
+        }
     ),
     "mixed": StructuredConfig(),
     "undulate": StructuredConfig(

@@ -59,6 +59,45 @@ def test_components_are_named_by_where_their_gaits_go():
     assert kinds == ["rolling: right, 5 m", "turning wave: in place, turning left 2.2 turns"]
 
 
+def test_weighting_xy_by_each_paths_scale_fits_a_small_path_relative_to_its_size():
+    """Two kinds of member in one head: straight 10 m paths and 0.5 m circles. Scored in metres the
+    head spends its capacity on the long paths; weighted by each path's own scale
+    (``calibrate --sampler.xy-floor``) the circle's error relative to its size falls."""
+    from snakeloco.model.member_path import fit_member_head, path_scales
+
+    rng = np.random.default_rng(0)
+    n, t = 256, 50
+    s = np.linspace(0, 1, t)
+    small = rng.random(n) < 0.5
+    a = rng.uniform(0.5, 1.5, n)  # a size parameter per example
+    body = np.zeros((n, t, 6))
+    body[~small, :, 1] = 10 * a[~small, None] * s
+    body[~small, :, 2] = a[~small, None] * s**2
+    ang = 2 * np.pi * s
+    body[small, :, 1] = 0.25 * a[small, None] * np.sin(ang)
+    body[small, :, 2] = 0.25 * a[small, None] * (1 - np.cos(ang))
+    x = np.stack([small.astype(float), a], axis=1)
+    scale = path_scales(body)
+    assert scale[small].max() < 0.6 < 2.5 < scale[~small].min()
+    mean, std = body.mean(axis=(0, 1)), body.std(axis=(0, 1)) + 1e-6
+    y = (body - mean) / std
+
+    def small_rel_error(weighted: bool) -> float:
+        head, _ = fit_member_head(
+            x, y, x, y, np.ones((8, 8), bool), epochs=40, batch_size=32, lr=1e-2, hidden=8, layers=1,
+            xy_scale=(scale, scale) if weighted else None, xy_floor=0.1, log=None,
+        )
+        import torch
+
+        with torch.no_grad():
+            pred = head(torch.as_tensor(x, dtype=torch.float32)).numpy() * std + mean
+        err = np.linalg.norm(pred[small, :, 1:3] - body[small, :, 1:3], axis=-1).mean(-1)
+        return float(np.median(err / scale[small]))
+
+    plain, weighted = small_rel_error(False), small_rel_error(True)
+    assert weighted < 0.5 * plain, (weighted, plain)
+
+
 @pytest.mark.slow
 def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predicted_for_them(
     member_checkpoint,
