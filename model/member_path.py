@@ -44,6 +44,10 @@ from snakeloco.sim.structured import KINDS, StructuredConfig
 MEMBER_HEAD_WEIGHTS = "member_head.safetensors"
 HeadInputs = Literal["coefficients", "named"]
 """What describes a member to the head (``member_inputs``)."""
+HeadPath = Literal["direct", "heading"]
+"""How the head draws the path in the plane: "direct", forward and sideways positions as outputs;
+"heading", velocities in the body's own frame, turned by the predicted heading and summed (dead
+reckoning), so a turn in place ends where its predicted yaw takes it round its circle."""
 CHANNEL_WEIGHTS = (1.0, 4.0, 4.0, 1.0, 1.0, 4.0)
 """Loss weight per body channel (vertical, forward, sideways, roll, pitch, yaw): the path in the
 plane and the heading are what the designer draws and scores; the oscillating channels still count
@@ -67,6 +71,14 @@ class MemberHeadConfig(BaseModel):
     layers: int = Field(3, ge=1, description="Hidden layers.")
     steps: int = Field(500, ge=1, description="Body steps predicted (5 Hz over 100 s).")
     channels: int = Field(6, ge=1, description="Body channels predicted.")
+    path: HeadPath = Field("direct", description="How the path in the plane is drawn (``HeadPath``).")
+    body_mean: list[float] | None = Field(
+        None, description="(6,) the checkpoint's body normalisation (m, rad): a heading head's frame."
+    )
+    body_std: list[float] | None = Field(None, description="(6,) its std.")
+    velocity_scale: float = Field(
+        1.0, gt=0, description="m per 5 Hz step of a heading head's unit velocity output."
+    )
     summary: dict = Field(default_factory=dict, description="How it was fitted and what it scored.")
 
 
@@ -85,10 +97,25 @@ class MemberPathHead(nn.Module):
         self.mlp = nn.Sequential(*layers)
         self.register_buffer("in_mean", torch.tensor(cfg.input_mean, dtype=torch.float32))
         self.register_buffer("in_std", torch.tensor(cfg.input_std, dtype=torch.float32))
+        if cfg.path == "heading":
+            if cfg.body_mean is None or cfg.body_std is None or cfg.channels != 6:
+                raise ValueError("a heading head needs the body normalisation and all 6 channels")
+            self.register_buffer("body_mean", torch.tensor(cfg.body_mean, dtype=torch.float32))
+            self.register_buffer("body_std", torch.tensor(cfg.body_std, dtype=torch.float32))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.mlp((x - self.in_mean) / self.in_std)
-        return y.view(-1, self.cfg.steps, self.cfg.channels)  # (B, T, C)
+        y = self.mlp((x - self.in_mean) / self.in_std).view(-1, self.cfg.steps, self.cfg.channels)
+        if self.cfg.path == "direct":
+            return y  # (B, T, C)
+        # Dead reckoning: step k moves the body by its velocity u_k in its own frame, turned by its
+        # heading; the series starts at the origin of the initial frame (as every record does).
+        yaw = y[..., 5] * self.body_std[5] + self.body_mean[5]
+        u = y[..., 1:3] * self.cfg.velocity_scale
+        c, s = torch.cos(yaw), torch.sin(yaw)
+        step = torch.stack([c * u[..., 0] - s * u[..., 1], s * u[..., 0] + c * u[..., 1]], dim=-1)
+        xy = torch.cat([torch.zeros_like(step[:, :1]), torch.cumsum(step[:, :-1], dim=1)], dim=1)
+        xy = (xy - self.body_mean[1:3]) / self.body_std[1:3]
+        return torch.cat([y[..., :1], xy, y[..., 3:]], dim=-1)
 
 
 NAMED_INPUTS = len(KINDS) + 10
@@ -137,6 +164,15 @@ def member_inputs(
     return np.concatenate([x, np.asarray(z_b, np.float64).reshape(len(x), -1)], axis=1)
 
 
+def body_frame_velocities(body: np.ndarray) -> np.ndarray:
+    """(N, T, 6) body series (m, rad) -> (N, T - 1, 2) each step's plane displacement in the body's
+    own frame at its start (forward, left): what a heading head predicts (``HeadPath``)."""
+    b = np.asarray(body, np.float64)
+    d, yaw = np.diff(b[:, :, 1:3], axis=1), b[:, :-1, 5]
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
+
+
 def path_scales(body: np.ndarray) -> np.ndarray:
     """(N, T, 6) body series (m, rad) -> (N,) each path's scale: the RMS distance (m) of its plane
     position from its start."""
@@ -162,6 +198,8 @@ def fit_member_head(
     seed: int = 0,
     xy_scale: tuple[np.ndarray, np.ndarray] | None = None,
     xy_floor: float = 0.0,
+    path: HeadPath = "direct",
+    body_norm: tuple[np.ndarray, np.ndarray] | None = None,
     log: Callable[[str], None] | None = print,
 ) -> tuple[MemberPathHead, dict]:
     """Fit a head on (inputs (N, I) from ``member_inputs`` with ``input_kind``, normalised body (N,
@@ -170,8 +208,9 @@ def fit_member_head(
     validation), each (N,) m: every example's own path scale (``path_scales``); given, an example's
     forward and sideways errors are weighted by 1 / (scale² + ``xy_floor``²), normalised to a mean of
     1 over the training examples, so the loss scores a path's shape relative to its own size, as
-    the designer's figures do (xy R², final-position error over the distance). Returns the head and
-    what it scored."""
+    the designer's figures do (xy R², final-position error over the distance). ``path``: how the
+    head draws the plane path (``HeadPath``); a heading head needs ``body_norm``, the (mean, std) (6,)
+    the body series are normalised by. Returns the head and what it scored."""
 
     torch.manual_seed(seed)
     x, y = torch.as_tensor(inputs, dtype=torch.float32), torch.as_tensor(body, dtype=torch.float32)
@@ -188,6 +227,18 @@ def fit_member_head(
         steps=y.shape[1],
         channels=y.shape[2],
     )
+    if path == "heading":
+        if body_norm is None:
+            raise ValueError("a heading head needs body_norm, the body normalisation")
+        mean, std = (np.asarray(a, np.float64) for a in body_norm)
+        cfg = cfg.model_copy(
+            update={
+                "path": path,
+                "body_mean": mean.tolist(),
+                "body_std": std.tolist(),
+                "velocity_scale": float(body_frame_velocities(np.asarray(body) * std + mean).std()),
+            }
+        )
     head = MemberPathHead(cfg)
     w = torch.tensor(CHANNEL_WEIGHTS[: y.shape[2]], dtype=torch.float32)
 
@@ -230,6 +281,7 @@ def fit_member_head(
         "lr": lr,
         "seed": seed,
         "xy_floor": xy_floor if xy_scale is not None else None,
+        "path": path,
     }
     if log:
         log(f"member path head: best epoch {best_epoch} of {epochs}, val loss {summary['val_loss']:.4f}")

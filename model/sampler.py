@@ -32,6 +32,7 @@ from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.density import fit_density, name_components
 from snakeloco.model.member_path import (
     HeadInputs,
+    HeadPath,
     fit_member_head,
     member_inputs,
     path_scales,
@@ -98,6 +99,12 @@ class SamplerConfig(BaseModel):
         "mirrored) where it is a member (``StructuredConfig.mirrors``): more examples at no replay cost.",
     )
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
+    head_path: HeadPath = Field(
+        "direct",
+        description="How the head draws the path in the plane (``model.member_path.HeadPath``): "
+        "positions directly, or (heading) velocities in the body's frame turned by the predicted "
+        "heading and summed, so a turn in place ends where its yaw takes it.",
+    )
     xy_floor: float | None = Field(
         None,
         gt=0,
@@ -283,6 +290,8 @@ def fit_sampler(
             seed=cfg.seed,
             xy_scale=scales,
             xy_floor=cfg.xy_floor or 0.0,
+            path=cfg.head_path,
+            body_norm=(model._body_mean, model._body_std),
             log=log,
         )
         fit["fit_s"] = time.perf_counter() - t0

@@ -98,6 +98,48 @@ def test_weighting_xy_by_each_paths_scale_fits_a_small_path_relative_to_its_size
     assert weighted < 0.5 * plain, (weighted, plain)
 
 
+def test_a_heading_head_draws_a_turn_in_place_round_the_circle_its_yaw_sets():
+    """Turns in place: the body circles a point while its heading turns 3-9 rad, so where it ends
+    swings round the circle as the turn's size grows. A heading head (``HeadPath``: body-frame
+    velocities turned by the predicted yaw and summed) follows it; the direct head, fitted the same,
+    misses by more. The body-frame velocities integrate back to the path exactly."""
+    import torch
+
+    from snakeloco.model.member_path import body_frame_velocities, fit_member_head
+
+    rng = np.random.default_rng(1)
+    n, t = 256, 60
+    a = rng.uniform(0.5, 1.5, n)  # the turn's size
+    yaw = 6.0 * a[:, None] * np.linspace(0, 1, t)  # 3-9 rad by the end
+    body = np.zeros((n, t, 6))
+    body[:, :, 5] = yaw
+    body[:, :, 1] = 0.3 * np.sin(yaw)  # a point 0.3 m ahead of the centre it turns about
+    body[:, :, 2] = 0.3 * (1 - np.cos(yaw))
+    u = body_frame_velocities(body)
+    c, s = np.cos(yaw[:, :-1]), np.sin(yaw[:, :-1])
+    steps = np.stack([c * u[..., 0] - s * u[..., 1], s * u[..., 0] + c * u[..., 1]], axis=-1)
+    np.testing.assert_allclose(np.cumsum(steps, axis=1), body[:, 1:, 1:3], atol=1e-12)
+
+    x = a[:, None]
+    mean, std = body.mean(axis=(0, 1)), body.std(axis=(0, 1)) + 1e-6
+    y = (body - mean) / std
+
+    def end_error(path: str) -> float:
+        head, fit = fit_member_head(
+            x, y, x, y, np.ones((8, 8), bool), epochs=40, batch_size=32, lr=1e-2, hidden=32, layers=2,
+            path=path, body_norm=(mean, std), log=None,
+        )
+        assert fit["path"] == path and head.cfg.path == path
+        with torch.no_grad():
+            pred = head(torch.as_tensor(x, dtype=torch.float32)).numpy() * std + mean
+        return float(np.median(np.linalg.norm(pred[:, -1, 1:3] - body[:, -1, 1:3], axis=-1)))
+
+    direct, heading = end_error("direct"), end_error("heading")
+    assert heading < 0.5 * direct, (heading, direct)
+    with pytest.raises(ValueError, match="body_norm"):
+        fit_member_head(x, y, x, y, np.ones((8, 8), bool), epochs=1, path="heading", log=None)
+
+
 @pytest.mark.slow
 def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predicted_for_them(
     member_checkpoint,
