@@ -217,7 +217,9 @@ STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
     ),
 }
 """Named structured families (``snakeloco generate --family structured --structured-preset NAME``).
-library (the default, ``DEFAULT_PRESET``): described below. every: one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.52 Hz only: 11 of 28
+compass (the default, ``DEFAULT_PRESET``): the library family below with undulation at 0.29 Hz as
+well (short paths straight ahead and behind: 2.4-11 m where 0.52 Hz starts at 3.5 m), undulation drawn
+1.5 times as often; docs/gaits.md. every: one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.52 Hz only: 11 of 28
 draws at 0.93 Hz passed the screen, 23 of 33 at 0.52 Hz) and 0.35-1 of its amplitude range (slow
 to fast, forward, backward, sideways, rolling, turning), with steering in 30% of the draws, screened
 against command noise by the cheap screen (a pause at 20 s, a 2-replay verdict where it is clear;
@@ -229,7 +231,7 @@ dataset's). undulate:
 lateral undulation at 0.52 Hz, forward or backward, with slow steering in half the draws, each kept
 only if it also survives 10% errors on its joint shape (a model's decoding error): the family whose
 decoded gaits replay as decoded, used for inverse design (docs/design.md)."""
-DEFAULT_PRESET = "library"
+DEFAULT_PRESET = "compass"
 """What ``snakeloco generate --family structured`` draws with no preset flag: the family the shipped
 structured checkpoint is trained on."""
 
