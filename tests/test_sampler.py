@@ -84,8 +84,19 @@ def test_weighting_xy_by_each_paths_scale_fits_a_small_path_relative_to_its_size
 
     def small_rel_error(weighted: bool) -> float:
         head, _ = fit_member_head(
-            x, y, x, y, np.ones((8, 8), bool), epochs=40, batch_size=32, lr=1e-2, hidden=8, layers=1,
-            xy_scale=(scale, scale) if weighted else None, xy_floor=0.1, log=None,
+            x,
+            y,
+            x,
+            y,
+            np.ones((8, 8), bool),
+            epochs=40,
+            batch_size=32,
+            lr=1e-2,
+            hidden=8,
+            layers=1,
+            xy_scale=(scale, scale) if weighted else None,
+            xy_floor=0.1,
+            log=None,
         )
         import torch
 
@@ -126,8 +137,19 @@ def test_a_heading_head_draws_a_turn_in_place_round_the_circle_its_yaw_sets():
 
     def end_error(path: str) -> float:
         head, fit = fit_member_head(
-            x, y, x, y, np.ones((8, 8), bool), epochs=40, batch_size=32, lr=1e-2, hidden=32, layers=2,
-            path=path, body_norm=(mean, std), log=None,
+            x,
+            y,
+            x,
+            y,
+            np.ones((8, 8), bool),
+            epochs=40,
+            batch_size=32,
+            lr=1e-2,
+            hidden=32,
+            layers=2,
+            path=path,
+            body_norm=(mean, std),
+            log=None,
         )
         assert fit["path"] == path and head.cfg.path == path
         with torch.no_grad():
