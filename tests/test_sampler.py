@@ -59,11 +59,26 @@ def test_components_are_named_by_where_their_gaits_go():
     assert kinds == ["rolling: right, 5 m", "turning wave: in place, turning left 2.2 turns"]
 
 
+def _fit_toy_head(x, body, mean, std, **options):
+    """A member path head fitted for 40 quick epochs on toy paths ``body`` (n, t, 6) from inputs
+    ``x``, all examples both train and validation; returns (head, fit record, its paths in metres)."""
+    import torch
+
+    from snakeloco.model.member_path import fit_member_head
+
+    y = (body - mean) / std
+    ones = np.ones((8, 8), bool)
+    head, fit = fit_member_head(x, y, x, y, ones, epochs=40, batch_size=32, lr=1e-2, log=None, **options)
+    with torch.no_grad():
+        pred = head(torch.as_tensor(x, dtype=torch.float32)).numpy() * std + mean
+    return head, fit, pred
+
+
 def test_weighting_xy_by_each_paths_scale_fits_a_small_path_relative_to_its_size():
     """Two kinds of member in one head: straight 10 m paths and 0.5 m circles. Scored in metres the
     head spends its capacity on the long paths; weighted by each path's own scale
     (``calibrate --sampler.xy-floor``) the circle's error relative to its size falls."""
-    from snakeloco.model.member_path import fit_member_head, path_scales
+    from snakeloco.model.member_path import path_scales
 
     rng = np.random.default_rng(0)
     n, t = 256, 50
@@ -80,28 +95,10 @@ def test_weighting_xy_by_each_paths_scale_fits_a_small_path_relative_to_its_size
     scale = path_scales(body)
     assert scale[small].max() < 0.6 < 2.5 < scale[~small].min()
     mean, std = body.mean(axis=(0, 1)), body.std(axis=(0, 1)) + 1e-6
-    y = (body - mean) / std
 
     def small_rel_error(weighted: bool) -> float:
-        head, _ = fit_member_head(
-            x,
-            y,
-            x,
-            y,
-            np.ones((8, 8), bool),
-            epochs=40,
-            batch_size=32,
-            lr=1e-2,
-            hidden=8,
-            layers=1,
-            xy_scale=(scale, scale) if weighted else None,
-            xy_floor=0.1,
-            log=None,
-        )
-        import torch
-
-        with torch.no_grad():
-            pred = head(torch.as_tensor(x, dtype=torch.float32)).numpy() * std + mean
+        xy_scale = (scale, scale) if weighted else None
+        _, _, pred = _fit_toy_head(x, body, mean, std, hidden=8, layers=1, xy_scale=xy_scale, xy_floor=0.1)
         err = np.linalg.norm(pred[small, :, 1:3] - body[small, :, 1:3], axis=-1).mean(-1)
         return float(np.median(err / scale[small]))
 
@@ -114,8 +111,6 @@ def test_a_heading_head_draws_a_turn_in_place_round_the_circle_its_yaw_sets():
     swings round the circle as the turn's size grows. A heading head (``HeadPath``: body-frame
     velocities turned by the predicted yaw and summed) follows it; the direct head, fitted the same,
     misses by more. The body-frame velocities integrate back to the path exactly."""
-    import torch
-
     from snakeloco.model.member_path import body_frame_velocities, fit_member_head
 
     rng = np.random.default_rng(1)
@@ -136,24 +131,10 @@ def test_a_heading_head_draws_a_turn_in_place_round_the_circle_its_yaw_sets():
     y = (body - mean) / std
 
     def end_error(path: str) -> float:
-        head, fit = fit_member_head(
-            x,
-            y,
-            x,
-            y,
-            np.ones((8, 8), bool),
-            epochs=40,
-            batch_size=32,
-            lr=1e-2,
-            hidden=32,
-            layers=2,
-            path=path,
-            body_norm=(mean, std),
-            log=None,
+        head, fit, pred = _fit_toy_head(
+            x, body, mean, std, hidden=32, layers=2, path=path, body_norm=(mean, std)
         )
         assert fit["path"] == path and head.cfg.path == path
-        with torch.no_grad():
-            pred = head(torch.as_tensor(x, dtype=torch.float32)).numpy() * std + mean
         return float(np.median(np.linalg.norm(pred[:, -1, 1:3] - body[:, -1, 1:3], axis=-1)))
 
     direct, heading = end_error("direct"), end_error("heading")
