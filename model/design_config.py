@@ -52,10 +52,11 @@ class DesignConfig(BaseModel):
     population: int = Field(12, ge=4, description="CMA-ES population per generation.")
     sigma0: float = Field(0.5, gt=0, description="CMA-ES initial step (prior units).")
     prior_weight: float = Field(
-        0.05,
+        0.02,
         ge=0,
         description="Metres of error one nat of negative log density of the slider sampler (of "
-        "the N(0, I) prior, |z|^2 / 2, without one) costs.",
+        "the N(0, I) prior, |z|^2 / 2, without one) costs. 0.02: on the compass checkpoint "
+        "(docs/design.md) 0.05 held the search inside the bulk short of targets at the family's edge.",
     )
     prior_margin: float = Field(
         3.0,
