@@ -17,6 +17,9 @@ from snakeloco.sim import SimulationError
 
 SETTLED_S = 0.5
 """A slider value the tab has held this long (no newer one) is one the user has let go of."""
+HELD_S = 0.08
+"""A slider value held this long (a dragged slider sends one every 50 ms) gets its first motion
+before other tabs' settled replays; a younger one's after them (``sim.scheduler.LANES``)."""
 STREAM_PATH_PERIOD_S = 0.25
 """How often a streaming replay's growing path is sent to the browser (the whole path is sent again
 each time; the snake's pose goes every animation frame)."""
@@ -91,6 +94,7 @@ class TabJobs:
                 lambda part: self._draw_part(part, timing, is_current),
                 settled=lambda: time.perf_counter() - timing.submitted >= SETTLED_S,
                 wanted=is_current,
+                held=lambda: time.perf_counter() - timing.submitted >= HELD_S,
             )
         except SimulationError as exc:
             timing.failed = str(exc)

@@ -56,8 +56,11 @@ class StreamedReplay:
 STREAM_CHUNK = 50
 """Record samples per chunk of a streamed replay: 2.5 s of record, ~17 ms of physics on one core
 (a superseded replay holds its thread at most that long)."""
-STREAM_POLL_S = 0.002
-"""How often a stream in flight asks whether it is still wanted (``Simulator.stream``'s ``wanted``)."""
+STREAM_POLL_S = 0.05
+"""How often a stream in flight asks whether it is still wanted (``Simulator.stream``'s ``wanted``):
+the shared pool drops an unwanted chunk at its turn anyway, so this only bounds how long a left
+stream's thread lingers. Every poll takes the GIL: at 2 ms (until 2026-12-04) four tabs' streams
+woke 2000 times a second beside their decodes (docs/load.md)."""
 STREAM_FIRST = 20
 """Record samples in a stream's first chunk, after the 3 s lead-in: ~27 ms of physics to the first
 pose (100 samples took ~55 ms)."""

@@ -5,21 +5,24 @@ first motion; the later ones of a gait the user has let go of; those of a gait s
 through) and the rows of an ensemble. ``FairPhysics`` runs them on ``threads`` niced rollout threads
 (``sim.threads``: MuJoCo's rollout with the GIL released) in this order:
 
-1. strictly by class: every waiting replay chunk of any tab before any tab's ensemble row (a new
-   gait's first motion first of all);
+1. strictly by class (``LANES``): every waiting replay chunk of any tab before any tab's ensemble
+   row; a new gait's first motion first of all once its slider value is held (a first motion of a
+   value a slider may still be passing through comes after the settled replays' chunks);
 2. inside a class, round robin between tabs: the tab served longest ago goes next, so a tab with a
    long queue (an 8-member ensemble) cannot hold up a tab with one row, and no tab starves;
    inverse design's replays come last (a search of seconds after every tab's ensembles);
 3. a task whose ``wanted()`` says no when its turn comes is dropped unrun (its future cancelled):
    superseded work never takes a core. ``Future.cancel`` on a queued task does the same.
 
-A task that is running is not preempted: a replay chunk (~0.1 s of physics) or an ensemble row
-(~0.5 s) is the longest a waiting replay chunk waits for a free thread.
+A task that is running is not preempted: a replay chunk (~0.02-0.04 s of physics) or an ensemble
+row's segment (``SEGMENT_SAMPLES``, ~0.06 s) is the longest a waiting replay chunk waits for a free
+thread. The pool counts each class's thread time (``busy_s``: ``bench load`` reports it).
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable
 from concurrent.futures import Future
@@ -43,7 +46,12 @@ class Turn(IntEnum):
 class _Task:
     future: Future
     run: Callable[[], None]
+    turn: Turn
     wanted: Callable[[], bool] | None = None
+    held: Callable[[], bool] | None = None  # a first motion: whether its value is held (None: yes)
+
+    def is_held(self) -> bool:
+        return self.held is None or self.held()
 
 
 @dataclass
@@ -52,14 +60,31 @@ class _Class:
 
     queues: OrderedDict = field(default_factory=OrderedDict)
 
-    def pop(self) -> _Task | None:
+    def pop(self, held_only: bool = False) -> _Task | None:
+        """The next tab's first task (``held_only``: the next tab's whose first task ``is_held``)."""
         for tab in list(self.queues):
+            if held_only and not self.queues[tab][0].is_held():
+                continue
             queue = self.queues.pop(tab)  # served now: to the back of the line if it has more
             task = queue.popleft()
             if queue:
                 self.queues[tab] = queue
             return task
         return None
+
+
+LANES = (
+    (Turn.FIRST_MOTION, True),
+    (Turn.SETTLED, False),
+    (Turn.DRAGGED, False),
+    (Turn.FIRST_MOTION, False),
+    (Turn.ENSEMBLE, False),
+    (Turn.DESIGN, False),
+)
+"""The order ``FairPhysics`` serves in: (class, held values only). A first motion whose slider
+value is younger than its tab's hold (``held()`` False: the slider may be passing through it) comes
+after every tab's settled replay chunks, so tabs dragging sliders do not hold up a replay another
+tab waits for; with no settled chunk waiting it runs at once, and once held it is first again."""
 
 
 class FairPhysics:
@@ -76,6 +101,7 @@ class FairPhysics:
         self._cond = threading.Condition()
         self._closed = False
         self.served: dict[Turn, int] = dict.fromkeys(Turn, 0)
+        self.busy_s: dict[Turn, float] = dict.fromkeys(Turn, 0.0)  # thread seconds run, per class
         self.dropped = 0
         self._workers = [
             threading.Thread(target=self._loop, args=(int(nice),), name=f"{name}-{i}", daemon=True)
@@ -84,21 +110,33 @@ class FairPhysics:
         for worker in self._workers:
             worker.start()
 
-    def runner(self, tab: Hashable, turn: Turn, wanted: Callable[[], bool] | None = None) -> FairRunner:
+    def runner(
+        self,
+        tab: Hashable,
+        turn: Turn,
+        wanted: Callable[[], bool] | None = None,
+        held: Callable[[], bool] | None = None,
+    ) -> FairRunner:
         """Where a tab's work of one class goes (``rollout`` as ``RolloutThreads.rollout``)."""
-        return FairRunner(self, tab, Turn(turn), wanted)
+        return FairRunner(self, tab, Turn(turn), wanted, held)
 
     def submit(
-        self, tab: Hashable, turn: Turn, run: Callable[[], None], wanted: Callable[[], bool] | None = None
+        self,
+        tab: Hashable,
+        turn: Turn,
+        run: Callable[[], None],
+        wanted: Callable[[], bool] | None = None,
+        held: Callable[[], bool] | None = None,
     ) -> Future:
         """Queue ``run()`` for ``tab`` in class ``turn``; its future completes when it has run (or is
-        cancelled: dropped as unwanted, or by ``Future.cancel`` while queued)."""
+        cancelled: dropped as unwanted, or by ``Future.cancel`` while queued). ``held``: for a first
+        motion, whether its slider value is held yet (``LANES``)."""
         future: Future = Future()
         with self._cond:
             if self._closed:
                 raise RuntimeError("the physics pool was closed (the server is stopping)")
             queues = self._classes[Turn(turn)].queues
-            queues.setdefault(tab, deque()).append(_Task(future, run, wanted))
+            queues.setdefault(tab, deque()).append(_Task(future, run, Turn(turn), wanted, held))
             self._cond.notify()
         return future
 
@@ -110,8 +148,8 @@ class FairPhysics:
     def _next(self) -> _Task | None:
         """The next task to run, None once closed (caller holds the condition)."""
         while True:
-            for turn, cls in self._classes.items():
-                task = cls.pop()
+            for turn, held_only in LANES:
+                task = self._classes[turn].pop(held_only)
                 if task is not None:
                     self.served[turn] += 1
                     return task
@@ -134,12 +172,17 @@ class FairPhysics:
                 continue
             if not task.future.set_running_or_notify_cancel():
                 continue  # cancelled while queued
+            t0, error = time.perf_counter(), None
             try:
                 task.run()
             except BaseException as exc:  # handed to whoever waits on the future
-                task.future.set_exception(exc)
-            else:
+                error = exc
+            with self._cond:
+                self.busy_s[task.turn] += time.perf_counter() - t0
+            if error is None:
                 task.future.set_result(None)
+            else:
+                task.future.set_exception(error)
 
     def close(self) -> None:
         """Cancel what is queued, let running tasks finish, stop the threads."""
@@ -166,16 +209,25 @@ def _drop(future: Future) -> None:
 class FairRunner(RowRunner):
     """One tab's work of one class on a ``FairPhysics`` (``RolloutThreads.rollout``'s signature)."""
 
-    def __init__(self, pool: FairPhysics, tab: Hashable, turn: Turn, wanted: Callable[[], bool] | None):
-        self.pool, self.tab, self.turn, self.wanted = pool, tab, turn, wanted
+    def __init__(
+        self,
+        pool: FairPhysics,
+        tab: Hashable,
+        turn: Turn,
+        wanted: Callable[[], bool] | None,
+        held: Callable[[], bool] | None = None,
+    ):
+        self.pool, self.tab, self.turn, self.wanted, self.held = pool, tab, turn, wanted, held
 
     def _submit(self, call: Callable[[], None]) -> Future:
-        return self.pool.submit(self.tab, self.turn, call, self.wanted)
+        return self.pool.submit(self.tab, self.turn, call, self.wanted, self.held)
 
 
-SEGMENT_SAMPLES = 500
-"""Record samples (25 s) of a batch row per task on the pool (~0.1 s of physics; a whole 100 s row
-is ~0.4 s): how long a new gait's first motion can wait for a thread behind an ensemble."""
+SEGMENT_SAMPLES = 125
+"""Record samples (6.25 s) of a batch row per task on the pool (~0.06 s of physics for a compass
+gait; a whole 100 s row is 0.75-1.6 s): how long a new gait's first motion can wait for a thread
+behind an ensemble. 500 until 2026-12-04: a stream's next chunk, submitted a moment after its last
+one ended, often found both threads just started on 0.2-0.4 s ensemble segments."""
 
 
 class OnTurns:

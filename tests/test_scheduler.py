@@ -4,12 +4,13 @@ superseded work dropped unrun, results unchanged."""
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
 
 from snakeloco.sim.physics import Simulator
-from snakeloco.sim.scheduler import FairPhysics, OnTurns, Turn
+from snakeloco.sim.scheduler import SEGMENT_SAMPLES, FairPhysics, OnTurns, Turn
 
 
 def _blocked_pool() -> tuple[FairPhysics, threading.Event]:
@@ -62,6 +63,47 @@ def test_replays_go_before_any_ensemble_and_tabs_take_turns_within_a_kind():
     ]
 
 
+def test_a_first_motion_of_a_value_not_yet_held_waits_for_settled_replays_and_its_thread_time_is_counted():
+    """A first motion whose slider value is younger than its hold (the slider may be passing
+    through it) goes after every tab's settled and dragged chunks, but before any ensemble; once held
+    it is first again. The pool counts each class's thread time."""
+    pool, gate = _blocked_pool()
+    ran: list[str] = []
+    held = {"b": False}
+    try:
+        futures = [
+            pool.submit("a", Turn.ENSEMBLE, lambda: ran.append("a-ens")),
+            pool.submit("b", Turn.FIRST_MOTION, lambda: ran.append("b-young"), held=lambda: held["b"]),
+            pool.submit("c", Turn.DRAGGED, lambda: ran.append("c-dragged")),
+            pool.submit("d", Turn.SETTLED, lambda: ran.append("d-settled")),
+            pool.submit("e", Turn.FIRST_MOTION, lambda: ran.append("e-held"), held=lambda: True),
+        ]
+        gate.set()
+        for f in futures:
+            f.result(10)
+        first_round, ran[:] = list(ran), []
+        gate.clear()
+        started = threading.Event()
+        pool.submit("gate", Turn.FIRST_MOTION, lambda: (started.set(), gate.wait(10)))
+        assert started.wait(10)
+        futures = [
+            pool.submit("d", Turn.SETTLED, lambda: ran.append("d-settled")),
+            pool.submit("b", Turn.FIRST_MOTION, lambda: ran.append("b-held"), held=lambda: held["b"]),
+            pool.submit("f", Turn.DESIGN, lambda: time.sleep(0.05)),  # work of a known length
+        ]
+        held["b"] = True  # held by the time a thread is free
+        gate.set()
+        for f in futures:
+            f.result(10)
+        busy = dict(pool.busy_s)
+    finally:
+        pool.close()
+    assert first_round == ["e-held", "d-settled", "c-dragged", "b-young", "a-ens"]
+    assert ran == ["b-held", "d-settled"]
+    assert 0.05 <= busy[Turn.DESIGN] < 1.0  # each class's thread time, counted where it ran
+    assert 0.0 < busy[Turn.ENSEMBLE] < 0.05 and busy[Turn.SETTLED] < 0.05
+
+
 def test_unwanted_and_cancelled_work_never_runs_and_errors_reach_the_caller():
     pool, gate = _blocked_pool()
     ran: list[str] = []
@@ -108,8 +150,9 @@ def test_replays_and_batches_on_the_pool_are_bit_identical_to_the_simulators_own
         parts = list(sim.stream(commands[0], runner=lambda k: pool.runner("tab", Turn(min(k, 1)))))
         np.testing.assert_array_equal(parts[-1].joint_angles, own.joint_angles[0])
         assert pool.served[Turn.FIRST_MOTION] == 1 and pool.served[Turn.SETTLED] == len(parts) - 1
-        # batches run in 25 s segments per task (4 tasks a row), the same numbers as one rollout
-        assert pool.served[Turn.ENSEMBLE] == len(commands) * 4
+        # batches run in segments of SEGMENT_SAMPLES per task, the same numbers as one rollout
+        per_row = -(-sim.excitation.n_samples // SEGMENT_SAMPLES)
+        assert per_row > 1 and pool.served[Turn.ENSEMBLE] == len(commands) * per_row
         # a batch whose rows are no longer wanted is dropped: None, as a superseded batch; a stream
         # whose chunk is dropped when its turn comes ends there (no error)
         assert OnTurns(sim, pool.runner("tab", Turn.ENSEMBLE, lambda: False)).simulate(commands) is None

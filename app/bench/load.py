@@ -53,9 +53,12 @@ from snakeloco.app.bench.processes import (
 from snakeloco.app.server import DesignerServer, tune_process
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
-BROWSER_NICE = 10
-"""Nice of the load generators (each driver, its Chromium and their scheduling group): below the
-server's own threads, level with its replays (+10), above its ensembles (+15)."""
+BROWSER_NICE = {"browser": 10, "protocol": 19}
+"""Nice of the browsers by driver (each browser process, its threads and scheduling group). The
+browser driver's pages are the load: level with the server's physics pool (+10), below its decoding.
+Beside the protocol clients one page checks what a page draws; it stands for a user's browser on
+another machine, so it takes what the server leaves (at +10, in the server's scheduling group, it
+used 0.5 of 2 cores against the physics threads' 1.3: 2026-12-04, docs/load.md)."""
 
 
 def _ratio(pick, values: list[float], reference: float) -> float:
@@ -82,7 +85,7 @@ def bench_load(
     pin_cpus: bool = False,
     single_seconds: float | None = None,
     dwell: float = DWELL_S,
-    browser_nice: int = BROWSER_NICE,
+    browser_nice: int | None = None,
     driver: str = "protocol",
     browser_page: bool = True,
 ) -> dict:
@@ -95,6 +98,7 @@ def bench_load(
 
     if driver not in ("protocol", "browser"):
         raise ValueError(f"driver must be protocol or browser, got {driver!r}")
+    browser_nice = BROWSER_NICE[driver] if browser_nice is None else browser_nice
     if driver == "browser" or browser_page:
         require_browser("bench load")
     split = split_cpus() if pin_cpus else None
@@ -182,6 +186,9 @@ def bench_load(
         "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "single_cores": phases[1]["cores"],
         "multi_cores": multi["cores"],
+        # the physics pool's thread time per class of work (first motion, settled, dragged, ensemble)
+        "single_physics_cores": phases[1].get("physics_cores"),
+        "multi_physics_cores": multi.get("physics_cores"),
         "single_move_p95_ms": single["move_p95_ms"],
         "multi_move_p95_ms": [c["move_p95_ms"] for c in multi["clients"]],
         "server_exceptions": len(phases[1]["server_exceptions"]) + len(multi["server_exceptions"]),

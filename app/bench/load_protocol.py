@@ -106,6 +106,7 @@ def protocol_phase(
         seen = set(server.clients)
         rss_idle_before = rss_mb()
         cpu = CpuSplit()
+        busy_before = dict(server.physics.busy_s)
         t_start = time.monotonic()
         process = ctx.Process(
             target=protocol.main,
@@ -132,6 +133,10 @@ def protocol_phase(
         page_moves = browser.receive("drag", timeout=600)[0] if browser is not None else None
         cores = cpu.stop()
         t_end = time.monotonic()
+        physics_cores = {  # the physics pool's thread time per class of work over the drags
+            turn.name.lower(): (busy - busy_before[turn]) / (t_end - t_start)
+            for turn, busy in server.physics.busy_s.items()
+        }
         tabs = [d for k, d in server.clients.items() if k in seen and d is not page_tab]
         settled = wait_quiet(tabs + ([page_tab] if page_tab else []))
         rss_idle_after = rss_mb()
@@ -195,6 +200,7 @@ def protocol_phase(
             "rss_idle_before_mb": rss_idle_before,
             "rss_idle_after_mb": rss_idle_after,
             "cores": cores,
+            "physics_cores": physics_cores,
             "driver_cores": result["driver_cores"],
         }
     finally:

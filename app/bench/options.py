@@ -75,9 +75,11 @@ class BenchLoad(Command):
     dwell: Annotated[float, Field(ge=0)] = DWELL_S
     """Seconds each page rests with the mouse up after a drag, looking at the gait it let go of (its
     replay has that long to finish); 0: drag without rests, replays finish only when the drags end."""
-    browser_nice: Annotated[int, Field(ge=0, le=19)] = 10
-    """Nice of the load-generating browsers (and their scheduling group): 10 puts them level with the
-    server's replays; 15 below them, closer to browsers on other machines."""
+    browser_nice: Annotated[int | None, Field(ge=0, le=19)] = None
+    """Nice of the browsers (and their scheduling group). Default: 10 for --driver browser (the load
+    generators level with the server's physics); 19 for the one Chromium page beside the protocol
+    clients, which checks what a page draws and stands for a user's browser on another machine (at 10
+    it took 0.5 of the 2 cores from the physics it shares a scheduling group with)."""
 
 
 class BenchTabs(Command):
