@@ -128,7 +128,7 @@ def init_signal_source(net: HierarchicalVAE, freqs: np.ndarray, norm: Normalizat
     a = norm.arrays()
     net.set_signal_source(
         torch.as_tensor(phase),
-        torch.as_tensor(freqs),
+        torch.tensor(np.asarray(freqs, np.float64)),  # a copy: RECORD.freqs is read-only
         torch.as_tensor(a["shape_mean"]),
         torch.as_tensor(a["shape_std"]),
     )
