@@ -50,12 +50,12 @@ class ExcitationConfig(BaseModel):
     @property
     def bins(self) -> np.ndarray:
         """Excited FFT bin indices, ascending, shape (L,) (read-only: shared by equal configs)."""
-        return _round_bins(self.f_min, self.f_max, self.n_components, self.n_samples, self.sample_rate)[0]
+        return _round_bins(self)[0]
 
     @property
     def freqs(self) -> np.ndarray:
         """Excited frequencies (Hz), shape (L,); exact multiples of the bin resolution (read-only)."""
-        return _round_bins(self.f_min, self.f_max, self.n_components, self.n_samples, self.sample_rate)[1]
+        return _round_bins(self)[1]
 
     @property
     def times(self) -> np.ndarray:
@@ -64,14 +64,13 @@ class ExcitationConfig(BaseModel):
 
 
 @functools.lru_cache(maxsize=64)
-def _round_bins(
-    f_min: float, f_max: float, n_components: int, n_samples: int, sample_rate: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """(bins, freqs) of a config, computed once per distinct config: a designer's decode asks for
-    them ~45 times (each member's shape and its frequency check), which cost a quarter of it."""
-    target = np.geomspace(f_min, f_max, n_components)
-    bins = np.round(target * n_samples / sample_rate).astype(np.int64)
-    freqs = bins * (sample_rate / n_samples)
+def _round_bins(cfg: ExcitationConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(bins, freqs) of a config, computed once per distinct config (frozen, so hashable by its
+    values): a designer's decode asks for them ~45 times (each member's shape and its frequency
+    check), which cost a quarter of it."""
+    target = np.geomspace(cfg.f_min, cfg.f_max, cfg.n_components)
+    bins = np.round(target * cfg.n_samples / cfg.sample_rate).astype(np.int64)
+    freqs = bins * (cfg.sample_rate / cfg.n_samples)
     bins.flags.writeable = freqs.flags.writeable = False
     return bins, freqs
 
