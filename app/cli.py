@@ -227,30 +227,17 @@ def run_calibrate(cmd: Calibrate) -> dict:
     """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save;
     with --sampler, fit the slider density and the member path head (``model.sampler``)."""
     from snakeloco.model.calibrate import calibrate
+    from snakeloco.model.replays import Fit
+    from snakeloco.model.sampler import fit_sampler
 
+    sc = cmd.sampler_config
     if cmd.sampler:
-        from snakeloco.model.sampler import fit_sampler
-
-        sc = cmd.sampler_config
-        total, label, run, cfg = (
-            0 if sc.density_only else 2 * sc.samples,
-            "replay sampler members",
-            fit_sampler,
-            sc,
-        )
+        total, label = 0 if sc.density_only else 2 * sc.samples, "replay sampler members"
     else:
-        total, label, run, cfg = cmd.config.gait_count, "replay prior gaits", calibrate, cmd.config
+        total, label = cmd.config.gait_count, "replay prior gaits"
     with Progress(total, label) as progress:
-        return run(
-            cmd.checkpoint,
-            cmd.data,
-            cmd.out,
-            cfg,
-            workers=cmd.workers,
-            backend=cmd.backend,
-            progress=progress,
-            gaits_path=cmd.gaits,
-        )
+        fit = Fit(cmd.checkpoint, cmd.data, cmd.out, cmd.gaits, cmd.workers, cmd.backend, progress)
+        return fit_sampler(fit, sc) if cmd.sampler else calibrate(fit, cmd.config)
 
 
 def run_figures(cmd: Figures) -> list[Path]:

@@ -27,20 +27,17 @@ to report the gain.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from snakeloco.model.api import GaitModel, load_pretrained
+from snakeloco.model.api import GaitModel
 from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.finetune import fit_head, fit_path_decoder
-from snakeloco.model.replays import check_same_gaits, load_side_file, replay_shapes, save_side_file
+from snakeloco.model.replays import Fit, check_same_gaits, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.stats import STAT_NAMES, stats_vector
 from snakeloco.model.train import split_records
-from snakeloco.sim import load_dataset
-from snakeloco.sim.backend import BackendConfig, open_backend
 
 MODES: dict[str, float | None] = {"zk_zero": None, "zk_t0.5": 0.5, "zk_t1": 1.0}
 """z_k modes of the calibration gaits, name -> sampling temperature (None: z_k = 0), as
@@ -102,13 +99,7 @@ class CalibrateConfig(BaseModel):
         return self.prior_samples * len(MODES) + self.zero_count + self.sampled_count * len(SAMPLED_MODES)
 
 
-def replay_prior_gaits(
-    model: GaitModel,
-    cfg: CalibrateConfig,
-    workers: int | None = None,
-    progress: Callable[[int], None] | None = None,
-    backend: BackendConfig | None = None,
-) -> dict[str, np.ndarray]:
+def replay_prior_gaits(model: GaitModel, cfg: CalibrateConfig, fit: Fit) -> dict[str, np.ndarray]:
     """Decode ``cfg``'s prior z_B in their z_k modes, replay each gait once and measure it.
 
     The n shared z_B come first in every mode, then the extra z_k = 0 draws, then the extra sampled
@@ -131,7 +122,7 @@ def replay_prior_gaits(
     first_sampled = n + cfg.zero_count
     draws += [(m, z_sampled, first_sampled, seed + SAMPLED_SEED_OFFSET + 1 + m) for m in SAMPLED_MODES]
     temperatures = list(MODES.values())
-    runner = open_backend(backend, workers)
+    runner = fit.open_backend()
     parts: dict[str, list[np.ndarray]] = {k: [] for k in GAIT_KEYS if k != "broken"}
     broken = np.zeros(len(MODES), dtype=np.int64)
     try:
@@ -140,7 +131,7 @@ def replay_prior_gaits(
                 continue
             z_j = model.joint_latents(zb, temperatures[m], seed=zk_seed)
             shape, _ = model.decode(zb, z_j)
-            bodies, ok = replay_shapes(model, shape, runner, progress=progress)
+            bodies, ok = replay_shapes(model, shape, runner, progress=fit.progress)
             ok = ok[:, 0]
             broken[m] += int((~ok).sum())
             body = bodies[ok, 0]  # (b, 500, 6) at the model's rate
@@ -186,49 +177,34 @@ def load_gaits(path: str | Path, model: GaitModel, cfg: CalibrateConfig) -> dict
 
 
 def calibrate(
-    checkpoint: str | Path | None,
-    data: str | Path,
-    out: str | Path,
-    cfg: CalibrateConfig | None = None,
-    *,
-    workers: int | None = None,
-    backend: BackendConfig | None = None,
-    log: Callable[[str], None] | None = print,
-    progress: Callable[[int], None] | None = None,
-    gaits: dict[str, np.ndarray] | None = None,
-    gaits_path: str | Path | None = None,
+    fit: Fit, cfg: CalibrateConfig | None = None, gaits: dict[str, np.ndarray] | None = None
 ) -> dict:
-    """Calibrate ``checkpoint`` on replays of its own prior gaits and write the result to ``out``.
+    """Calibrate ``fit.checkpoint`` on replays of its own prior gaits and write the result to
+    ``fit.out``.
 
-    ``data`` must be the dataset the checkpoint was trained on (its meta hash is checked): its
+    ``fit.data`` must be the dataset the checkpoint was trained on (its meta hash is checked): its
     training split keeps the head and the decoder right on records. ``gaits``: reuse the output of
-    ``replay_prior_gaits`` instead of simulating; ``gaits_path``: a side file that is read when it
-    exists (``load_gaits``), else written after replaying. Returns the calibration summary (also
+    ``replay_prior_gaits`` instead of simulating; ``fit.gaits_path``: a side file that is read when
+    it exists (``load_gaits``), else written after replaying. Returns the calibration summary (also
     stored in the checkpoint's ``summary.calibration``).
     """
     cfg = cfg or CalibrateConfig()
     t_start = time.perf_counter()
-    model = load_pretrained(checkpoint)
+    model, ds = fit.load()
     config = model.config
-    ds = load_dataset(data)
-    check_trained_on(config, ds, data)
-    warning = model.robot_warning()
-    if warning and log:
-        log(f"warning: {warning}")
-    if gaits is None and gaits_path is not None and Path(gaits_path).exists():
-        gaits = load_gaits(gaits_path, model, cfg)
-        if log:
-            log(f"reusing {len(gaits['shape'])} replayed prior gaits from {gaits_path}")
+    check_trained_on(config, ds, fit.data)
+    if gaits is None and fit.gaits_path is not None and Path(fit.gaits_path).exists():
+        gaits = load_gaits(fit.gaits_path, model, cfg)
+        fit.say(f"reusing {len(gaits['shape'])} replayed prior gaits from {fit.gaits_path}")
     if gaits is None:
         t0 = time.perf_counter()
-        gaits = replay_prior_gaits(model, cfg, workers, progress=progress, backend=backend)
-        if log:
-            log(
-                f"replayed {len(gaits['shape'])} prior gaits in {time.perf_counter() - t0:.0f} s "
-                f"(broken: {dict(zip(MODES, gaits['broken'].tolist(), strict=True))})"
-            )
-        if gaits_path is not None:
-            save_gaits(gaits_path, gaits, cfg)
+        gaits = replay_prior_gaits(model, cfg, fit)
+        fit.say(
+            f"replayed {len(gaits['shape'])} prior gaits in {time.perf_counter() - t0:.0f} s "
+            f"(broken: {dict(zip(MODES, gaits['broken'].tolist(), strict=True))})"
+        )
+        if fit.gaits_path is not None:
+            save_gaits(fit.gaits_path, gaits, cfg)
 
     # The dataset's training split, as ``train`` drew it, and the held-out z_B draws (all modes of one
     # z_B together).
@@ -254,7 +230,7 @@ def calibrate(
         np.concatenate([d_shape[tr_idx], gaits["shape"][~g_val]]),
         np.concatenate([d_stats[tr_idx], gaits["stats"][~g_val]]),
     )
-    head = fit_head(model, train_pairs, held_out, cfg, log)
+    head = fit_head(model, train_pairs, held_out, cfg, fit.log)
     path = fit_path_decoder(
         model,
         (ds.shape[tr_idx], ds.body_ds[tr_idx]),
@@ -262,7 +238,7 @@ def calibrate(
         tuple(gaits[k][~g_val] for k in ("shape", "body", "z_b", "z_j")),
         tuple(gaits[k][g_val] for k in ("shape", "body", "z_b", "z_j")),
         cfg,
-        log,
+        fit.log,
     )
     before, after = head["before"], head["after"]
     summary = {
@@ -279,21 +255,18 @@ def calibrate(
         "history": head["history"],
         "path": path,
         "wall_time_s": time.perf_counter() - t_start,
-        "data": str(data),
+        "data": str(fit.data),
     }
     new_summary = config.summary.model_copy(update={"calibration": summary})
-    save_checkpoint(out, model.net, config.model_copy(update={"summary": new_summary}))
-    if log:
-        log(
-            "held-out generated gaits, median relative error before -> after: "
-            + ", ".join(
-                f"{k} {before['generated'][k]:.3f} -> {after['generated'][k]:.3f}" for k in STAT_NAMES
+    save_checkpoint(fit.out, model.net, config.model_copy(update={"summary": new_summary}))
+    fit.say(
+        "held-out generated gaits, median relative error before -> after: "
+        + ", ".join(f"{k} {before['generated'][k]:.3f} -> {after['generated'][k]:.3f}" for k in STAT_NAMES)
+    )
+    for part in [*MODES, "dataset"]:
+        if part in after:
+            fit.say(
+                f"  {'records' if part == 'dataset' else part}: "
+                + ", ".join(f"{k} {before[part][k]:.3f} -> {after[part][k]:.3f}" for k in STAT_NAMES)
             )
-        )
-        for part in [*MODES, "dataset"]:
-            if part in after:
-                log(
-                    f"  {'records' if part == 'dataset' else part}: "
-                    + ", ".join(f"{k} {before[part][k]:.3f} -> {after[part][k]:.3f}" for k in STAT_NAMES)
-                )
     return summary

@@ -13,18 +13,54 @@ decoded gaits (a checkpoint whose decodes differ needs its own replays).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from snakeloco.model.api import GaitModel
-from snakeloco.sim import DatasetError, mjcf_sha256, read_npz, write_npz
-from snakeloco.sim.backend import simulate_bodies
+from snakeloco.model.api import GaitModel, load_pretrained
+from snakeloco.sim import Dataset, DatasetError, load_dataset, mjcf_sha256, read_npz, write_npz
+from snakeloco.sim.backend import BackendConfig, open_backend, simulate_bodies
 from snakeloco.sim.consistency import ENSEMBLE_NOISE, perturbed_commands
 
 DECODE_TOLERANCE = 1e-4
 """Largest difference (rad) between stored and fresh decodes of the same latents that still counts
 as the same gait: one z_B and a batch of them decode 3.6e-7 rad apart on one CPU."""
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A fit after training (``model.calibrate.calibrate``, ``model.sampler.fit_sampler``; the
+    command ``snakeloco calibrate``): the checkpoint it starts from, the dataset that checkpoint was
+    trained on, where the fitted checkpoint goes and where the replays it fits on are kept; where
+    those replays run (``workers`` threads or a Ray cluster's CPUs, ``backend``) and who hears of
+    them (``progress``: replays done since its last call; ``log``: lines of what was done)."""
+
+    checkpoint: str | Path | None
+    data: str | Path
+    out: str | Path
+    gaits_path: str | Path | None = None
+    workers: int | None = None
+    backend: BackendConfig | None = None
+    progress: Callable[[int], None] | None = None
+    log: Callable[[str], None] | None = print
+
+    def load(self) -> tuple[GaitModel, Dataset]:
+        """The checkpoint and the dataset, a robot warning logged."""
+        model = load_pretrained(self.checkpoint)
+        warning = model.robot_warning()
+        if warning and self.log:
+            self.log(f"warning: {warning}")
+        return model, load_dataset(self.data)
+
+    def open_backend(self):
+        """The backend the replays run on (close it when done)."""
+        return open_backend(self.backend, self.workers)
+
+    def say(self, line: str) -> None:
+        """Log ``line`` where the fit has a log."""
+        if self.log:
+            self.log(line)
 
 
 def replay_shapes(

@@ -21,13 +21,12 @@ predicted path's end: "forward, 17 m").
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from snakeloco.model.api import GaitModel, load_pretrained
+from snakeloco.model.api import GaitModel
 from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.density import fit_density, name_components
 from snakeloco.model.member_path import (
@@ -38,10 +37,9 @@ from snakeloco.model.member_path import (
     path_scales,
     with_mirror_images,
 )
-from snakeloco.model.replays import load_side_file, replay_shapes, save_side_file
+from snakeloco.model.replays import Fit, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.train import split_records
-from snakeloco.sim import DatasetError, joint_shape, load_dataset
-from snakeloco.sim.backend import BackendConfig, open_backend
+from snakeloco.sim import DatasetError, joint_shape
 from snakeloco.sim.members import Member, project_many
 
 SAMPLER_GAITS = "sampler-gaits"
@@ -127,26 +125,20 @@ def _drawn(cfg: SamplerConfig) -> dict:
     return {"samples": cfg.samples, "seed": cfg.seed, "temperature": ZK_TEMPERATURE}
 
 
-def replay_sampler_gaits(
-    model: GaitModel,
-    cfg: SamplerConfig,
-    workers: int | None = None,
-    backend: BackendConfig | None = None,
-    progress: Callable[[int], None] | None = None,
-) -> dict[str, np.ndarray]:
+def replay_sampler_gaits(model: GaitModel, cfg: SamplerConfig, fit: Fit) -> dict[str, np.ndarray]:
     """Draw ``cfg.samples`` z_B from the model's density, decode each with z_k = 0 (mode 0) and
     sampled (mode 1), project onto members (``model`` must project) and replay each member once.
 
     Returns, broken replays dropped: z_b (M, Db), mode (M,), z_index (M,) which draw, shape
     (M, 8, L, 2) the members' commanded shapes, body (M, 500, 6) their replays at 5 Hz."""
     z = model.sample_z_b(cfg.samples, cfg.seed)
-    runner = open_backend(backend, workers)
+    runner = fit.open_backend()
     parts: dict[str, list[np.ndarray]] = {k: [] for k in GAIT_KEYS}
     try:
         for mode, temperature in enumerate((None, ZK_TEMPERATURE)):
             z_j = model.joint_latents(z, temperature, seed=cfg.seed + 1)
             members, _, measured, _, _ = model.decode_members(z, z_j)
-            bodies, ok = replay_shapes(model, measured, runner, progress=progress)
+            bodies, ok = replay_shapes(model, measured, runner, progress=fit.progress)
             ok = ok[:, 0]
             parts["z_b"].append(z[ok])
             parts["mode"].append(np.full(int(ok.sum()), mode))
@@ -178,35 +170,24 @@ def _path_r2(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
     return np.array([xy_r2(p, t) for p, t in zip(pred, true, strict=True)])
 
 
-def fit_sampler(
-    checkpoint: str | Path | None,
-    data: str | Path,
-    out: str | Path,
-    cfg: SamplerConfig | None = None,
-    *,
-    workers: int | None = None,
-    backend: BackendConfig | None = None,
-    log: Callable[[str], None] | None = print,
-    progress: Callable[[int], None] | None = None,
-    gaits_path: str | Path | None = None,
-) -> dict:
+def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
     """Fit the slider density (and, for the structured family, the member path head) of
-    ``checkpoint`` on its training data ``data``; write the checkpoint to ``out``. Returns the summary
-    (also stored as ``summary.sampler``)."""
+    ``fit.checkpoint`` on its training data ``fit.data``; write the checkpoint to ``fit.out``; the
+    sampler members' replays are read from ``fit.gaits_path`` where it exists, else written there.
+    Returns the summary (also stored as ``summary.sampler``)."""
     cfg = cfg or SamplerConfig()
     t_start = time.perf_counter()
-    model = load_pretrained(checkpoint)
+    model, ds = fit.load()
     config = model.config
-    ds = load_dataset(data)
     n_trained = int(config.train.get("n_train", 0)) + int(config.train.get("n_val", 0))
     if cfg.regenerated:
         if ds.config.family != config.family or not 0 < len(ds) <= n_trained:
             raise DatasetError(
-                f"{data}: {len(ds)} {ds.config.family} records cannot be this checkpoint's "
+                f"{fit.data}: {len(ds)} {ds.config.family} records cannot be this checkpoint's "
                 f"{n_trained} {config.family} training records generated again"
             )
     else:
-        check_trained_on(config, ds, data)
+        check_trained_on(config, ds, fit.data)
     split_n = n_trained if cfg.regenerated else len(ds)
     tr_idx, va_idx = split_records(
         split_n, float(config.train.get("val_fraction", 0.1)), int(config.train.get("seed", 0))
@@ -215,12 +196,11 @@ def fit_sampler(
     z_post, _ = model.encode(ds.shape[tr_idx], ds.body_ds[tr_idx])
     density = fit_density(z_post, cfg.max_components, seed=cfg.seed)
     summary: dict = {**cfg.model_dump(), "components": len(density.weights), "fitted_on": len(tr_idx)}
-    if log:
-        log(f"density: {len(density.weights)} components over {len(tr_idx)} training posteriors")
+    fit.say(f"density: {len(density.weights)} components over {len(tr_idx)} training posteriors")
     head, head_cfg, members = None, None, None
     if not cfg.density_only:
         if ds.config.family != "structured":
-            raise DatasetError(f"{data}: the member path head needs a structured-family dataset")
+            raise DatasetError(f"{fit.data}: the member path head needs a structured-family dataset")
         members = ds.config.structured
         model = GaitModel(
             model.net,
@@ -228,24 +208,23 @@ def fit_sampler(
             model.path,
         )
         gaits = None
-        if gaits_path is not None and Path(gaits_path).exists():
-            gaits = load_side_file(gaits_path, SAMPLER_GAITS, _drawn(cfg), list(GAIT_KEYS))
+        if fit.gaits_path is not None and Path(fit.gaits_path).exists():
+            gaits = load_side_file(fit.gaits_path, SAMPLER_GAITS, _drawn(cfg), list(GAIT_KEYS))
             # The draws are this checkpoint's density's (a retrained model draws other z_B).
             drawn_z = model.sample_z_b(cfg.samples, cfg.seed)[gaits["z_index"]]
             gap = np.abs(gaits["z_b"] - drawn_z).max() if gaits["z_b"].shape == drawn_z.shape else np.inf
             if gap > 1e-6:
                 raise DatasetError(
-                    f"{gaits_path}: its gaits were drawn from another checkpoint's slider density (z_B "
+                    f"{fit.gaits_path}: its gaits were drawn from another checkpoint's slider density (z_B "
                     f"differs by up to {gap:.3g}); remove the file or name another one to replay them"
                 )
-            if log:
-                log(f"reusing {len(gaits['z_b'])} replayed sampler gaits from {gaits_path}")
+            fit.say(f"reusing {len(gaits['z_b'])} replayed sampler gaits from {fit.gaits_path}")
         if gaits is None:
             t0 = time.perf_counter()
-            gaits = replay_sampler_gaits(model, cfg, workers, backend, progress)
+            gaits = replay_sampler_gaits(model, cfg, fit)
             summary["replay_s"] = time.perf_counter() - t0
-            if gaits_path is not None:
-                save_side_file(gaits_path, _drawn(cfg), **gaits)
+            if fit.gaits_path is not None:
+                save_side_file(fit.gaits_path, _drawn(cfg), **gaits)
         summary["broken"] = 2 * cfg.samples - len(gaits["z_b"])
         support = np.asarray(config.shape_support or np.ones((8, len(config.freqs)), bool))
         held = np.random.default_rng(cfg.seed).permutation(cfg.samples)[
@@ -275,7 +254,7 @@ def fit_sampler(
         scales = None if cfg.xy_floor is None else (path_scales(y), path_scales(vy))
         y, vy = norm(y), norm(vy)
         t0 = time.perf_counter()
-        head, fit = fit_member_head(
+        head, head_fit = fit_member_head(
             x,
             y,
             vx,
@@ -292,23 +271,22 @@ def fit_sampler(
             xy_floor=cfg.xy_floor or 0.0,
             path=cfg.head_path,
             body_norm=(model._body_mean, model._body_std),
-            log=log,
+            log=fit.log,
         )
-        fit["fit_s"] = time.perf_counter() - t0
+        head_fit["fit_s"] = time.perf_counter() - t0
         model = GaitModel(
             model.net, model.config.model_copy(update={"member_head": head.cfg}), model.path, head
         )
         pred = model.predict_paths(g_va_members, z_g_val)
-        fit["held_out_xy_r2_median"] = float(np.median(_path_r2(pred, gaits["body"][g_val])))
+        head_fit["held_out_xy_r2_median"] = float(np.median(_path_r2(pred, gaits["body"][g_val])))
         pred = model.predict_paths(rec_va, z_va)
-        fit["val_records_xy_r2_median"] = float(np.median(_path_r2(pred, ds.body_ds[va_idx])))
-        head_cfg = head.cfg.model_copy(update={"summary": fit})
-        summary["member_head"] = fit
-        if log:
-            log(
-                f"member path head: held-out sampler gaits xy R² median {fit['held_out_xy_r2_median']:.3f}, "
-                f"validation records {fit['val_records_xy_r2_median']:.3f}"
-            )
+        head_fit["val_records_xy_r2_median"] = float(np.median(_path_r2(pred, ds.body_ds[va_idx])))
+        head_cfg = head.cfg.model_copy(update={"summary": head_fit})
+        summary["member_head"] = head_fit
+        fit.say(
+            f"member path head: held-out sampler gaits xy R² median {head_fit['held_out_xy_r2_median']:.3f}, "
+            f"validation records {head_fit['val_records_xy_r2_median']:.3f}"
+        )
     # Names: where each component's mean gait goes (z_k = 0), as this checkpoint predicts it, and of
     # which kind its member is where the family has more than one.
     means = np.asarray(density.means)
@@ -323,12 +301,11 @@ def fit_sampler(
     density = density.model_copy(update={"names": name_components(ends, kinds)})
     summary["names"] = density.names
     summary["wall_time_s"] = time.perf_counter() - t_start
-    summary["data"] = str(data)
+    summary["data"] = str(fit.data)
     new_summary = config.summary.model_copy(update={"sampler": summary})
     final = config.model_copy(
         update={"density": density, "members": members, "member_head": head_cfg, "summary": new_summary}
     )
-    save_checkpoint(out, model.net, final, head.requires_grad_(False) if head is not None else None)
-    if log:
-        log(f"components: {', '.join(density.names)}; wrote {out}")
+    save_checkpoint(fit.out, model.net, final, head.requires_grad_(False) if head is not None else None)
+    fit.say(f"components: {', '.join(density.names)}; wrote {fit.out}")
     return summary

@@ -53,6 +53,7 @@ def member_checkpoint(tmp_path_factory):
     the family its decodes project onto and a member path head. Its records are the undulate preset's
     draws screened leniently (two replays each, any spread kept), so it builds in seconds."""
     from snakeloco.model import TrainConfig, train
+    from snakeloco.model.replays import Fit
     from snakeloco.model.sampler import SamplerConfig, fit_sampler
     from snakeloco.sim.structured import STRUCTURED_PRESETS
 
@@ -67,5 +68,5 @@ def member_checkpoint(tmp_path_factory):
     )
     out = tmp_path_factory.mktemp("ckpt_structured")
     cfg = SamplerConfig(samples=4, epochs=3, hidden=16, head_sees_z_b=True)  # the shipped head: member alone
-    fit_sampler(trained, data, out, cfg, workers=2, log=None)
+    fit_sampler(Fit(trained, data, out, workers=2, log=None), cfg)
     return out, data

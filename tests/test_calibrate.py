@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from snakeloco.model import load_pretrained
+from snakeloco.model.replays import Fit
 
 from helpers import SMALL
 
@@ -34,7 +35,7 @@ def test_calibration_tunes_only_the_head_and_body_decoder(checkpoint, tiny_datas
 
     out, gaits = tmp_path / "calibrated", tmp_path / "gaits.npz"
     cfg = CalibrateConfig(prior_samples=4, epochs=3)
-    summary = calibrate(checkpoint, tiny_dataset_path, out, cfg, log=None, gaits_path=gaits)
+    summary = calibrate(Fit(checkpoint, tiny_dataset_path, out, gaits, log=None), cfg)
     # 4 z_B in every mode, and by default 4 x 4 more with z_k = 0 only and 2 x 4 more in each
     # sampled mode.
     assert summary["zero_samples"] == 16 and summary["sampled_samples"] == 8
@@ -66,7 +67,9 @@ def test_calibration_tunes_only_the_head_and_body_decoder(checkpoint, tiny_datas
         assert torch.equal(s0, s1) and not torch.equal(st0, st1) and not torch.equal(b0, b1)
     other = generate_dataset(GenerateConfig(num_samples=2, seed=99), tmp_path / "other.npz", workers=2)
     with pytest.raises(DatasetError, match="not the dataset this checkpoint was trained on"):
-        calibrate(checkpoint, other, tmp_path / "x", CalibrateConfig(prior_samples=2, epochs=1), log=None)
+        calibrate(
+            Fit(checkpoint, other, tmp_path / "x", log=None), CalibrateConfig(prior_samples=2, epochs=1)
+        )
 
 
 @pytest.mark.slow
@@ -79,9 +82,7 @@ def test_calibration_gaits_file_is_reused_and_checked(checkpoint, tiny_dataset_p
     cfg = cal.CalibrateConfig(prior_samples=3, epochs=2, zero_samples=1, sampled_samples=1)
 
     def run(out: str, cfg: cal.CalibrateConfig = cfg) -> dict:
-        return cal.calibrate(
-            checkpoint, tiny_dataset_path, tmp_path / out, cfg, log=None, gaits_path=gaits_file
-        )
+        return cal.calibrate(Fit(checkpoint, tiny_dataset_path, tmp_path / out, gaits_file, log=None), cfg)
 
     first = run("a")
     assert gaits_file.exists()
@@ -113,7 +114,7 @@ def test_calibration_gaits_file_is_reused_and_checked(checkpoint, tiny_dataset_p
             cal.load_gaits(gaits_file, model, cfg.model_copy(update=change))
     # Gaits decoded by another checkpoint are refused, not silently trained on.
     small = cal.CalibrateConfig(prior_samples=2, seed=5, zero_samples=0, sampled_samples=0)
-    gaits = replay(model, small, workers=1)
+    gaits = replay(model, small, Fit(checkpoint, "", "", workers=1))
     gaits["shape"] = gaits["shape"] + 0.01
     cal.save_gaits(tmp_path / "other.npz", gaits, small)
     with pytest.raises(DatasetError, match="decoded by another checkpoint"):
@@ -133,8 +134,9 @@ def _with_extra_draws(checkpoint, base, first_extra: int, **extra_counts):
     import snakeloco.model.calibrate as cal
 
     model = load_pretrained(checkpoint)
-    before = cal.replay_prior_gaits(model, base, workers=1)
-    more = cal.replay_prior_gaits(model, base.model_copy(update=extra_counts), workers=1)
+    one_thread = Fit(checkpoint, "", "", workers=1)
+    before = cal.replay_prior_gaits(model, base, one_thread)
+    more = cal.replay_prior_gaits(model, base.model_copy(update=extra_counts), one_thread)
     assert more["broken"].sum() == before["broken"].sum() == 0  # so every draw below is compared
     head = more["z_index"] < first_extra
     for k in ("shape", "stats", "z_b", "z_j", "z_index", "mode"):

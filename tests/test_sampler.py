@@ -12,6 +12,7 @@ import pytest
 
 from snakeloco.app.gait_csv import read_gait_csv, read_member
 from snakeloco.model.density import LatentDensity, fit_density, name_components
+from snakeloco.model.replays import Fit
 from snakeloco.sim import GenerateConfig
 from snakeloco.sim.generate import generate_dataset
 from snakeloco.sim.members import member_from_draw, project
@@ -204,20 +205,20 @@ def test_sampler_gaits_of_another_density_are_refused_and_a_named_mirrored_head_
 
     path, data = member_checkpoint
     cfg, gaits = SamplerConfig(samples=2, epochs=2, hidden=16), tmp_path / "gaits.npz"
-    fit_sampler(path, data, tmp_path / "a", cfg, workers=2, log=None, gaits_path=gaits)
-    fit_sampler(path, data, tmp_path / "b", cfg, workers=2, log=None, gaits_path=gaits)  # its own: reused
+    fit_sampler(Fit(path, data, tmp_path / "a", gaits, workers=2, log=None), cfg)
+    fit_sampler(Fit(path, data, tmp_path / "b", gaits, workers=2, log=None), cfg)  # its own: reused
     stored = dict(read_npz(gaits, "sampler gaits", ["z_b"]))
     write_npz(gaits, **{**stored, "z_b": stored["z_b"] + 0.5})  # as another checkpoint's density drew
     with pytest.raises(DatasetError, match="another checkpoint's slider density"):
-        fit_sampler(path, data, tmp_path / "c", cfg, workers=2, log=None, gaits_path=gaits)
+        fit_sampler(Fit(path, data, tmp_path / "c", gaits, workers=2, log=None), cfg)
     # The every family's head: named inputs, trained on every member and its mirror image too.
     from snakeloco.model import load_pretrained
     from snakeloco.model.member_path import NAMED_INPUTS
 
     named, fresh = cfg.model_copy(update={"head_inputs": "named"}), tmp_path / "fresh.npz"
-    plain = fit_sampler(path, data, tmp_path / "d", named, workers=2, log=None, gaits_path=fresh)
+    plain = fit_sampler(Fit(path, data, tmp_path / "d", fresh, workers=2, log=None), named)
     mirrored = named.model_copy(update={"mirror": True})
-    both = fit_sampler(path, data, tmp_path / "e", mirrored, workers=2, log=None, gaits_path=fresh)
+    both = fit_sampler(Fit(path, data, tmp_path / "e", fresh, workers=2, log=None), mirrored)
     # This family is undulation alone, not the library's: no mirror image is a member, none is added.
     assert both["member_head"]["train_examples"] == plain["member_head"]["train_examples"] > 0
     m = load_pretrained(tmp_path / "e")
