@@ -28,7 +28,7 @@ from snakeloco.model.checkpoint import SHIPPED, CheckpointError, resolve_checkpo
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.scheduler import FairPhysics
-from snakeloco.sim.threads import resolve_workers
+from snakeloco.sim.threads import FifoLock, resolve_workers
 
 DECODE_THREADS = 1
 """torch intra-op threads of a designer server process. Four threads decoding at once on 2 cores:
@@ -145,6 +145,7 @@ class DesignerServer:
         # core, below the decoding and drawing threads (``sim.scheduler``: every tab's replay before
         # any tab's ensemble, round robin between tabs, superseded work dropped unrun).
         self.physics = FairPhysics(resolve_workers(workers), nice=PHYSICS_NICE)
+        self.decodes = FifoLock()  # every tab's decoded views, one at a time (``DesignerClient._decodes``)
         self.simulator = Simulator(1)  # the robot, its command rule and checks: rollouts go to physics
         self.clients: dict[int, DesignerClient] = {}
         self.errors: list[str] = []
@@ -175,6 +176,7 @@ class DesignerServer:
                 simulator=self.simulator,
                 models=self.models,
                 physics=self.physics,
+                decodes=self.decodes,
             )
         except Exception as exc:  # a tab that could not be set up must not take the server down
             traceback.print_exc()

@@ -42,17 +42,20 @@ class TabJobs:
             )
         ):
             return  # superseded (or sliders of a family this tab has just left)
-        timing = self._timing(version)
-        timing.started = time.perf_counter()
-        decoded = self.session.decode(latents)
-        timing.decode_ms = decoded.decode_ms
-        with self._draw_lock:
+        with self._decodes:  # one tab at a time, in the order their values came
             if not self.is_current(version):
-                return
-            self.decoded, self.simulated, self.streaming = decoded, None, None
-            self._draw_decoded(decoded)
-            timing.decoded = time.perf_counter()
-            self.physics.submit((version, ("gait", decoded)))
+                return  # superseded while other tabs decoded: this worker has the newer value
+            timing = self._timing(version)
+            timing.started = time.perf_counter()
+            decoded = self.session.decode(latents)
+            timing.decode_ms = decoded.decode_ms
+            with self._draw_lock:
+                if not self.is_current(version):
+                    return
+                self.decoded, self.simulated, self.streaming = decoded, None, None
+                self._draw_decoded(decoded)
+                timing.decoded = time.perf_counter()
+                self.physics.submit((version, ("gait", decoded)))
 
     def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, (kind, *payload) = item

@@ -30,7 +30,7 @@ from snakeloco.sim.results import (
 )
 from snakeloco.sim.robot import BODY_SITE, N_JOINTS, load_model
 from snakeloco.sim.scheduler import FairRunner
-from snakeloco.sim.threads import RolloutThreads, _FifoLock, resolve_workers
+from snakeloco.sim.threads import FifoLock, RolloutThreads, resolve_workers
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
 
@@ -66,7 +66,7 @@ class Simulator:
         if self.workers > 1 or nice > 0:
             self._pool = RolloutThreads(self.workers, int(nice), name="physics")
         self._closed = False
-        self._lock = _FifoLock()  # callers sharing one simulator roll out in the order they came
+        self._lock = FifoLock()  # callers sharing one simulator roll out in the order they came
         dt = self.model.opt.timestep
         self.substeps = round(1.0 / (self.excitation.sample_rate * dt))
         if abs(self.substeps * dt * self.excitation.sample_rate - 1.0) > 1e-9:

@@ -39,9 +39,10 @@ def lower_thread_priority(increment: int) -> int | None:
     return set_thread_nice(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + increment)
 
 
-class _FifoLock:
+class FifoLock:
     """A lock granted in request order (``threading.Lock`` lets a thread that just released it win
-    again): tabs sharing one simulator each get their turn between the others' batches."""
+    again): tabs sharing one simulator each get their turn between the others' batches, and tabs
+    sharing the server's decode stage theirs between the others' decodes."""
 
     def __init__(self) -> None:
         self._cond = threading.Condition(threading.Lock())
@@ -58,6 +59,11 @@ class _FifoLock:
         with self._cond:
             self._serving += 1
             self._cond.notify_all()
+
+    def queued(self) -> int:
+        """Threads that hold the lock or wait for it."""
+        with self._cond:
+            return self._next_ticket - self._serving
 
 
 class RowRunner:
