@@ -86,9 +86,9 @@ def test_low_priority_pool_gives_the_same_physics_and_leaves_the_caller_alone(ti
 
 
 def test_callers_sharing_a_simulator_roll_out_in_the_order_they_came():
-    from snakeloco.sim.threads import _FifoLock
+    from snakeloco.sim.threads import FifoLock
 
-    lock, order, threads = _FifoLock(), [], []
+    lock, order, threads = FifoLock(), [], []
     with lock:
         for i in range(5):
             t = threading.Thread(target=lambda i=i: lock.__enter__() or order.append(i) or lock.__exit__())
