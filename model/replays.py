@@ -48,9 +48,8 @@ class Fit:
     def load(self) -> tuple[GaitModel, Dataset]:
         """The checkpoint and the dataset, a robot warning logged."""
         model = load_pretrained(self.checkpoint)
-        warning = model.robot_warning()
-        if warning and self.log:
-            self.log(f"warning: {warning}")
+        if warning := model.robot_warning():
+            self.say(f"warning: {warning}")
         return model, load_dataset(self.data)
 
     def open_backend(self):
