@@ -6,6 +6,7 @@ Linux only where it matters (per-thread nice); elsewhere the priorities are left
 
 from __future__ import annotations
 
+import collections
 import functools
 import os
 import threading
@@ -42,28 +43,44 @@ def lower_thread_priority(increment: int) -> int | None:
 class FifoLock:
     """A lock granted in request order (``threading.Lock`` lets a thread that just released it win
     again): tabs sharing one simulator each get their turn between the others' batches, and tabs
-    sharing the server's decode stage theirs between the others' decodes."""
+    sharing the server's decode stage theirs between the others' decodes.
 
-    def __init__(self) -> None:
-        self._cond = threading.Condition(threading.Lock())
-        self._next_ticket = 0
-        self._serving = 0
+    ``slots``: how many may hold it at once (a FIFO semaphore; 1: a lock). A release hands the slot
+    to the longest waiter and wakes that one thread alone (a condition's ``notify_all`` woke every
+    waiter to check its ticket: 1.4 ms per hand-off at the median, 4.2 at p95, with 8 tabs' decodes
+    queued on 2 busy cores)."""
+
+    def __init__(self, slots: int = 1) -> None:
+        if slots < 1:
+            raise ValueError(f"slots must be at least 1, got {slots}")
+        self._lock = threading.Lock()
+        self._free = slots
+        self._waiting: collections.deque[threading.Lock] = collections.deque()
+        self._held = 0
 
     def __enter__(self) -> None:
-        with self._cond:
-            ticket = self._next_ticket
-            self._next_ticket += 1
-            self._cond.wait_for(lambda: self._serving == ticket)
+        with self._lock:
+            if self._free and not self._waiting:
+                self._free -= 1
+                self._held += 1
+                return
+            turn = threading.Lock()
+            turn.acquire()
+            self._waiting.append(turn)
+        turn.acquire()  # released by the holder that hands us its slot (counted there)
 
     def __exit__(self, *exc) -> None:
-        with self._cond:
-            self._serving += 1
-            self._cond.notify_all()
+        with self._lock:
+            if self._waiting:
+                self._waiting.popleft().release()  # the slot passes straight to the next in line
+            else:
+                self._free += 1
+                self._held -= 1
 
     def queued(self) -> int:
         """Threads that hold the lock or wait for it."""
-        with self._cond:
-            return self._next_ticket - self._serving
+        with self._lock:
+            return self._held + len(self._waiting)
 
 
 class RowRunner:

@@ -94,12 +94,48 @@ def test_callers_sharing_a_simulator_roll_out_in_the_order_they_came():
             t = threading.Thread(target=lambda i=i: lock.__enter__() or order.append(i) or lock.__exit__())
             t.start()
             deadline = time.monotonic() + 10
-            while lock._next_ticket < i + 2 and time.monotonic() < deadline:  # thread i has its ticket
+            while lock.queued() < i + 2 and time.monotonic() < deadline:  # thread i waits in line
                 time.sleep(0.001)
             threads.append(t)
     for t in threads:
         t.join(10)
     assert order == [0, 1, 2, 3, 4]
+    assert lock.queued() == 0
+
+
+def test_a_lock_of_two_slots_has_two_holders_and_a_line_in_order():
+    from snakeloco.app.bench.load_driver import wait_until
+    from snakeloco.sim.threads import FifoLock
+
+    lock, order, inside, most = FifoLock(slots=2), [], [0], [0]
+    count, leave = threading.Lock(), [threading.Event() for _ in range(5)]
+
+    def hold(i):
+        with lock:
+            with count:
+                inside[0] += 1
+                most[0] = max(most[0], inside[0])
+                order.append(i)
+            leave[i].wait(10)
+            with count:
+                inside[0] -= 1
+
+    threads = [threading.Thread(target=hold, args=(i,)) for i in range(5)]
+    for i, t in enumerate(threads):
+        t.start()
+        assert wait_until(lambda i=i: lock.queued() == i + 1, 10)  # thread i holds it or waits in line
+    assert order == [0, 1]  # two hold it, three wait
+    for i, entered in ((1, [0, 1, 2]), (0, [0, 1, 2, 3]), (3, [0, 1, 2, 3, 4])):
+        leave[i].set()  # one slot freed: the longest waiter alone gets it
+        assert wait_until(lambda entered=entered: len(order) == len(entered), 10)
+        assert order == entered and inside[0] == 2
+    for e in leave:
+        e.set()
+    for t in threads:
+        t.join(10)
+    assert most[0] == 2 and lock.queued() == 0
+    with pytest.raises(ValueError, match="slots"):
+        FifoLock(slots=0)
 
 
 def test_a_batch_left_while_it_waits_for_its_turn_is_not_simulated(tiny_dataset):
@@ -115,7 +151,7 @@ def test_a_batch_left_while_it_waits_for_its_turn_is_not_simulated(tiny_dataset)
             )
             t.start()
             deadline = time.monotonic() + 10
-            while simulator._lock._next_ticket < 2 and time.monotonic() < deadline:  # it waits in line
+            while simulator._lock.queued() < 2 and time.monotonic() < deadline:  # it waits in line
                 time.sleep(0.001)
             still_wanted[0] = False  # its gait is left meanwhile
         t.join(30)
