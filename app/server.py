@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 import viser
 
+from snakeloco.app.decode_process import DecodePool
 from snakeloco.app.gait_csv import MAX_BYTES
 from snakeloco.app.tab import PHYSICS_NICE, DesignerClient
 from snakeloco.app.viser_patches import refuse_large_uploads
@@ -28,11 +29,16 @@ from snakeloco.model.checkpoint import SHIPPED, CheckpointError, resolve_checkpo
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.scheduler import FairPhysics
-from snakeloco.sim.threads import FifoLock, resolve_workers
+from snakeloco.sim.threads import resolve_workers
 
 DECODE_THREADS = 1
 """torch intra-op threads of a designer server process. Four threads decoding at once on 2 cores:
 p50 21-23 ms per decode with 1 intra-op thread, 21-31 ms with 2 (two runs each)."""
+DECODE_PROCESSES = 1
+"""Child processes a designer server decodes in (``app.decode_process``). Two (bench load, 8
+clients, 2026-12-04): the wait for a turn fell (p95 15 ms against 26-35) but two decodes and the
+draws beside them shared the 2 cores (decode 12 ms p95 against 7-9, draw 15-21 against 10-14), and
+the decoded view was no faster (worst / single p95 3.34 against 2.87-4.15), for ~250 MB more."""
 SWITCH_INTERVAL_S = 0.001
 """Python's GIL switch interval in a designer server (default 0.005 s)."""
 _M_MMAP_THRESHOLD = -3  # glibc malloc.h
@@ -145,7 +151,13 @@ class DesignerServer:
         # core, below the decoding and drawing threads (``sim.scheduler``: every tab's replay before
         # any tab's ensemble, round robin between tabs, superseded work dropped unrun).
         self.physics = FairPhysics(resolve_workers(workers), nice=PHYSICS_NICE)
-        self.decodes = FifoLock()  # every tab's decoded views, one at a time (``DesignerClient._decodes``)
+        self.decoding = DecodePool(
+            [m.path for m in self.models.values() if m.path is not None],
+            torch.get_num_threads(),
+            DECODE_PROCESSES,
+            self._error,
+        )
+        """Every tab's decodes, in turns, in child processes (``app.decode_process``)."""
         self.simulator = Simulator(1)  # the robot, its command rule and checks: rollouts go to physics
         self.clients: dict[int, DesignerClient] = {}
         self.errors: list[str] = []
@@ -176,7 +188,7 @@ class DesignerServer:
                 simulator=self.simulator,
                 models=self.models,
                 physics=self.physics,
-                decodes=self.decodes,
+                decoding=self.decoding,
             )
         except Exception as exc:  # a tab that could not be set up must not take the server down
             traceback.print_exc()
@@ -197,6 +209,7 @@ class DesignerServer:
             self.clients.clear()
         for d in designers:
             d.close()
+        self.decoding.close()
         self.simulator.close()
         self.physics.close()
         self.server.stop()

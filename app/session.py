@@ -95,6 +95,36 @@ class Timing:
     failed: str | None = None
 
 
+def decode_latents(model: GaitModel, latents: Latents) -> DecodedGait:
+    """Decode latents to a joint shape, a body path and resynthesised commands (on a checkpoint that
+    projects, exactly the nearest family member's); what a tab's decode stage runs, in the server or
+    in its decode process (``app.decode_process``)."""
+    t0 = time.perf_counter()
+    z_b = np.asarray(latents.z_b, dtype=np.float64)[None]
+    z_j = None  # z_k = 0: decode's own zeros
+    if latents.zk_mode == "sampled":
+        z_j = model.joint_latents(z_b, latents.temperature, seed=latents.seed)
+    member, residual = None, None
+    if model.projects:
+        members, residuals, shape, body, stats = model.decode_members(z_b, z_j)
+        member, residual = members[0], float(residuals[0])
+        commands = member.commands()  # exactly the member: replayed, drawn and exported
+    else:
+        shape, body, stats = model.decode_with_stats(z_b, z_j)
+        commands = model.commands(shape[0])
+    return DecodedGait(
+        latents,
+        shape[0],
+        body[0],
+        commands,
+        1e3 * (time.perf_counter() - t0),
+        stats={k: float(v[0]) for k, v in stats.items()},
+        member=member,
+        residual=residual,
+        off_data=bool(model.off_data(z_b)[0]),
+    )
+
+
 class GaitSession:
     """Per-client pipeline state. Not thread-safe on its own: drive it from one ``LatestWorker``."""
 
@@ -141,30 +171,7 @@ class GaitSession:
 
     def decode(self, latents: Latents) -> DecodedGait:
         """Decode latents to a joint shape, a body path and resynthesised commands."""
-        t0 = time.perf_counter()
-        z_b = np.asarray(latents.z_b, dtype=np.float64)[None]
-        z_j = None  # z_k = 0: decode's own zeros
-        if latents.zk_mode == "sampled":
-            z_j = self.model.joint_latents(z_b, latents.temperature, seed=latents.seed)
-        member, residual = None, None
-        if self.model.projects:
-            members, residuals, shape, body, stats = self.model.decode_members(z_b, z_j)
-            member, residual = members[0], float(residuals[0])
-            commands = member.commands()  # exactly the member: replayed, drawn and exported
-        else:
-            shape, body, stats = self.model.decode_with_stats(z_b, z_j)
-            commands = self.model.commands(shape[0])
-        return DecodedGait(
-            latents,
-            shape[0],
-            body[0],
-            commands,
-            1e3 * (time.perf_counter() - t0),
-            stats={k: float(v[0]) for k, v in stats.items()},
-            member=member,
-            residual=residual,
-            off_data=bool(self.model.off_data(z_b)[0]),
-        )
+        return decode_latents(self.model, latents)
 
     def replay(self, gait: DecodedGait) -> SimulatedGait:
         """Replay the commands whole (a settled replay's turns); raises SimulationError if physics

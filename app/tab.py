@@ -22,6 +22,7 @@ import numpy as np
 import viser
 
 from snakeloco.app import panel
+from snakeloco.app.decode_process import DecodePool
 from snakeloco.app.design_panel import DesignPanel
 from snakeloco.app.gait_files import GaitFiles
 from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, WIDE_PX, build_controls
@@ -37,7 +38,6 @@ from snakeloco.sim import BODY_DOWNSAMPLE
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.scheduler import FairPhysics
-from snakeloco.sim.threads import FifoLock
 
 PHYSICS_NICE = 10
 """Nice increment of the physics threads (``sim.scheduler.FairPhysics``: a server's one pool, whose
@@ -61,15 +61,16 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         simulator: Simulator | None = None,
         models: dict[str, GaitModel] | None = None,
         physics: FairPhysics | None = None,
-        decodes: FifoLock | None = None,
+        decoding: DecodePool | None = None,
     ):
         self.client = client
-        self._decodes = decodes or FifoLock()
-        """Held while this tab decodes and draws a decoded view: the server's one lock for all tabs
-        (``app.server``), so tabs decode one at a time in the order their values came, each its newest
-        value when its turn comes. A decode is a few milliseconds of Python and small torch calls that
-        hand the GIL back and forth: 2-4 tabs decoding at once on 2 cores took 31-49 ms each (p95, 8
-        tabs dragging) where one alone takes 8-10 (docs/load.md)."""
+        self._decoding = decoding or DecodePool([], 0, processes=0)
+        """The server's decode stage, shared by its tabs (``app.decode_process``): each decode takes a
+        turn, in the order the tabs' values came, each tab's newest value when its turn comes, and
+        runs in one of the server's decode processes, away from the server's GIL (else in this tab's
+        decode worker, one at a time). A decode is a few milliseconds of Python and small torch calls
+        that hand the GIL back and forth: 2-4 tabs decoding at once in the server's threads on 2
+        cores took 31-49 ms each (p95, 8 tabs dragging) where one alone takes 8-10 (docs/load.md)."""
         self._on_error = on_error
         self.model = model
         self.models = models or {model.family: model}

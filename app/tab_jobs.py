@@ -42,20 +42,25 @@ class TabJobs:
             )
         ):
             return  # superseded (or sliders of a family this tab has just left)
-        with self._decodes:  # one tab at a time, in the order their values came
+        with self._decoding.turns:  # in the order the tabs' values came
             if not self.is_current(version):
                 return  # superseded while other tabs decoded: this worker has the newer value
             timing = self._timing(version)
             timing.started = time.perf_counter()
-            decoded = self.session.decode(latents)
+            decoded = self._decoding.decode(self.session.model.path, latents, self._decode)
             timing.decode_ms = decoded.decode_ms
-            with self._draw_lock:
-                if not self.is_current(version):
-                    return
-                self.decoded, self.simulated, self.streaming = decoded, None, None
-                self._draw_decoded(decoded)
-                timing.decoded = time.perf_counter()
-                self.physics.submit((version, ("gait", decoded)))
+        with self._draw_lock:
+            if not self.is_current(version):
+                return
+            self.decoded, self.simulated, self.streaming = decoded, None, None
+            self._draw_decoded(decoded)
+            timing.decoded = time.perf_counter()
+            self.physics.submit((version, ("gait", decoded)))
+
+    def _decode(self, latents) -> DecodedGait:
+        """This thread's decode of ``latents`` (where the server's decode processes cannot: the same
+        bits, ``app.decode_process``)."""
+        return self.session.decode(latents)
 
     def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, (kind, *payload) = item

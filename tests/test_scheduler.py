@@ -172,38 +172,34 @@ def test_tabs_decode_one_at_a_time_each_its_newest_value(checkpoint):
     srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
     try:
         tabs = [connect_headless(srv) for _ in range(2)]
-        assert all(d._decodes is srv.decodes for _, d in tabs)
-        inside, most, decoded = [0], [0], {id(d): [] for _, d in tabs}
-        count = threading.Lock()
+        assert all(d._decoding is srv.decoding for _, d in tabs)
+        inside, most, decoded = [0], [0], []
+        count, real = threading.Lock(), srv.decoding.decode
 
-        def slow(d, real):
-            def decode(latents):
-                with count:
-                    inside[0] += 1
-                    most[0] = max(most[0], inside[0])
-                time.sleep(0.05)  # long enough for the other tab's decode to overlap, if it could
-                with count:
-                    inside[0] -= 1
-                decoded[id(d)].append(latents.z_b[0])
-                return real(latents)
+        def slow(path, latents, fallback):  # the server's decode stage, however it decodes
+            with count:
+                inside[0] += 1
+                most[0] = max(most[0], inside[0])
+            time.sleep(0.05)  # long enough for the other tab's decode to overlap, if it could
+            with count:
+                inside[0] -= 1
+            decoded.append(latents.z_b[0])
+            return real(path, latents, fallback)
 
-            return decode
-
-        for _, d in tabs:
-            d.session.decode = slow(d, d.session.decode)
-        with srv.decodes:  # every tab's decode waits for its turn while its slider moves on
+        srv.decoding.decode = slow
+        with srv.decoding.turns:  # every tab's decode waits for its turn while its slider moves on
             for v in (0.5, 1.0, 1.5):
                 for sign, (_, d) in zip((1, -1), tabs, strict=True):
                     before = d.version
                     d.sliders[0].value = sign * v
                     assert wait_until(lambda d=d, before=before: d.version > before, 30)
                 if v == 0.5:  # both tabs' decodes of it wait behind the test's turn
-                    assert wait_until(lambda: srv.decodes.queued() == 3, 30)
+                    assert wait_until(lambda: srv.decoding.turns.queued() == 3, 30)
         assert all(d.wait_idle(60) for _, d in tabs)
         # One decode at a time, and each tab decoded only the value it ended on: the values it moved
         # through while waiting were dropped, not decoded late.
         assert most[0] == 1
-        assert [decoded[id(d)] for _, d in tabs] == [[1.5], [-1.5]]
+        assert sorted(decoded) == [-1.5, 1.5]  # the first tab's values are > 0, the second's < 0
         assert [d.decoded.latents.z_b[0] for _, d in tabs] == [1.5, -1.5]
     finally:
         for c, _ in tabs:

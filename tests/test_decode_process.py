@@ -1,0 +1,88 @@
+"""A server's decodes in a child process (``app.decode_process``): the same bits as a thread's, its
+errors told, and a server that carries on when the child dies."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+import torch
+
+from snakeloco.app.bench.load_driver import wait_until
+from snakeloco.app.decode_process import DecodePool, DecodeProcess, decode_pids
+from snakeloco.app.session import Latents, decode_latents
+from snakeloco.model.api import load_pretrained
+
+
+def test_the_decode_process_decodes_the_same_bits_as_a_thread(checkpoint):
+    models = [load_pretrained("structured"), load_pretrained(checkpoint)]  # projects onto members; does not
+    process = DecodeProcess([m.path for m in models], torch.get_num_threads())
+    try:
+        assert process.pid in decode_pids()
+        assert wait_until(lambda: process.ready, 120), process.failed
+        for model in models:
+            z = (
+                model.sample_z_b(3, seed=11)
+                if model.config.density
+                else np.random.default_rng(1).normal(size=(3, model.z_b_dim))
+            )
+            for row, (mode, seed) in zip(z, (("zero", 0), ("sampled", 4), ("sampled", 5)), strict=True):
+                latents = Latents(z_b=tuple(map(float, row)), zk_mode=mode, seed=seed)
+                there, here = process.decode(model.path, latents), decode_latents(model, latents)
+                for name in ("shape", "body_ds", "commands"):
+                    assert np.array_equal(getattr(there, name), getattr(here, name)), name
+                assert (there.member, there.residual, there.off_data, there.stats) == (
+                    here.member,
+                    here.residual,
+                    here.off_data,
+                    here.stats,
+                )
+                assert there.latents == latents
+        assert models[0].projects and not models[1].projects
+        assert process.served == 6
+        # A decode that fails there is told here; a checkpoint it did not load is left to the caller.
+        with pytest.raises(RuntimeError, match="decode process: ValueError: z_b must be"):
+            process.decode(models[0].path, Latents(z_b=(0.0,)))
+        assert process.decode(None, latents) is None and process.failed is None
+    finally:
+        process.close()
+    assert process.pid not in decode_pids() and process.failed == "closed"
+    assert process.decode(models[0].path, latents) is None
+
+
+def test_a_pool_without_processes_decodes_in_the_callers_thread_one_at_a_time():
+    pool = DecodePool([], 0, processes=0)
+    calls = []
+    assert pool.decode("anywhere", "latents", lambda latents: calls.append(latents) or "decoded") == "decoded"
+    assert calls == ["latents"] and pool.processes == [] and pool.turns.queued() == 0
+    pool.close()
+
+
+@pytest.mark.slow
+def test_a_server_decodes_in_its_process_and_carries_on_when_it_dies(checkpoint):
+    from snakeloco.app.server import DesignerServer
+
+    from helpers import apply, connect_headless
+
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    client = None
+    try:
+        (process,) = srv.decoding.processes
+        client, d = connect_headless(srv)
+        assert wait_until(lambda: process.ready, 120), process.failed
+        served = process.served
+        assert apply(d, d.sliders[0], 0.7, 60) and d.decoded.latents.z_b[0] == pytest.approx(0.7)
+        assert process.served == served + 1 and srv.errors == []
+        os.kill(process.pid, signal.SIGKILL)
+        assert apply(d, d.sliders[0], -0.4, 60)  # decoded in the tab's own thread from now on
+        assert d.decoded.latents.z_b[0] == pytest.approx(-0.4) and d.simulated is not None
+        assert process.failed.startswith("decode process ended (exit code -9")
+        assert len(srv.errors) == 1 and "decoding in the server's threads from now on" in srv.errors[0]
+        assert apply(d, d.sliders[0], 0.2, 60) and len(srv.errors) == 1  # told once
+    finally:
+        if client is not None:
+            client.close()
+        srv.stop()
+    assert decode_pids() == set()
