@@ -27,11 +27,12 @@ from snakeloco.app.bench.load_browser import (
     wait_quiet,
 )
 from snakeloco.app.bench.load_driver import wait_until
-from snakeloco.app.bench.processes import CpuSplit, rss_mb
+from snakeloco.app.bench.processes import SPARED, CpuSplit, rss_mb
 from snakeloco.app.gui import PATH_PLOT_STEP, plot_series
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.tab import DesignerClient
 
+CLIENT_NICE = 0
 SETTLE_S = 120.0
 """How long a client waits, after its last drag, for that drag's replay to be done."""
 
@@ -116,12 +117,13 @@ def protocol_phase(
                 seeds,
                 seconds,
                 pages.dwell,
-                pages.nice,
+                CLIENT_NICE,
                 SETTLE_S,
             ),
             name="bench-load-protocol",
         )
         process.start()
+        SPARED.add(process.pid)
         child.close()
         if browser is not None:
             browser.send("drag", seconds, page_tab.model.z_b_dim, [int(rng.integers(2**32))], pages.dwell)

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from snakeloco.app.decode_process import decode_pids
+
 
 def split_cpus() -> tuple[list[int], list[int]] | None:
     """(server CPUs, browser CPUs): the first and second half of this process's CPUs, or None
@@ -32,11 +34,31 @@ def pin_process(cpus) -> None:
             pass
 
 
+def server_pids() -> list[int]:
+    """This process (the server) and its decode processes (``app.decode_process``)."""
+    return [os.getpid(), *sorted(decode_pids())]
+
+
+SPARED: set[int] = set()
+"""Processes this one started that ``BrowserNice`` leaves at their own priority (the protocol clients)."""
+
+
+def browser_pids() -> list[int]:
+    """Every process this one started but its decode processes: the browsers and what they started."""
+    return [pid for pid in descendants(os.getpid()) if pid not in decode_pids()]
+
+
 def rss_mb() -> float:
-    """Resident set size of this process (MB)."""
+    """Resident set size of the server: this process and its decode processes (MB)."""
     import psutil
 
-    return psutil.Process().memory_info().rss / 2**20
+    total = 0
+    for pid in server_pids():
+        try:
+            total += psutil.Process(pid).memory_info().rss
+        except psutil.NoSuchProcess:
+            pass
+    return total / 2**20
 
 
 def descendants(root: int) -> list[int]:
@@ -61,20 +83,22 @@ def cpu_seconds(pid: int | None = None) -> float:
 
 
 class CpuSplit:
-    """Cores this process (the server) and the processes it started (the browsers) used between
-    construction and ``stop()``: what the load figures owe to the server and what to the browsers
-    where both share the CPUs."""
+    """Cores the server (this process and its decode processes) and the processes it started (the
+    browsers) used between construction and ``stop()``: what the load figures owe to the server and
+    what to the browsers where both share the CPUs."""
 
     def __init__(self) -> None:
-        self._t0, self._me = time.monotonic(), cpu_seconds()
-        self._them = {pid: cpu_seconds(pid) for pid in descendants(os.getpid())}
+        self._t0 = time.monotonic()
+        self._server = {pid: cpu_seconds(pid) for pid in server_pids()}
+        self._them = {pid: cpu_seconds(pid) for pid in browser_pids()}
 
     def stop(self) -> dict[str, float]:
         wall = time.monotonic() - self._t0
-        them = {pid: cpu_seconds(pid) for pid in descendants(os.getpid())}
         # A process started since counts from 0; one that ended meanwhile is missed (none should).
-        used = sum(t - self._them.get(pid, 0.0) for pid, t in them.items() if np.isfinite(t))
-        return {"server": (cpu_seconds() - self._me) / wall, "browsers": used / wall}
+        used = lambda before, now: sum(t - before.get(p, 0.0) for p, t in now.items() if np.isfinite(t))  # noqa: E731
+        server = used(self._server, {pid: cpu_seconds(pid) for pid in server_pids()})
+        browsers = used(self._them, {pid: cpu_seconds(pid) for pid in browser_pids()})
+        return {"server": server / wall, "browsers": browsers / wall}
 
 
 def autogroup(pid: int | str) -> tuple[str, int] | None:
@@ -105,10 +129,9 @@ class BrowserNice:
             self._thread.start()
 
     def _run(self) -> None:
-        me = os.getpid()
         mine = autogroup("self")
         while not self._stop.wait(self._period):
-            for pid in descendants(me):
+            for pid in set(browser_pids()) - SPARED:  # not the server's decode processes
                 group = autogroup(pid)
                 if group is not None and group[0] != (mine and mine[0]) and group[1] < self._nice:
                     try:
