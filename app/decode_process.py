@@ -146,7 +146,10 @@ class DecodeProcess:
                 self._conn.send((str(Path(path).resolve()), latents))
                 ok, value = self._conn.recv()
             except (EOFError, OSError) as exc:
-                code = self._process.poll()
+                try:  # a killed child's socket closes before it is reaped: give it a moment
+                    code = self._process.wait(JOIN_S)
+                except subprocess.TimeoutExpired:
+                    code = None  # alive but not answering: it is closed with the server
                 self._fail(f"decode process ended (exit code {code}, {type(exc).__name__})")
                 return None
             self.served += 1
