@@ -207,9 +207,7 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
         wild = read_gait_csv(_square_wave_csv()).commands
         decode = d._decoding.decode  # the server's decode stage (its process, or the tab's thread)
 
-        def decode_to_wild(
-            path, latents, fallback
-        ):  # a real decode, its commands swapped for a diverging gait
+        def decode_to_wild(path, latents, fallback):  # a real decode, a diverging gait's commands
             gait = decode(path, latents, fallback)
             gait.commands = wild
             return gait
@@ -236,10 +234,8 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
         # a sampled gait that breaks gets told what to try
         assert apply(d, d.controls.zk_mode, "sampled", 60)
         assert "Replay failed" in d.controls.panel.content and "Resample z_k" in d.controls.panel.content
-        d._decoding.decode, d.controls.zk_mode.value = (
-            decode,
-            mode,
-        )  # ... a replay drawn is the current gait's
+        # ... a replay drawn is the current gait's
+        d._decoding.decode, d.controls.zk_mode.value = decode, mode
         assert apply(d, d.sliders[0], 0.5, 60) and d.simulated is not None and replay_problems(d) == []
         d.simulated = d.session.replay(d.session.decode(Latents(z_b=(0.0,) * d.model.z_b_dim)))
         assert replay_problems(d) == ["drawn simulated path is not the final replay"]
