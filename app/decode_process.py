@@ -53,9 +53,14 @@ def _serve(conn, paths: list[str], threads: int) -> None:
         models = {path: load_pretrained(path) for path in paths}
         for model in models.values():  # its graphs are made on first use: not on a tab's first slider move
             decode_latents(model, Latents(z_b=(0.0,) * model.z_b_dim))
-        conn.send((READY, None))
+        status = (READY, None)
     except Exception as exc:  # any failure is the parent's to report
-        conn.send((False, f"decode process could not start: {type(exc).__name__}: {exc}"))
+        status = (False, f"decode process could not start: {type(exc).__name__}: {exc}")
+    try:
+        conn.send(status)
+    except OSError:
+        return  # the parent went away while we started
+    if status[0] != READY:
         return
     while True:
         try:

@@ -86,3 +86,29 @@ def test_a_server_decodes_in_its_process_and_carries_on_when_it_dies(checkpoint)
             client.close()
         srv.stop()
     assert decode_pids() == set()
+
+
+def test_a_child_whose_server_left_while_it_started_leaves_quietly():
+    import socket
+    import subprocess
+    import sys
+
+    from snakeloco.model.checkpoint import SHIPPED
+
+    ours, theirs = socket.socketpair()
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "snakeloco.app.decode_process",
+            str(theirs.fileno()),
+            "1",
+            str(SHIPPED["structured"]),
+        ],
+        pass_fds=(theirs.fileno(),),
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    theirs.close()
+    ours.close()  # the server is gone before the child has loaded its checkpoints
+    assert child.communicate(timeout=120)[1] == "" and child.returncode == 0
