@@ -37,6 +37,18 @@ SETTLE_S = 120.0
 """How long a client waits, after its last drag, for that drag's replay to be done."""
 
 
+def bunched_arrivals(tabs: list[DesignerClient], within_s: float = 1e-3) -> tuple[float, float]:
+    """(share, share if independent): of the slider values the server received from these tabs, the
+    share that came within ``within_s`` of the one before (another tab's, as one tab sends every 50
+    ms), and what independent arrivals at the same rate would give (Poisson: 1 - exp(-rate x
+    within_s)). Values that come in bunches queue for the decode stage together."""
+    t = np.sort([x.submitted for d in tabs for x in d.timings])
+    if len(t) < 3 or t[-1] <= t[0]:
+        return float("nan"), float("nan")
+    rate = (len(t) - 1) / (t[-1] - t[0])
+    return float(np.mean(np.diff(t) < within_s)), float(1.0 - np.exp(-rate * within_s))
+
+
 def by_minute(summaries: list[dict]) -> dict[str, list[float]]:
     """p95 (ms) of decoded view, first motion and replay ready over all clients' drags, per minute of
     the run (by when each drag's last value went out): whether a long run slows down."""
@@ -204,6 +216,7 @@ def protocol_phase(
             "cores": cores,
             "physics_cores": physics_cores,
             "driver_cores": result["driver_cores"],
+            "bunched": bunched_arrivals([d for d in matched if d is not None]),
         }
     finally:
         conn.close()

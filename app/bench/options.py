@@ -74,7 +74,8 @@ class BenchLoad(Command):
     10-minute multi-client run that watches memory."""
     dwell: Annotated[float, Field(ge=0)] = DWELL_S
     """Seconds each page rests with the mouse up after a drag, looking at the gait it let go of (its
-    replay has that long to finish); 0: drag without rests, replays finish only when the drags end."""
+    replay has that long to finish; a protocol client's rests vary +-50% around it); 0: drag without
+    rests, replays finish only when the drags end."""
     browser_nice: Annotated[int | None, Field(ge=0, le=19)] = None
     """Nice of the browsers (and their scheduling group). Default: 10 for --driver browser (the load
     generators level with the server's physics); 19 for the one Chromium page beside the protocol
