@@ -94,3 +94,19 @@ def test_a_client_that_stops_reading_does_not_stall_the_others_and_is_closed(che
         assert stream_problems(s) == []
     finally:
         srv.stop()
+
+
+def test_bunched_arrivals_tell_clients_in_step_from_independent_ones():
+    from types import SimpleNamespace as NS
+
+    from snakeloco.app.bench.load_protocol import bunched_arrivals
+
+    def tabs(offsets_s):  # each tab sends every 50 ms for 10 s from its own offset
+        return [NS(timings=[NS(submitted=o + 0.05 * k) for k in range(200)]) for o in offsets_s]
+
+    in_step, independent = bunched_arrivals(tabs([0.0, 0.0001, 0.0002, 0.0003]))
+    assert in_step == pytest.approx(0.75, abs=0.01)  # 3 of each 4 values within 1 ms of the one before
+    assert independent == pytest.approx(1 - np.exp(-80 * 1e-3), rel=0.01)  # 80 values a second
+    out_of_step, _ = bunched_arrivals(tabs([0.0, 0.0125, 0.025, 0.0375]))
+    assert out_of_step == 0.0
+    assert np.isnan(bunched_arrivals([])[0])
