@@ -12,7 +12,8 @@ import pytest
 
 from snakeloco.app.bench.load_browser import wait_until
 from snakeloco.app.bench.load_protocol import server_problems
-from snakeloco.app.bench.protocol import DONE_STATES, ProtocolClient, parse_readout, stream_problems
+from snakeloco.app.bench.protocol import DONE_STATES, ProtocolClient, stream_problems
+from snakeloco.app.bench.wire import parse_readout
 from snakeloco.app.readout import Readout, readout_html
 from snakeloco.app.server import DesignerServer
 
