@@ -47,7 +47,7 @@ class TabJobs:
                 return  # superseded while other tabs decoded: this worker has the newer value
             timing = self._timing(version)
             timing.started = time.perf_counter()
-            decoded = self._decoding.decode(self.session.model.path, latents, self._decode)
+            decoded = self._decoding.decode(self.session.model.path, latents, self.session.decode)
             timing.decode_ms = decoded.decode_ms
         with self._draw_lock:
             if not self.is_current(version):
@@ -56,11 +56,6 @@ class TabJobs:
             self._draw_decoded(decoded)
             timing.decoded = time.perf_counter()
             self.physics.submit((version, ("gait", decoded)))
-
-    def _decode(self, latents) -> DecodedGait:
-        """This thread's decode of ``latents`` (where the server's decode processes cannot: the same
-        bits, ``app.decode_process``)."""
-        return self.session.decode(latents)
 
     def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, (kind, *payload) = item
