@@ -10,9 +10,8 @@ threads no longer wait for the decode's bytecode either.
 multiprocessing's spawn, which re-runs the caller's main script: a script that builds a server at its
 top level would build another), at the server's priority and in its scheduling group, talking over
 a socket pair; it ignores Ctrl-C (the server's to act on, by closing it) and leaves when asked or when
-the socket closes. Until it
-has loaded the server's checkpoints and said so, and for ever after it fails, ``decode`` returns None
-and the caller decodes in its own thread (``app.session.decode_latents``, the function the child runs
+the socket closes. Until it has loaded the server's checkpoints and said so, and for ever after it
+fails, ``decode`` returns None and the caller decodes in its own thread (``app.session.decode_latents``, the function the child runs
 too, with the server's torch thread count: the same bits either way). POSIX only (the child inherits
 its end of the socket); elsewhere every decode stays in the server.
 """

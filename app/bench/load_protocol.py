@@ -33,6 +33,8 @@ from snakeloco.app.server import DesignerServer
 from snakeloco.app.tab import DesignerClient
 
 CLIENT_NICE = 0
+"""Nice of the protocol clients' process: the server's own (0.02 cores). They stand for users on
+other machines, whose messages do not wait for this machine's physics."""
 SETTLE_S = 120.0
 """How long a client waits, after its last drag, for that drag's replay to be done."""
 

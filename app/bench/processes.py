@@ -45,7 +45,8 @@ SPARED: set[int] = set()
 
 def browser_pids() -> list[int]:
     """Every process this one started but its decode processes: the browsers and what they started."""
-    return [pid for pid in descendants(os.getpid()) if pid not in decode_pids()]
+    server = decode_pids()
+    return [pid for pid in descendants(os.getpid()) if pid not in server]
 
 
 def rss_mb() -> float:
