@@ -316,6 +316,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
             self.show_readout(gait, "simulating")
             if gait.body_ds is not None:
                 self.scene.frame()
+        self.client.flush()  # now, not at the end of viser's next 1/60 s window
 
     def _draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
         with self.client.atomic():
@@ -326,6 +327,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
                 self.scene.frame()
             self.controls.panel.content = panel.simulated_text(gait, sim, ensemble)
         self._draw_snake()
+        self.client.flush()
 
     def _draw_snake(self, frame: int | None = None) -> None:
         """Pose the snake at record sample ``frame`` (default: the playback's) of the current replay."""

@@ -87,6 +87,7 @@ class TabJobs:
             if first:
                 self.playback.restart()
                 self._draw_snake(0)
+                self.client.flush()
                 timing.first_motion = time.perf_counter()
         return True
 
