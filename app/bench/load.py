@@ -209,6 +209,8 @@ def bench_load(
         "driver_cores": multi.get("driver_cores", multi["cores"]["browsers"]),
         "single_driver_cores": phases[1].get("driver_cores", phases[1]["cores"]["browsers"]),
         "delivery_p95_ms": [c.get("delivery_p95_ms", float("nan")) for c in multi["clients"]],
+        # Protocol driver: how late each client's 50 ms send timer fired (the driver's own delay).
+        "send_late_p95_ms": [c.get("send_late_p95_ms", float("nan")) for c in multi["clients"]],
         # Slider values within 1 ms of the one before, and that share for independent users.
         "arrivals_within_1ms": multi.get("bunched", (float("nan"),) * 2)[0],
         "arrivals_within_1ms_if_independent": multi.get("bunched", (float("nan"),) * 2)[1],

@@ -178,6 +178,7 @@ def protocol_phase(
                     "first_motion_p50_ms": percentile(s["first_motion_ms"], 50),
                     "first_motion_p95_ms": percentile(s["first_motion_ms"], 95),
                     "delivery_p95_ms": s["delivery_p95_ms"],
+                    "send_late_p95_ms": s["send_late_p95_ms"],
                     **breakdown_p95(d.timings if d else []),
                     "drags": s["drags"],
                     "kb_per_drag": s["bytes_dragging"] / 1e3 / max(1, s["drags"]),

@@ -76,6 +76,7 @@ class ProtocolClient:
         self.readout: tuple[tuple[float, ...] | None, str | None] = (None, None)
         self.values: list[float] = []  # the slider values this client sent last
         self.delivery_s: list[float] = []  # frame made on the server -> read here
+        self.send_late_s: list[float] = []  # a drag's send after the one before, past the 50 ms
         self._changed = asyncio.Event()
         self._ws = None
         self.reading = True  # False: stop reading (a client that hangs; ``bench load`` tests)
@@ -191,13 +192,17 @@ class ProtocolClient:
             for k in range(1, n + 1)
         ]
         final = [*self.values[:i], path[-1], *self.values[i + 1 :]]
-        drag = None
+        drag, due = None, None
         for value in path:
             self.values[i] = value
+            now = time.perf_counter()
+            if due is not None:  # this loop's timer, late when this machine's cores are busy
+                self.send_late_s.append(now - due)
             if drag is None and self.values == final:  # timed from the final value's first send
-                drag = Drag(i, tuple(final), time.perf_counter())  # (its view can beat the last sends)
+                drag = Drag(i, tuple(final), now)  # (its view can beat the last sends)
                 self.drags.append(drag)
             await self.send(uuids[i], value)
+            due = now + SEND_PERIOD_S
             await asyncio.sleep(SEND_PERIOD_S)
         await self.send(uuids[i], self.values[i])  # viser's trailing send
         await asyncio.sleep(dwell * float(self.rng.uniform(1 - DWELL_SPREAD, 1 + DWELL_SPREAD)))
@@ -260,6 +265,9 @@ class ProtocolClient:
             "replay_server_ms": server_ms("replayed"),
             "delivery_p95_ms": 1e3 * float(np.percentile(self.delivery_s, 95))
             if self.delivery_s
+            else float("nan"),
+            "send_late_p95_ms": 1e3 * float(np.percentile(self.send_late_s, 95))
+            if self.send_late_s
             else float("nan"),
             "bytes": self.bytes,
             "frames": self.frames,

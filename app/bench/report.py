@@ -129,6 +129,8 @@ def load(r: dict) -> None:
             + ", ".join(f"{v:.0f}" for v in r["multi_decoded_server_p95_ms"])
             + " ms, delivery p95 "
             + ", ".join(f"{v:.1f}" for v in r["delivery_p95_ms"])
+            + " ms, send timer late p95 "
+            + ", ".join(f"{v:.1f}" for v in r.get("send_late_p95_ms", []))
             + " ms"
             + (
                 f"; the Chromium page beside them: stale {r['browser_page']['stale'] or 'none'}"
