@@ -17,6 +17,8 @@ from snakeloco.app.bench.wire import parse_readout
 from snakeloco.app.readout import Readout, readout_html
 from snakeloco.app.server import DesignerServer
 
+from helpers import apply, connect_headless
+
 
 def _settled(c: ProtocolClient) -> bool:
     values, state = c.readout
@@ -65,6 +67,26 @@ def test_a_protocol_client_joins_drags_and_reads_the_decoded_view_and_replay(che
         unfinished = s | {"readout_state": "streaming"}
         assert "not done or failed" in stream_problems(unfinished)[0]
     finally:
+        srv.stop()
+
+
+def test_each_view_is_sent_once_drawn_not_at_the_end_of_a_window(checkpoint):
+    """viser holds a client's messages up to 1/60 s for more to come unless flushed: the decoded
+    view, the replay's first motion and the finished replay each flush once drawn."""
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    client, d = connect_headless(srv)
+    try:
+        flushed, flush = [], d.client.flush
+        d.client.flush = lambda: flushed.append(d.readout.state) or flush()
+        assert apply(d, d.sliders[0], 1.0, 60)
+        # In order (the ensemble's draw flushes too: repeats are one).
+        assert [s for i, s in enumerate(flushed) if i == 0 or s != flushed[i - 1]] == [
+            "simulating",
+            "streaming",
+            "done",
+        ], flushed
+    finally:
+        client.close()
         srv.stop()
 
 
