@@ -12,7 +12,8 @@ import numpy as np
 import torch
 
 from snakeloco.model.member_path import member_inputs
-from snakeloco.sim.members import Member, project_many
+from snakeloco.sim.members import Member
+from snakeloco.sim.projection import project_many
 
 
 def _finite(name: str, a: np.ndarray) -> np.ndarray:
@@ -55,7 +56,7 @@ class MemberDecoding:
 
     def project(self, shape: np.ndarray) -> tuple[list[Member], np.ndarray]:
         """Measured joint shapes (B, 8, L, 2) -> the members they project onto (their commanded
-        coefficients fitted, ``sim.members.project``) and the fits' relative residuals (B,)."""
+        coefficients fitted, ``sim.projection.project``) and the fits' relative residuals (B,)."""
         if not self.projects:
             raise ValueError("this checkpoint's family has no members to project onto")
         shape = self._check_shape(shape)

@@ -40,7 +40,8 @@ from snakeloco.model.member_path import (
 from snakeloco.model.replays import Fit, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.train import split_records
 from snakeloco.sim import DatasetError, joint_shape
-from snakeloco.sim.members import Member, project_many
+from snakeloco.sim.members import Member
+from snakeloco.sim.projection import project_many
 
 SAMPLER_GAITS = "sampler-gaits"
 GAIT_KEYS = ("z_b", "mode", "z_index", "shape", "body")

@@ -9,7 +9,8 @@ import pytest
 from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, read_member, write_gait_csv
 from snakeloco.sim import shape_to_commands
 from snakeloco.sim.gaits import GaitEquation
-from snakeloco.sim.members import Member, member_from_draw, project, residual
+from snakeloco.sim.members import Member, member_from_draw
+from snakeloco.sim.projection import project, residual
 from snakeloco.sim.structured import STRUCTURED_PRESETS, draw_structured
 
 UNDULATE = STRUCTURED_PRESETS["undulate"]

@@ -15,7 +15,8 @@ from snakeloco.model.density import LatentDensity, fit_density, name_components
 from snakeloco.model.replays import Fit
 from snakeloco.sim import GenerateConfig
 from snakeloco.sim.generate import generate_dataset
-from snakeloco.sim.members import member_from_draw, project
+from snakeloco.sim.members import member_from_draw
+from snakeloco.sim.projection import project
 from snakeloco.sim.structured import STRUCTURED_PRESETS, draw_structured
 
 UNDULATE = STRUCTURED_PRESETS["undulate"]

@@ -15,8 +15,9 @@ from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
 from snakeloco.sim.dataset import DatasetError
 from snakeloco.sim.gaits import GaitEquation
 from snakeloco.sim.generate import generate_dataset
-from snakeloco.sim.members import Member, project
+from snakeloco.sim.members import Member
 from snakeloco.sim.physics import Simulator
+from snakeloco.sim.projection import project
 from snakeloco.sim.structured import (
     DEFAULT_PRESET,
     KINDS,
