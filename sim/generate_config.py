@@ -59,6 +59,9 @@ class GenerateConfig(BaseModel):
                 "early_seconds",
                 "early_max_spread",
                 "sure_spread",
+                "curve",
+                "curve_scale",
+                "curve_frequency",
             ):
                 if getattr(self.structured, name) == getattr(default, name):
                     meta["structured"].pop(name)

@@ -39,10 +39,17 @@ class Member(BaseModel):
     wave: GaitEquation = Field(description="The main travelling wave (``sim.gaits``).")
     steering_amplitude: float = Field(0.0, ge=0, le=COMMAND_LIMIT, description="Steering wave (rad).")
     steering_phase: float = Field(0.0, description="Phase of the steering wave (rad).")
+    curve: GaitEquation | None = Field(
+        None,
+        description="A weak turning wave beside an undulation, at a frequency of its own "
+        "(``sim.structured.curve_wave``): the path bends into an arc. None: straight.",
+    )
 
     def shape(self) -> np.ndarray:
         """The member's commanded joint shape (8, L, 2) rad (``sim.spectra`` convention)."""
         shape = self.wave.shape()
+        if self.curve is not None:
+            shape += self.curve.shape()
         shape[YAW, STEERING_BIN, 0] += self.steering_amplitude * np.cos(self.steering_phase)
         shape[YAW, STEERING_BIN, 1] += self.steering_amplitude * np.sin(self.steering_phase)
         return shape
@@ -64,6 +71,9 @@ class Member(BaseModel):
             update={
                 "wave": w.model_copy(update={"delta": _turned(w.delta)}),
                 "steering_phase": _turned(self.steering_phase) if self.steering_amplitude > 0 else 0.0,
+                "curve": None
+                if self.curve is None
+                else self.curve.model_copy(update={"delta": _turned(self.curve.delta)}),
             }
         )
 
@@ -87,6 +97,12 @@ class Member(BaseModel):
                 f"{w.nu_yaw:.2f} rad/module, offset {w.delta:.2f} rad"
             )
         text += f" at {w.frequency:.2f} Hz"
+        if self.curve is not None:
+            c = self.curve
+            text += (
+                f"; curving: turning wave, pitch {c.a_pitch:.3f} rad, yaw {c.a_yaw:.3f} rad, offset "
+                f"{c.delta:.2f} rad at {c.frequency:.2f} Hz"
+            )
         if self.steering_amplitude > 0:
             f0 = FREQS[STEERING_BIN]
             text += f"; steering {self.steering_amplitude:.2f} rad at {f0:.2f} Hz"
@@ -100,16 +116,22 @@ def _turned(phase: float) -> float:
 
 def member_from_draw(drawn: dict) -> Member:
     """The member of a record as ``draw_structured`` logged it (``drawn``: kind, wave, steering,
-    scale). Records with a second wave are not members (the mixed preset's)."""
+    curve, scale). Records with a second wave are not members (the mixed preset's)."""
     if "second_wave" in drawn:
         raise ValueError("a record with a second wave is not a member of a one-wave family")
     scale = float(drawn["scale"])
     wave = dict(drawn["wave"])
     wave["a_pitch"], wave["a_yaw"] = scale * wave["a_pitch"], scale * wave["a_yaw"]
     steering = drawn.get("steering") or {"amplitude": 0.0, "phase": 0.0}
+    curve = drawn.get("curve")
+    if curve is not None:
+        curve = GaitEquation(
+            **(curve | {"a_pitch": scale * curve["a_pitch"], "a_yaw": scale * curve["a_yaw"]})
+        )
     return Member(
         kind=drawn["kind"],
         wave=GaitEquation(**wave),
         steering_amplitude=scale * steering["amplitude"],
         steering_phase=steering["phase"],
+        curve=curve,
     )

@@ -20,7 +20,7 @@ from snakeloco.sim.gaits import MODULES, PITCH, GaitEquation
 from snakeloco.sim.members import FREQS, STEERING_BIN, YAW, Member
 from snakeloco.sim.robot import COMMAND_LIMIT
 from snakeloco.sim.spectra import shape_to_commands
-from snakeloco.sim.structured import KINDS, NU_RANGES, StructuredConfig, library_gait
+from snakeloco.sim.structured import KINDS, NU_RANGES, StructuredConfig, curve_wave, library_gait
 
 SPECIFIC_FIRST = ("undulate", "roll", "sidewind", "turn")
 """Kinds from the most to the least constrained: an undulation is also a turning wave with no pitch,
@@ -215,6 +215,27 @@ def _steering(c0: np.ndarray, cfg: StructuredConfig) -> tuple[float, float]:
     return float(np.clip(amplitude, lo, hi)), float(np.angle(s))
 
 
+def _curve(c: np.ndarray, frequency: float, cfg: StructuredConfig) -> GaitEquation | None:
+    """The curving wave (``curve_wave``) closest to coefficients c (8, L) complex beside an
+    undulation at ``frequency``: as tuned or mirrored, whichever fits, at the least-squares scale
+    snapped to the family's {0} u [lo, hi]; None where the family does not curve there."""
+    if cfg.curve <= 0 or abs(frequency - cfg.curve_frequency) < 1e-6:
+        return None
+    b = int(np.argmin(np.abs(FREQS - cfg.curve_frequency)))
+    lo, hi = cfg.curve_scale
+    best: tuple[float, bool] = (-np.inf, False)
+    for mirrored in (False, True):
+        t = curve_wave(1.0, cfg.curve_frequency, mirrored).shape()
+        t = t[:, b, 0] + 1j * t[:, b, 1]
+        s = float((np.conj(t) * c[:, b]).sum().real / (np.abs(t) ** 2).sum())
+        if s > best[0]:
+            best = (s, mirrored)
+    s, mirrored = best
+    if s < lo / 2:
+        return None
+    return curve_wave(float(np.clip(s, lo, hi)), cfg.curve_frequency, mirrored)
+
+
 def _within_limit(member: Member) -> Member:
     """The member scaled as ``draw_structured`` scales a draw: its peak command at most the limit."""
     shape = member.shape()
@@ -226,7 +247,11 @@ def _within_limit(member: Member) -> Member:
     s = COMMAND_LIMIT / peak
     w = member.wave
     wave = w.model_copy(update={"a_pitch": s * w.a_pitch, "a_yaw": s * w.a_yaw})
-    return member.model_copy(update={"wave": wave, "steering_amplitude": s * member.steering_amplitude})
+    c = member.curve
+    curve = None if c is None else c.model_copy(update={"a_pitch": s * c.a_pitch, "a_yaw": s * c.a_yaw})
+    return member.model_copy(
+        update={"wave": wave, "steering_amplitude": s * member.steering_amplitude, "curve": curve}
+    )
 
 
 def residual(shape: np.ndarray, member: Member) -> float:
@@ -257,8 +282,9 @@ def project(
             b = int(np.argmin(np.abs(FREQS - f)))
             fit = _fit_library if cfg.library else _fit_wave
             wave = fit(kind, c[:, b], float(FREQS[b]), cfg)
+            curve = _curve(c, float(FREQS[b]), cfg) if kind == "undulate" else None
             member = _within_limit(
-                Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase)
+                Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase, curve=curve)
             )
             r = residual(shape, member)
             if best is None or r < best[0] - 1e-9:

@@ -70,6 +70,18 @@ class StructuredConfig(BaseModel):
         0.3, ge=0, le=1, description="Probability of a slow steering wave on the yaw joints."
     )
     steering_amplitude: tuple[float, float] = Field((0.1, 0.4), description="Its amplitude (rad).")
+    curve: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="Probability that an undulation also carries a weak turning wave (``curve_wave``) at "
+        "curve_frequency, which bends its path into an arc (none where the undulation runs at that "
+        "frequency).",
+    )
+    curve_scale: tuple[float, float] = Field(
+        (0.03, 0.09), description="That wave's scale on the library's turning gait's amplitudes."
+    )
+    curve_frequency: float = Field(0.29, gt=0, description="That wave's frequency (Hz).")
     max_spread: float = Field(
         0.1,
         gt=0,
@@ -204,6 +216,13 @@ STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
             "frequencies": LIBRARY.frequencies | {"undulate": (0.29, 0.52, 0.93)},
         }
     ),
+    "arcs": LIBRARY.model_copy(
+        update={
+            "kind_weights": (2.5, 2.0, 0.5, 0.5),
+            "frequencies": LIBRARY.frequencies | {"undulate": (0.29, 0.52, 0.93)},
+            "curve": 0.6,
+        }
+    ),
     "mixed": StructuredConfig(),
     "undulate": StructuredConfig(
         kind_weights=(1.0, 0.0, 0.0, 0.0),
@@ -219,7 +238,9 @@ STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
 """Named structured families (``snakeloco generate --family structured --structured-preset NAME``).
 compass (the default, ``DEFAULT_PRESET``): the library family below with undulation at 0.29 Hz as
 well (short paths straight ahead and behind: 2.4-11 m where 0.52 Hz starts at 3.5 m), undulation drawn
-1.5 times as often; docs/gaits.md. every: one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.52 Hz only: 11 of 28
+1.5 times as often; docs/gaits.md. arcs: the compass family with undulation drawn 2.5 times as often, 60%
+of the undulations at 0.52 and 0.93 Hz curving (``curve_wave``): arcs to the diagonals, where the
+compass family ends no gait 12-15 m away (a pilot; not yet the shipped checkpoint's). every: one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.52 Hz only: 11 of 28
 draws at 0.93 Hz passed the screen, 23 of 33 at 0.52 Hz) and 0.35-1 of its amplitude range (slow
 to fast, forward, backward, sideways, rolling, turning), with steering in 30% of the draws, screened
 against command noise by the cheap screen (a pause at 20 s, a 2-replay verdict where it is clear;
@@ -306,9 +327,27 @@ def draw_library_wave(kind: str, rng: np.random.Generator, cfg: StructuredConfig
     )
 
 
+def curve_wave(scale: float, frequency: float, mirrored: bool) -> GaitEquation:
+    """The library's turning gait at ``scale`` of its amplitudes and at ``frequency``, as tuned
+    (turning right) or mirrored (its yaw joints negated: turning left). Added to an undulation at
+    another frequency it bends the path into an arc: undulation at 0.52 Hz with this at 0.29 Hz
+    ended 14.7 m away at -61 deg (scale 0.05), 11.4 m at -90 deg (0.07), 7.7 m at -127 deg (0.09),
+    ensemble spreads 0.05-0.10 (docs/gaits.md)."""
+    base = library_gait("turn")
+    delta = base.delta + (np.pi if mirrored else 0.0)
+    return base.model_copy(
+        update={
+            "a_pitch": scale * base.a_pitch,
+            "a_yaw": scale * base.a_yaw,
+            "delta": float(np.angle(np.exp(1j * delta))),
+            "frequency": frequency,
+        }
+    )
+
+
 def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) -> tuple[np.ndarray, dict]:
     """Record ``index``'s gait at ``attempt``: its commanded joint shape (8, L, 2) rad and what was
-    drawn (kinds, waves, steering, scale), JSON-ready."""
+    drawn (kinds, waves, steering, curve, scale), JSON-ready."""
     rng = np.random.default_rng([seed, index, attempt])
     weights = np.asarray(cfg.kind_weights, np.float64)
     kind = str(rng.choice(KINDS, p=weights / weights.sum()))
@@ -338,6 +377,15 @@ def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) 
         shape[yaw, 0, 0] += amplitude * np.cos(phase)  # bin 0: the lowest excited frequency
         shape[yaw, 0, 1] += amplitude * np.sin(phase)
         drawn["steering"] = {"amplitude": amplitude, "phase": phase, "frequency": float(RECORD.freqs[0])}
+    if (  # after every other draw, and only where the family curves: other families' streams unchanged
+        cfg.curve > 0
+        and kind == "undulate"
+        and abs(main.frequency - cfg.curve_frequency) > 1e-6
+        and rng.random() < cfg.curve
+    ):
+        curve = curve_wave(rng.uniform(*cfg.curve_scale), cfg.curve_frequency, bool(rng.integers(2)))
+        shape = shape + curve.shape()
+        drawn["curve"] = curve.model_dump()
     peak = np.abs(shape_to_commands(shape, limit=np.inf)).max()
     scale = min(1.0, COMMAND_LIMIT / peak)  # within the command limit without clipping the waves
     drawn["scale"] = scale

@@ -11,7 +11,7 @@ from snakeloco.sim import shape_to_commands
 from snakeloco.sim.gaits import GaitEquation
 from snakeloco.sim.members import Member, member_from_draw
 from snakeloco.sim.projection import project, residual
-from snakeloco.sim.structured import STRUCTURED_PRESETS, draw_structured
+from snakeloco.sim.structured import STRUCTURED_PRESETS, curve_wave, draw_structured
 
 UNDULATE = STRUCTURED_PRESETS["undulate"]
 MIXED = STRUCTURED_PRESETS["mixed"]
@@ -28,7 +28,7 @@ def test_a_record_projects_onto_its_own_member_and_a_member_onto_itself():
         assert r2 < 1e-12
 
 
-@pytest.mark.parametrize("preset", ["mixed", "every", "library"])
+@pytest.mark.parametrize("preset", ["mixed", "every", "library", "arcs"])
 def test_every_kind_of_a_family_projects_to_its_own_kind(preset):
     """Exact members hold for every kind: the mixed family's one-wave draws, the every family's
     (whose amplitudes are also scaled 0.35-1: the fit's ranges widen with it) and the library
@@ -44,6 +44,29 @@ def test_every_kind_of_a_family_projects_to_its_own_kind(preset):
         assert member.kind == drawn["kind"]
         seen.add(member.kind)
     assert seen == {"undulate", "sidewind", "roll", "turn"}
+
+
+def test_a_curving_undulation_projects_onto_itself_and_its_mirror_image_curves_the_other_way():
+    """The arcs family's undulations with a weak turning wave beside them (``curve_wave``): a draw
+    projects onto its own member, curve and all, scale and mirror included; the same shape without
+    the curve projects onto the straight undulation; the mirror image's curve is mirrored."""
+    arcs, curved = STRUCTURED_PRESETS["arcs"], []
+    for index in range(200):
+        shape, drawn = draw_structured(arcs, 5, index, 0)
+        if "curve" in drawn:
+            member, r = project(shape, arcs)
+            assert r < 1e-9 and member.kind == "undulate" and member.curve is not None
+            np.testing.assert_allclose(member.shape(), member_from_draw(drawn).shape(), atol=1e-12)
+            curved.append(member)
+    assert len(curved) >= 20
+    assert {abs(m.curve.delta - curve_wave(1, 0.29, False).delta) < 1e-9 for m in curved} == {True, False}
+    m = curved[0]
+    straight, r = project(m.wave.shape(), arcs)
+    assert r < 1e-9 and straight.curve is None
+    image = m.mirrored()
+    np.testing.assert_allclose(image.shape()[1::2], -m.shape()[1::2], atol=1e-12)  # yaw joints negated
+    np.testing.assert_allclose(image.shape()[::2], m.shape()[::2], atol=1e-12)
+    assert "curving" in m.describe() and Member.model_validate(m.params()) == m
 
 
 def test_a_noisy_member_keeps_its_kind_where_a_freer_kind_fits_it_only_a_little_better():

@@ -214,6 +214,22 @@ def test_the_undulate_preset_draws_only_undulation_in_its_ranges_and_old_metas_k
     assert narrow["undulate_amplitude"] == [0.5, 0.9] and narrow["undulate_wavenumber"] == [0.4, 1.0]
 
 
+def test_the_compass_family_draws_what_its_committed_screening_log_records():
+    """New family options (the arcs family's curves) leave the compass family's config meta and its
+    random draws as they were: the committed log of the shipped checkpoint's dataset still rebuilds."""
+    from pathlib import Path
+
+    log = json.loads((Path(__file__).parents[1] / "data/screening/compass-n4096-seed0.json").read_text())
+    cfg = GenerateConfig(
+        num_samples=4096, seed=0, family="structured", structured=STRUCTURED_PRESETS["compass"]
+    )
+    assert cfg.to_meta() == log["config"]
+    chunk = log["chunks"]["0"]
+    for index, drawn in enumerate(chunk["drawn"]):
+        attempt = sum(f["index"] == index for f in chunk["failures"])  # rejected draws came first
+        assert draw_structured(cfg.structured, 0, index, attempt)[1] == drawn, index
+
+
 def test_the_structured_preset_flag_needs_the_structured_family(tmp_path, capsys):
     with pytest.raises(SystemExit) as stop:
         main(
