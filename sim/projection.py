@@ -20,7 +20,14 @@ from snakeloco.sim.gaits import MODULES, PITCH, GaitEquation
 from snakeloco.sim.members import FREQS, STEERING_BIN, YAW, Member
 from snakeloco.sim.robot import COMMAND_LIMIT
 from snakeloco.sim.spectra import shape_to_commands
-from snakeloco.sim.structured import KINDS, NU_RANGES, StructuredConfig, curve_wave, library_gait
+from snakeloco.sim.structured import (
+    KINDS,
+    NU_RANGES,
+    StructuredConfig,
+    curve_wave,
+    library_gait,
+    undulation_scale,
+)
 
 SPECIFIC_FIRST = ("undulate", "roll", "sidewind", "turn")
 """Kinds from the most to the least constrained: an undulation is also a turning wave with no pitch,
@@ -215,14 +222,15 @@ def _steering(c0: np.ndarray, cfg: StructuredConfig) -> tuple[float, float]:
     return float(np.clip(amplitude, lo, hi)), float(np.angle(s))
 
 
-def _curve(c: np.ndarray, frequency: float, cfg: StructuredConfig) -> GaitEquation | None:
-    """The curving wave (``curve_wave``) closest to coefficients c (8, L) complex beside an
-    undulation at ``frequency``: as tuned or mirrored, whichever fits, at the least-squares scale
-    snapped to the family's {0} u [lo, hi]; None where the family does not curve there."""
-    if cfg.curve <= 0 or abs(frequency - cfg.curve_frequency) < 1e-6:
+def _curve(c: np.ndarray, wave: GaitEquation, cfg: StructuredConfig) -> GaitEquation | None:
+    """The curving wave (``curve_wave``) closest to coefficients c (8, L) complex beside the
+    undulation ``wave``: as tuned or mirrored, whichever fits, at the least-squares scale snapped to
+    the family's {0} u [lo, hi] times the undulation's scale; None where the family does not curve
+    there."""
+    if cfg.curve <= 0 or abs(wave.frequency - cfg.curve_frequency) < 1e-6:
         return None
     b = int(np.argmin(np.abs(FREQS - cfg.curve_frequency)))
-    lo, hi = cfg.curve_scale
+    lo, hi = np.multiply(cfg.curve_scale, undulation_scale(wave))
     best: tuple[float, bool] = (-np.inf, False)
     for mirrored in (False, True):
         t = curve_wave(1.0, cfg.curve_frequency, mirrored).shape()
@@ -282,7 +290,7 @@ def project(
             b = int(np.argmin(np.abs(FREQS - f)))
             fit = _fit_library if cfg.library else _fit_wave
             wave = fit(kind, c[:, b], float(FREQS[b]), cfg)
-            curve = _curve(c, float(FREQS[b]), cfg) if kind == "undulate" else None
+            curve = _curve(c, wave, cfg) if kind == "undulate" else None
             member = _within_limit(
                 Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase, curve=curve)
             )

@@ -79,7 +79,10 @@ class StructuredConfig(BaseModel):
         "frequency).",
     )
     curve_scale: tuple[float, float] = Field(
-        (0.03, 0.09), description="That wave's scale on the library's turning gait's amplitudes."
+        (0.05, 0.25),
+        description="That wave's scale on the library's turning gait's amplitudes, relative to the "
+        "undulation's scale on the library's undulation (``undulation_scale``): the arc's curvature "
+        "follows the ratio of the two waves.",
     )
     curve_frequency: float = Field(0.29, gt=0, description="That wave's frequency (Hz).")
     max_spread: float = Field(
@@ -327,6 +330,11 @@ def draw_library_wave(kind: str, rng: np.random.Generator, cfg: StructuredConfig
     )
 
 
+def undulation_scale(wave: GaitEquation) -> float:
+    """An undulation's yaw amplitude relative to the library undulation's."""
+    return wave.a_yaw / library_gait("undulate").a_yaw
+
+
 def curve_wave(scale: float, frequency: float, mirrored: bool) -> GaitEquation:
     """The library's turning gait at ``scale`` of its amplitudes and at ``frequency``, as tuned
     (turning right) or mirrored (its yaw joints negated: turning left). Added to an undulation at
@@ -383,7 +391,8 @@ def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) 
         and abs(main.frequency - cfg.curve_frequency) > 1e-6
         and rng.random() < cfg.curve
     ):
-        curve = curve_wave(rng.uniform(*cfg.curve_scale), cfg.curve_frequency, bool(rng.integers(2)))
+        scale = rng.uniform(*cfg.curve_scale) * undulation_scale(main)
+        curve = curve_wave(scale, cfg.curve_frequency, bool(rng.integers(2)))
         shape = shape + curve.shape()
         drawn["curve"] = curve.model_dump()
     peak = np.abs(shape_to_commands(shape, limit=np.inf)).max()

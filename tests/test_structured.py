@@ -23,7 +23,9 @@ from snakeloco.sim.structured import (
     KINDS,
     STRUCTURED_PRESETS,
     StructuredConfig,
+    curve_wave,
     draw_structured,
+    library_gait,
     perturbed_shapes,
 )
 
@@ -334,6 +336,22 @@ def test_each_compass_kind_replays_to_its_direction_within_the_spread():
         assert r < 1e-9 and again.kind == kind  # a member of the family
         members.append(again)
     _replays_to_their_directions(compass, members, [e[-1] for e in LIBRARY_EXAMPLES])
+
+
+@pytest.mark.slow
+def test_curving_undulations_replay_to_their_arcs_within_the_spread():
+    """The library undulation at 0.52 Hz with the arcs family's curve at 0.07 (both ways): 11.4 m
+    away at -90 and 24 deg in the pilot (2026-12-04), where a straight one ends ahead."""
+    arcs = STRUCTURED_PRESETS["arcs"]
+    wave = library_gait("undulate").model_copy(update={"frequency": 0.52})
+    members = []
+    for mirrored in (False, True):
+        member = Member(kind="undulate", wave=wave, curve=curve_wave(0.07, 0.29, mirrored))
+        again, r = project(member.shape(), arcs)
+        assert r < 1e-9 and again.curve is not None  # a member of the family, curve and all
+        np.testing.assert_allclose(again.shape(), member.shape(), atol=1e-12)
+        members.append(member)
+    _replays_to_their_directions(arcs, members, [-90, 24])
 
 
 @pytest.mark.slow
