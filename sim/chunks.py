@@ -24,7 +24,7 @@ from snakeloco.sim.physics import Simulator
 from snakeloco.sim.results import SimulationError
 from snakeloco.sim.robot import N_JOINTS
 from snakeloco.sim.spectra import shape_to_commands
-from snakeloco.sim.structured import draw_structured, perturbed_shapes
+from snakeloco.sim.structured import draw_structured
 
 
 @dataclass
@@ -263,3 +263,12 @@ def rebuild_chunk(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray
     chunk.failures = list(log["failures"])
     chunk.log = {k: v for k, v in log.items() if k != "failures"}
     return chunk
+
+
+def perturbed_shapes(shape: np.ndarray, k: int, rel_noise: float, rng: np.random.Generator) -> np.ndarray:
+    """``shape`` (8, L, 2) and k - 1 copies whose complex coefficients are each multiplied by
+    1 + rel_noise * eps (eps complex standard normal): (k, 8, L, 2)."""
+    c = shape[..., 0] + 1j * shape[..., 1]
+    eps = (rng.standard_normal((k - 1, *c.shape)) + 1j * rng.standard_normal((k - 1, *c.shape))) / np.sqrt(2)
+    noisy = c[None] * (1.0 + rel_noise * eps)
+    return np.concatenate([shape[None], np.stack([noisy.real, noisy.imag], axis=-1)], axis=0)

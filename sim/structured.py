@@ -336,11 +336,9 @@ def undulation_scale(wave: GaitEquation) -> float:
 
 
 def curve_wave(scale: float, frequency: float, mirrored: bool) -> GaitEquation:
-    """The library's turning gait at ``scale`` of its amplitudes and at ``frequency``, as tuned
-    (turning right) or mirrored (its yaw joints negated: turning left). Added to an undulation at
-    another frequency it bends the path into an arc: undulation at 0.52 Hz with this at 0.29 Hz
-    ended 14.7 m away at -61 deg (scale 0.05), 11.4 m at -90 deg (0.07), 7.7 m at -127 deg (0.09),
-    ensemble spreads 0.05-0.10 (docs/gaits.md)."""
+    """The library's turning gait at ``scale`` of its amplitudes and at ``frequency``, as tuned or
+    mirrored (yaw joints negated). Beside an undulation at another frequency it bends the path into
+    an arc (docs/gaits.md, "Arcs to the diagonals")."""
     base = library_gait("turn")
     delta = base.delta + (np.pi if mirrored else 0.0)
     return base.model_copy(
@@ -399,12 +397,3 @@ def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) 
     scale = min(1.0, COMMAND_LIMIT / peak)  # within the command limit without clipping the waves
     drawn["scale"] = scale
     return shape * scale, drawn
-
-
-def perturbed_shapes(shape: np.ndarray, k: int, rel_noise: float, rng: np.random.Generator) -> np.ndarray:
-    """``shape`` (8, L, 2) and k - 1 copies whose complex coefficients are each multiplied by
-    1 + rel_noise * eps (eps complex standard normal): (k, 8, L, 2)."""
-    c = shape[..., 0] + 1j * shape[..., 1]
-    eps = (rng.standard_normal((k - 1, *c.shape)) + 1j * rng.standard_normal((k - 1, *c.shape))) / np.sqrt(2)
-    noisy = c[None] * (1.0 + rel_noise * eps)
-    return np.concatenate([shape[None], np.stack([noisy.real, noisy.imag], axis=-1)], axis=0)

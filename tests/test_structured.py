@@ -10,7 +10,7 @@ import pytest
 
 from snakeloco.app.cli import main
 from snakeloco.sim import GenerateConfig, SimulationError, joint_shape, load_dataset
-from snakeloco.sim.chunks import simulate_structured
+from snakeloco.sim.chunks import perturbed_shapes, simulate_structured
 from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
 from snakeloco.sim.dataset import DatasetError
 from snakeloco.sim.gaits import GaitEquation
@@ -26,7 +26,6 @@ from snakeloco.sim.structured import (
     curve_wave,
     draw_structured,
     library_gait,
-    perturbed_shapes,
 )
 
 CFG = GenerateConfig(
