@@ -42,8 +42,9 @@ from snakeloco.sim.members import Member
 from snakeloco.sim.structured import KINDS, StructuredConfig
 
 MEMBER_HEAD_WEIGHTS = "member_head.safetensors"
-HeadInputs = Literal["coefficients", "named"]
-"""What describes a member to the head (``member_inputs``)."""
+HeadInputs = Literal["coefficients", "named", "named_curve"]
+"""What describes a member to the head (``member_inputs``); "named_curve": the named parameters and
+the curving wave's (``Member.curve``)."""
 HeadPath = Literal["direct", "heading"]
 """How the head draws the path in the plane: "direct", forward and sideways positions as outputs;
 "heading", velocities in the body's own frame, turned by the predicted heading and summed (dead
@@ -121,18 +122,30 @@ class MemberPathHead(nn.Module):
 NAMED_INPUTS = len(KINDS) + 10
 """Named inputs per member: the kind one-hot, then a_pitch, a_yaw, nu_pitch, nu_yaw, cos and sin of
 the offset, frequency, steering amplitude and its two components."""
+CURVE_INPUTS = 3
+"""With "named_curve", after those: the curving wave's yaw amplitude and its two components (cosine
+and sine of its offset; zeros for a straight member)."""
 
 
-def named_inputs(members: list[Member]) -> np.ndarray:
-    """Members -> their named parameters (B, ``NAMED_INPUTS``); a mirror image negates the offset's
-    and the steering's cosine and sine and keeps the rest."""
+def named_inputs(members: list[Member], curve: bool = False) -> np.ndarray:
+    """Members -> their named parameters (B, ``NAMED_INPUTS`` (+ ``CURVE_INPUTS`` with ``curve``)); a
+    mirror image negates the offset's, the steering's and the curve's cosine and sine and keeps the
+    rest."""
     rows = []
     for m in members:
         w, s = m.wave, m.steering_amplitude
         kind = [float(m.kind == k) for k in KINDS]
         wave = [w.a_pitch, w.a_yaw, w.nu_pitch, w.nu_yaw, np.cos(w.delta), np.sin(w.delta), w.frequency]
-        rows.append([*kind, *wave, s, s * np.cos(m.steering_phase), s * np.sin(m.steering_phase)])
-    return np.array(rows, np.float64).reshape(len(members), NAMED_INPUTS)
+        row = [*kind, *wave, s, s * np.cos(m.steering_phase), s * np.sin(m.steering_phase)]
+        if curve:
+            c = m.curve
+            row += (
+                [0.0] * CURVE_INPUTS
+                if c is None
+                else [c.a_yaw, c.a_yaw * np.cos(c.delta), c.a_yaw * np.sin(c.delta)]
+            )
+        rows.append(row)
+    return np.array(rows, np.float64).reshape(len(members), NAMED_INPUTS + CURVE_INPUTS * curve)
 
 
 def with_mirror_images(
@@ -154,8 +167,8 @@ def member_inputs(
     """Members (and their slider positions z_b (B, Db)) -> the head's inputs: their commanded
     coefficients on the support (8, L), real and imaginary parts (B, 2 S), or their named parameters
     (``named_inputs``), then z_B."""
-    if inputs == "named":
-        x = named_inputs(members)
+    if inputs in ("named", "named_curve"):
+        x = named_inputs(members, curve=inputs == "named_curve")
     else:
         shapes = np.stack([m.shape() for m in members]) if members else np.zeros((0, *np.shape(support), 2))
         x = shapes[:, np.asarray(support, bool)].reshape(len(members), -1)

@@ -79,7 +79,7 @@ class StructuredConfig(BaseModel):
         "frequency).",
     )
     curve_scale: tuple[float, float] = Field(
-        (0.05, 0.25),
+        (0.03, 0.35),
         description="That wave's scale on the library's turning gait's amplitudes, relative to the "
         "undulation's scale on the library's undulation (``undulation_scale``): the arc's curvature "
         "follows the ratio of the two waves.",
@@ -389,7 +389,7 @@ def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) 
         and abs(main.frequency - cfg.curve_frequency) > 1e-6
         and rng.random() < cfg.curve
     ):
-        scale = rng.uniform(*cfg.curve_scale) * undulation_scale(main)
+        scale = np.exp(rng.uniform(*np.log(cfg.curve_scale))) * undulation_scale(main)  # log-uniform
         curve = curve_wave(scale, cfg.curve_frequency, bool(rng.integers(2)))
         shape = shape + curve.shape()
         drawn["curve"] = curve.model_dump()

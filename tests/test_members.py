@@ -67,6 +67,20 @@ def test_a_curving_undulation_projects_onto_itself_and_its_mirror_image_curves_t
     np.testing.assert_allclose(image.shape()[1::2], -m.shape()[1::2], atol=1e-12)  # yaw joints negated
     np.testing.assert_allclose(image.shape()[::2], m.shape()[::2], atol=1e-12)
     assert "curving" in m.describe() and Member.model_validate(m.params()) == m
+    from snakeloco.model.member_path import CURVE_INPUTS, NAMED_INPUTS, named_inputs
+
+    # The path head's named inputs carry the curve ("named_curve"; "named" stays 14 wide for the
+    # checkpoints trained with it): its yaw amplitude, and its offset's cosine and sine, which the
+    # mirror image negates; a straight member has zeros there.
+    x = named_inputs([*curved, straight], curve=True)
+    xm = named_inputs([c.mirrored() for c in curved], curve=True)
+    assert (
+        x.shape == (len(curved) + 1, NAMED_INPUTS + CURVE_INPUTS)
+        and named_inputs(curved).shape[1] == NAMED_INPUTS
+    )
+    np.testing.assert_allclose(xm[:, -2:], -x[:-1, -2:], atol=1e-12)
+    np.testing.assert_allclose(xm[:, -3], x[:-1, -3], atol=1e-12)
+    assert (x[:-1, -3] > 0).all() and (x[-1, -3:] == 0).all()
 
 
 def test_a_noisy_member_keeps_its_kind_where_a_freer_kind_fits_it_only_a_little_better():
