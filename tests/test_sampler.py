@@ -214,7 +214,7 @@ def test_sampler_gaits_of_another_density_are_refused_and_a_named_mirrored_head_
         fit_sampler(Fit(path, data, tmp_path / "c", gaits, workers=2, log=None), cfg)
     # The every family's head: named inputs, trained on every member and its mirror image too.
     from snakeloco.model import load_pretrained
-    from snakeloco.model.member_path import NAMED_INPUTS
+    from snakeloco.model.member_path import CURVE_INPUTS, NAMED_INPUTS
 
     named, fresh = cfg.model_copy(update={"head_inputs": "named"}), tmp_path / "fresh.npz"
     plain = fit_sampler(Fit(path, data, tmp_path / "d", fresh, workers=2, log=None), named)
@@ -225,6 +225,13 @@ def test_sampler_gaits_of_another_density_are_refused_and_a_named_mirrored_head_
     m = load_pretrained(tmp_path / "e")
     head = m.config.member_head
     assert head.inputs == "named" and head.mirrored and len(head.input_mean) == NAMED_INPUTS
+    body = m.decode_members(m.sample_z_b(2, seed=1))[3]
+    assert body.shape == (2, 500, 6) and np.isfinite(body).all()
+    # The arcs family's head reads the curve too (this family's members are all straight: zeros there).
+    curving = named.model_copy(update={"head_inputs": "named_curve"})
+    fit_sampler(Fit(path, data, tmp_path / "f", fresh, workers=2, log=None), curving)
+    m = load_pretrained(tmp_path / "f")
+    assert len(m.config.member_head.input_mean) == NAMED_INPUTS + CURVE_INPUTS
     body = m.decode_members(m.sample_z_b(2, seed=1))[3]
     assert body.shape == (2, 500, 6) and np.isfinite(body).all()
 
