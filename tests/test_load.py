@@ -73,6 +73,8 @@ def test_bench_load_protocol_clients_with_a_page_beside_them(checkpoint, capsys)
     )
     assert all(5 < kb < 500 for kb in [r["single_kb_per_move"], *r["kb_per_move"]]), r["kb_per_move"]
     assert 0 <= r["driver_cores"] < 1.0 and np.isfinite(r["delivery_p95_ms"]).all()
+    # How late each client's 50 ms send timer fired (the driver's own delay, beside the server's).
+    assert len(r["send_late_p95_ms"]) == r["clients"] and min(r["send_late_p95_ms"]) > -1.0
 
 
 def test_bench_tabs_two_rendering_tabs_in_one_browser(checkpoint, capsys):
