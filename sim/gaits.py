@@ -76,6 +76,19 @@ class GaitEquation(BaseModel):
         """Joint commands (2000, 8) rad at 20 Hz over the record."""
         return shape_to_commands(self.shape())
 
+    def scaled(self, s: float) -> GaitEquation:
+        """The same wave with both amplitudes times ``s``."""
+        return self.model_copy(update={"a_pitch": s * self.a_pitch, "a_yaw": s * self.a_yaw})
+
+    def mirrored(self) -> GaitEquation:
+        """The same wave with its yaw joints negated: the offset turned by pi."""
+        return self.model_copy(update={"delta": turned(self.delta)})
+
+
+def turned(phase: float) -> float:
+    """phase + pi, wrapped to [-pi, pi)."""
+    return float((phase + 2 * np.pi) % (2 * np.pi) - np.pi)
+
 
 class GaitFigures(BaseModel):
     """What physics did with a gait over the 100 s record (the unperturbed replay; spread from its

@@ -19,7 +19,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.sim.excitation import RECORD
-from snakeloco.sim.gaits import PITCH, GaitEquation
+from snakeloco.sim.gaits import PITCH, GaitEquation, turned
 from snakeloco.sim.robot import COMMAND_LIMIT
 from snakeloco.sim.spectra import shape_to_commands
 
@@ -66,14 +66,22 @@ class Member(BaseModel):
         where the family says so (``StructuredConfig.mirrors``): an undulation's offset is fixed at 0
         outside a library family, so there its image (the same yaw wave half a period later) is no
         member."""
-        w = self.wave
         return self.model_copy(
             update={
-                "wave": w.model_copy(update={"delta": _turned(w.delta)}),
-                "steering_phase": _turned(self.steering_phase) if self.steering_amplitude > 0 else 0.0,
-                "curve": None
-                if self.curve is None
-                else self.curve.model_copy(update={"delta": _turned(self.curve.delta)}),
+                "wave": self.wave.mirrored(),
+                "steering_phase": turned(self.steering_phase) if self.steering_amplitude > 0 else 0.0,
+                "curve": None if self.curve is None else self.curve.mirrored(),
+            }
+        )
+
+    def scaled(self, s: float) -> Member:
+        """The member with every amplitude (its waves', its steering's) times ``s``: its commands
+        times ``s``."""
+        return self.model_copy(
+            update={
+                "wave": self.wave.scaled(s),
+                "steering_amplitude": s * self.steering_amplitude,
+                "curve": None if self.curve is None else self.curve.scaled(s),
             }
         )
 
@@ -109,29 +117,17 @@ class Member(BaseModel):
         return text
 
 
-def _turned(phase: float) -> float:
-    """phase + pi, wrapped to [-pi, pi)."""
-    return float((phase + 2 * np.pi) % (2 * np.pi) - np.pi)
-
-
 def member_from_draw(drawn: dict) -> Member:
     """The member of a record as ``draw_structured`` logged it (``drawn``: kind, wave, steering,
     curve, scale). Records with a second wave are not members (the mixed preset's)."""
     if "second_wave" in drawn:
         raise ValueError("a record with a second wave is not a member of a one-wave family")
-    scale = float(drawn["scale"])
-    wave = dict(drawn["wave"])
-    wave["a_pitch"], wave["a_yaw"] = scale * wave["a_pitch"], scale * wave["a_yaw"]
     steering = drawn.get("steering") or {"amplitude": 0.0, "phase": 0.0}
     curve = drawn.get("curve")
-    if curve is not None:
-        curve = GaitEquation(
-            **(curve | {"a_pitch": scale * curve["a_pitch"], "a_yaw": scale * curve["a_yaw"]})
-        )
     return Member(
         kind=drawn["kind"],
-        wave=GaitEquation(**wave),
-        steering_amplitude=scale * steering["amplitude"],
+        wave=GaitEquation(**drawn["wave"]),
+        steering_amplitude=steering["amplitude"],
         steering_phase=steering["phase"],
-        curve=curve,
-    )
+        curve=None if curve is None else GaitEquation(**curve),
+    ).scaled(float(drawn["scale"]))

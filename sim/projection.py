@@ -187,10 +187,8 @@ def _fit_library(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConf
             s = float(np.clip((np.conj(template) * z).sum().real / (np.abs(template) ** 2).sum(), lo, hi))
             r = float(np.linalg.norm(z - s * template))
             if best is None or r < best[0] - 1e-12:
-                wave = base.model_copy(
+                wave = base.scaled(s).model_copy(
                     update={
-                        "a_pitch": s * base.a_pitch,
-                        "a_yaw": s * base.a_yaw,
                         "nu_yaw": sign * base.nu_yaw,
                         "delta": float(np.angle(np.exp(1j * delta))),
                         "frequency": frequency,
@@ -252,14 +250,7 @@ def _within_limit(member: Member) -> Member:
     peak = float(np.abs(shape_to_commands(shape, limit=np.inf)).max())
     if peak <= COMMAND_LIMIT:
         return member
-    s = COMMAND_LIMIT / peak
-    w = member.wave
-    wave = w.model_copy(update={"a_pitch": s * w.a_pitch, "a_yaw": s * w.a_yaw})
-    c = member.curve
-    curve = None if c is None else c.model_copy(update={"a_pitch": s * c.a_pitch, "a_yaw": s * c.a_yaw})
-    return member.model_copy(
-        update={"wave": wave, "steering_amplitude": s * member.steering_amplitude, "curve": curve}
-    )
+    return member.scaled(COMMAND_LIMIT / peak)
 
 
 def residual(shape: np.ndarray, member: Member) -> float:

@@ -319,10 +319,8 @@ def draw_library_wave(kind: str, rng: np.random.Generator, cfg: StructuredConfig
     delta = rng.uniform(*cfg.library_offsets[kind]) if kind in cfg.library_offsets else base.delta
     delta += np.pi * float(rng.integers(2))  # the mirror image
     nu_yaw = base.nu_yaw * (float(rng.choice([-1.0, 1.0])) if kind == "undulate" else 1.0)
-    return base.model_copy(
+    return base.scaled(s).model_copy(
         update={
-            "a_pitch": s * base.a_pitch,
-            "a_yaw": s * base.a_yaw,
             "nu_yaw": nu_yaw,
             "delta": float(np.angle(np.exp(1j * delta))),
             "frequency": f,
@@ -341,10 +339,8 @@ def curve_wave(scale: float, frequency: float, mirrored: bool) -> GaitEquation:
     an arc (docs/gaits.md, "Arcs to the diagonals")."""
     base = library_gait("turn")
     delta = base.delta + (np.pi if mirrored else 0.0)
-    return base.model_copy(
+    return base.scaled(scale).model_copy(
         update={
-            "a_pitch": scale * base.a_pitch,
-            "a_yaw": scale * base.a_yaw,
             "delta": float(np.angle(np.exp(1j * delta))),
             "frequency": frequency,
         }
@@ -364,7 +360,7 @@ def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) 
         main = draw_wave(kind, rng, cfg.frequencies[kind], undulation)
     if cfg.amplitude_scale != (1.0, 1.0) and not cfg.library:  # no draw at (1, 1): streams unchanged
         s = rng.uniform(*cfg.amplitude_scale)
-        main = main.model_copy(update={"a_pitch": s * main.a_pitch, "a_yaw": s * main.a_yaw})
+        main = main.scaled(s)
     shape = main.shape()
     drawn: dict = {"kind": kind, "wave": main.model_dump()}
     if rng.random() < cfg.second_wave:
