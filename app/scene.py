@@ -174,8 +174,25 @@ class TabScene:
             visible=self.layers[layer].value,
         )
 
+    def _redraw_line(
+        self, node, which: str, segments: np.ndarray, color, thickness: float, layer: str, z0: float
+    ):
+        """``_line``, but a node drawn before (``node``) gets the new points in place: one update
+        message instead of a node removed and added again (viser's add is ~0.3 ms of the server's
+        drawing and the page rebuilds the node's geometry). Returns the node."""
+        if node is None:
+            return self._line(which, segments, color, thickness, layer, z0)
+        set_arrays(node, points=segments)
+        node.thickness = thickness  # sent only where it changed (a family switch)
+        node.position = (0.0, 0.0, z0)
+        node.visible = self.layers[layer].value
+        return node
+
     def _cloud(self, which: str, shape: np.ndarray) -> None:
         pts, colors = shape_points(shape)
+        if which in self.clouds:  # in place: see _redraw_line
+            set_arrays(self.clouds[which], points=pts, colors=colors)
+            return
         self.clouds[which] = self.client.scene.add_point_cloud(
             f"/shapes/{which}/points", pts, colors, point_size=0.03, point_shape="circle", precision="float32"
         )
@@ -266,20 +283,16 @@ class TabScene:
             points = np.concatenate([points, path_points(body[-1:], 0.0)])
         self._gen_points = points
         thickness = 4.0 if self.end_spread is None else 1.5
-        self.gen_path = self._line("generated", polyline(points), GEN_COLOR, thickness, "Generated path", z0)
+        self.gen_path = self._redraw_line(
+            self.gen_path, "generated", polyline(points), GEN_COLOR, thickness, "Generated path", z0
+        )
         if self.end_spread is None:
             if self.band is not None:
                 self.band.visible = False
             return
         radius = max(self.end_spread * float(np.linalg.norm(points[-1, :2] - points[0, :2])), 0.05)
-        self.band = self.client.scene.add_line_segments(
-            "/paths/band",
-            ring(points[-1], radius),
-            BAND_COLOR,
-            thickness=2.0,
-            thickness_units="screen",
-            position=(0.0, 0.0, z0),
-            visible=self.layers["Generated path"].value,
+        self.band = self._redraw_line(
+            self.band, "band", ring(points[-1], radius), BAND_COLOR, 2.0, "Generated path", z0
         )
 
     def frame(self, force: bool = False) -> bool:

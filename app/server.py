@@ -23,7 +23,7 @@ import viser
 from snakeloco.app.decode_process import DecodePool
 from snakeloco.app.gait_csv import MAX_BYTES
 from snakeloco.app.tab import PHYSICS_NICE, DesignerClient
-from snakeloco.app.viser_patches import refuse_large_uploads
+from snakeloco.app.viser_patches import refuse_large_uploads, share_prop_hints
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import SHIPPED, CheckpointError, resolve_checkpoint
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
@@ -167,6 +167,7 @@ class DesignerServer:
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
         refuse_large_uploads(self.server, MAX_BYTES, _refuse_upload)
+        share_prop_hints()
 
     @property
     def port(self) -> int:

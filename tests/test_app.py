@@ -13,7 +13,7 @@ from test_app_parts import bad_gait_files
 
 from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.gait_csv import read_gait_csv, write_gait_csv
-from snakeloco.app.scene import FAN_STEP
+from snakeloco.app.scene import FAN_STEP, shape_points
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.session import Latents
 from snakeloco.sim.physics import replay
@@ -51,6 +51,7 @@ def test_slider_change_decodes_replays_and_draws(server):
     try:
         first = d.timings[-1]
         assert np.isfinite([first.decoded, first.replayed, first.ensembled]).all()
+        gen, cloud = d.scene.gen_path, d.scene.clouds["decoded"]
         assert apply(d, d.sliders[0], 1.5, 60)
         assert d.decoded.latents.z_b[0] == 1.5
         last = d.timings[-1]
@@ -61,6 +62,13 @@ def test_slider_change_decodes_replays_and_draws(server):
         assert d.simulated is not None and d.simulated.ensemble_body.shape == (3, 2000, 6)
         assert d.scene.gen_path is not None and d.scene.sim_path is not None and d.scene.fan
         assert set(d.scene.clouds) == {"decoded", "measured"}
+        # The decoded path and joint shape were redrawn in place (an update, not a node added again),
+        # and they are the new gait's.
+        assert d.scene.gen_path is gen and d.scene.clouds["decoded"] is cloud
+        np.testing.assert_allclose(gen.points[-1, 1, :2], d.decoded.body_ds[-1, 1:3], atol=1e-5)
+        assert cloud.points.shape == shape_points(d.decoded.shape)[0].shape
+        # Nodes of one kind share their property types (viser_patches.share_prop_hints).
+        assert gen._prop_hints is d.scene.sim_path._prop_hints is not cloud._prop_hints
         # Every perturbed member drawn once (merged into one node when the ensemble is done, as the
         # streamed path's parts are when the replay is); the path starts and ends where the replay does.
         members = len(d.simulated.ensemble_body) - 1

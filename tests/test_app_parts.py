@@ -169,3 +169,33 @@ def test_the_metre_grid_is_thin_quads_on_the_ground_one_per_line():
     assert np.allclose(radii[:, 1] - radii[:, 0], 0.1, atol=1e-5)
     a, b, c = (vertices[faces[:, i], :2].astype(np.float64) for i in range(3))
     assert np.all((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0] > 0)  # facing up
+
+
+def test_framing_sends_a_camera_move_only_where_the_view_would_move():
+    """A drag's next path frames within ``FRAME_STILL`` of the last: no camera message for it; a path
+    that outgrows the view moves the camera; a user's own camera is left alone unless forced."""
+    import contextlib
+    from types import SimpleNamespace
+
+    from snakeloco.app.view import FRAME_STILL, Framer
+
+    moves = []
+
+    class Camera(SimpleNamespace):
+        def __setattr__(self, name, value):
+            if name in ("position", "look_at") and "fov" in self.__dict__:
+                moves.append(name)
+            super().__setattr__(name, np.asarray(value, np.float64))
+
+    camera = Camera(position=(-2.5, -3.5, 2.5), look_at=(0.0, 0.0, 0.0))
+    camera.__dict__.update(fov=np.radians(50), aspect=1.5, image_height=600)
+    client = SimpleNamespace(camera=camera, atomic=contextlib.nullcontext)
+    framer = Framer(client)
+    path = np.stack([np.linspace(0, 10, 50), np.zeros(50), np.zeros(50)], -1)
+    assert framer.frame(path) and moves == ["position", "look_at"]
+    distance = float(np.linalg.norm(camera.position - camera.look_at))
+    nudged = path * (1 + 0.5 * FRAME_STILL * distance / 10)  # the far end 0.5 % of the distance on
+    assert not framer.frame(nudged) and len(moves) == 2
+    assert framer.frame(path * 1.2) and len(moves) == 4  # 2 m further: the camera follows
+    camera.position = camera.position + 1.0  # the user moved it
+    assert not framer.frame(path) and framer.frame(path, force=True)
