@@ -45,11 +45,12 @@ class Generate(Command):
     records are rebuilt with one replay each instead of being screened again. Does not change the result."""
     structured_preset: Literal[tuple(STRUCTURED_PRESETS)] | None = None  # type: ignore[valid-type]
     """With --family structured: which structured family (snakeloco.sim.STRUCTURED_PRESETS). Default
-    compass: the gait library's four kinds (undulation either way at 0.29-0.93 Hz, sidewinding,
-    rolling, turning in place) at 0.3-1 of their amplitudes, mirrored or not, with the cheap screen;
-    the shipped structured checkpoint's family. library: the same without 0.29 Hz undulation (the
-    checkpoint shipped before). every: every kind of wave with free parameters and steering;
-    mixed: the first structured dataset's (second waves, full screen); undulate: undulation with
+    arcs: the gait library's four kinds (undulation either way at 0.29-0.93 Hz, sidewinding,
+    rolling, turning in place) at 0.3-1 of their amplitudes, mirrored or not, with 60% of the faster
+    undulations curving left or right, screened by the cheap screen; the shipped structured
+    checkpoint's family. compass: the same without the curves (the checkpoint shipped before);
+    library: without 0.29 Hz undulation either. every: every kind of wave with free parameters and
+    steering; mixed: the first structured dataset's (second waves, full screen); undulate: undulation with
     steering that survives 10% shape errors (the earlier checkpoint's)."""
 
 

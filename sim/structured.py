@@ -239,11 +239,11 @@ STRUCTURED_PRESETS: dict[str, StructuredConfig] = {
     ),
 }
 """Named structured families (``snakeloco generate --family structured --structured-preset NAME``).
-compass (the default, ``DEFAULT_PRESET``): the library family below with undulation at 0.29 Hz as
-well (short paths straight ahead and behind: 2.4-11 m where 0.52 Hz starts at 3.5 m), undulation drawn
-1.5 times as often; docs/gaits.md. arcs: the compass family with undulation drawn 2.5 times as often, 60%
-of the undulations at 0.52 and 0.93 Hz curving (``curve_wave``): arcs to the diagonals, where the
-compass family ends no gait 12-15 m away (a pilot; not yet the shipped checkpoint's). every: one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.52 Hz only: 11 of 28
+arcs (the default, ``DEFAULT_PRESET``): the compass family with undulation drawn 2.5 times as often,
+60% of the undulations at 0.52 and 0.93 Hz curving (``curve_wave``): arcs to the diagonals, where the
+compass family ends no gait 12-15 m away; docs/gaits.md. compass: the library family below with
+undulation at 0.29 Hz as well (short paths straight ahead and behind: 2.4-11 m where 0.52 Hz starts
+at 3.5 m), undulation drawn 1.5 times as often (the structured checkpoint shipped before arcs). every: one wave of every kind, at 0.29-0.93 Hz (sidewinding at 0.52 Hz only: 11 of 28
 draws at 0.93 Hz passed the screen, 23 of 33 at 0.52 Hz) and 0.35-1 of its amplitude range (slow
 to fast, forward, backward, sideways, rolling, turning), with steering in 30% of the draws, screened
 against command noise by the cheap screen (a pause at 20 s, a 2-replay verdict where it is clear;
@@ -255,7 +255,7 @@ dataset's). undulate:
 lateral undulation at 0.52 Hz, forward or backward, with slow steering in half the draws, each kept
 only if it also survives 10% errors on its joint shape (a model's decoding error): the family whose
 decoded gaits replay as decoded, used for inverse design (docs/design.md)."""
-DEFAULT_PRESET = "compass"
+DEFAULT_PRESET = "arcs"
 """What ``snakeloco generate --family structured`` draws with no preset flag: the family the shipped
 structured checkpoint is trained on."""
 
@@ -336,7 +336,7 @@ def undulation_scale(wave: GaitEquation) -> float:
 def curve_wave(scale: float, frequency: float, mirrored: bool) -> GaitEquation:
     """The library's turning gait at ``scale`` of its amplitudes and at ``frequency``, as tuned or
     mirrored (yaw joints negated). Beside an undulation at another frequency it bends the path into
-    an arc (docs/gaits.md, "Arcs to the diagonals")."""
+    an arc (docs/gaits.md, "The arcs family")."""
     base = library_gait("turn")
     delta = base.delta + (np.pi if mirrored else 0.0)
     return base.scaled(scale).model_copy(
