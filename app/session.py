@@ -57,7 +57,8 @@ class DecodedGait:
     commands: np.ndarray
     decode_ms: float = 0.0
     source: str = "model"  # or "import: <name>"
-    stats: dict[str, float] | None = None  # the model's predicted body statistics (model.stats)
+    stats: dict[str, float] | None = None  # the model's predicted body statistics (model.stats);
+    # None from a decode of an exact member: predicted when scored (``GaitSession.decoded_stats``)
     member: Member | None = None  # the exact family member replayed (checkpoints that project)
     residual: float | None = None  # the projection's relative residual
     off_data: bool = False  # z_B lies where the checkpoint's density says records are not
@@ -104,13 +105,16 @@ def decode_latents(model: GaitModel, latents: Latents) -> DecodedGait:
     z_j = None  # z_k = 0: decode's own zeros
     if latents.zk_mode == "sampled":
         z_j = model.joint_latents(z_b, latents.temperature, seed=latents.seed)
-    member, residual = None, None
+    member, residual, stats = None, None, None
     if model.projects:
-        members, residuals, shape, body, stats = model.decode_members(z_b, z_j)
+        # The statistics are scored only once the ensemble is in (``GaitSession.decoded_stats``):
+        # predicting them here was a quarter of the decode every slider move waits for.
+        members, residuals, shape, body, _ = model.decode_members(z_b, z_j, with_stats=False)
         member, residual = members[0], float(residuals[0])
         commands = member.commands()  # exactly the member: replayed, drawn and exported
     else:
-        shape, body, stats = model.decode_with_stats(z_b, z_j)
+        shape, body, predicted = model.decode_with_stats(z_b, z_j)
+        stats = {k: float(v[0]) for k, v in predicted.items()}
         commands = model.commands(shape[0])
     return DecodedGait(
         latents,
@@ -118,7 +122,7 @@ def decode_latents(model: GaitModel, latents: Latents) -> DecodedGait:
         body[0],
         commands,
         1e3 * (time.perf_counter() - t0),
-        stats={k: float(v[0]) for k, v in stats.items()},
+        stats=stats,
         member=member,
         residual=residual,
         off_data=bool(model.off_data(z_b)[0]),
@@ -259,11 +263,20 @@ class GaitSession:
         decoded = gait.body_ds if gait.source == "model" else None
         ds = sim.ensemble_body[:, ::BODY_DOWNSAMPLE]
         if decoded is not None:
-            sim.figures = compare(decoded, ds, BODY_RATE, gait.stats)
+            sim.figures = compare(decoded, ds, BODY_RATE, self.decoded_stats(gait))
         else:
             sim.figures = compare(ds[0], ds, BODY_RATE)  # imported gait: spread only
         sim.figures["ensemble_broken"] = float(len(members) - len(ok))
         return sim
+
+    def decoded_stats(self, gait: DecodedGait) -> dict[str, float] | None:
+        """The body statistics the model predicts for a decoded gait: the decode's own, or for an
+        exact member (whose decode leaves them out) those of the member's measured shape, as
+        ``GaitModel.decode_members`` predicts them."""
+        if gait.stats is not None or gait.member is None or not self.model.projects:
+            return gait.stats
+        predicted = self.model.predict_stats(self.model.member_shapes([gait.member]))
+        return {k: float(v[0]) for k, v in predicted.items()}
 
     def encode_replay(self, sim: SimulatedGait) -> np.ndarray:
         """Where a replayed gait sits in z_B (posterior mean), from its measured shape and body."""

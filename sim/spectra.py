@@ -8,6 +8,8 @@ stores c as (real, imag) in its last axis: shape (..., 8, L, 2).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from snakeloco.sim.excitation import RECORD, ExcitationConfig
@@ -98,12 +100,24 @@ def shape_to_commands(
             raise ValueError(f"response must be ({N_JOINTS}, {freqs.shape[0]}, 2), got {response.shape}")
         c = (shape[..., 0] + 1j * shape[..., 1]) / (response[..., 0] + 1j * response[..., 1])
         shape = np.stack([c.real, c.imag], axis=-1)
-    arg = synthesis_phase(freqs, n_samples=n_samples, sample_rate=sample_rate)  # (T, L) = 2 pi f_l t_n
+    cos, sin = _synthesis_basis(tuple(freqs.tolist()), n_samples, float(sample_rate))
     # Re(c e^{i w t}) = re cos(w t) - im sin(w t); contract over L for every joint.
-    commands = np.cos(arg) @ np.swapaxes(shape[..., 0], -1, -2) - np.sin(arg) @ np.swapaxes(
+    commands = cos @ np.swapaxes(shape[..., 0], -1, -2) - sin @ np.swapaxes(
         shape[..., 1], -1, -2
     )  # (..., T, 8)
     return np.clip(commands, -limit, limit)
+
+
+@functools.lru_cache(maxsize=16)
+def _synthesis_basis(
+    freqs: tuple[float, ...], n_samples: int, sample_rate: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin (T, L) of ``synthesis_phase``, read-only: the same values every call, computed once
+    (they were a third of a designer decode's command synthesis)."""
+    arg = synthesis_phase(np.asarray(freqs), n_samples=n_samples, sample_rate=sample_rate)
+    cos, sin = np.cos(arg), np.sin(arg)
+    cos.flags.writeable = sin.flags.writeable = False
+    return cos, sin
 
 
 MIN_EXCITATION = 1e-3

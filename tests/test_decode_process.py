@@ -112,3 +112,21 @@ def test_a_child_whose_server_left_while_it_started_leaves_quietly():
     theirs.close()
     ours.close()  # the server is gone before the child has loaded its checkpoints
     assert child.communicate(timeout=120)[1] == "" and child.returncode == 0
+
+
+def test_a_member_decode_leaves_its_statistics_to_the_ensembles_score():
+    """The designer's decode of an exact member skips the statistics head (a quarter of the decode a
+    slider move waits for); the ensemble's score predicts them for the member as ``decode_members``
+    does, to the bit."""
+    from snakeloco.app.session import GaitSession
+
+    model = load_pretrained("structured")
+    session = GaitSession(model, ensemble=2, workers=1)
+    try:
+        for row in model.sample_z_b(2, seed=11):
+            gait = decode_latents(model, Latents(z_b=tuple(map(float, row))))
+            stats = model.decode_members(row[None])[4]
+            assert gait.stats is None and gait.member is not None
+            assert session.decoded_stats(gait) == {k: float(v[0]) for k, v in stats.items()}
+    finally:
+        session.close()
