@@ -87,6 +87,7 @@ class Timing:
     submitted: float
     started: float = float("nan")  # the decode worker picked the request up
     decoded: float = float("nan")
+    first_chunk: float = float("nan")  # the replay's first chunk was simulated (its draw begins)
     first_motion: float = float("nan")  # the first streamed chunk of the replay was drawn
     replayed: float = float("nan")
     ensembled: float = float("nan")

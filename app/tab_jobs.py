@@ -71,6 +71,8 @@ class TabJobs:
     def _draw_part(self, part, timing: Timing, is_current) -> bool:
         """Draw a streamed replay's first samples: the snake moves from t = 0 at once, the simulated
         path grows. Returns whether the replay is still wanted (else it stops at this chunk)."""
+        if not np.isfinite(timing.first_chunk):
+            timing.first_chunk = time.perf_counter()
         with self._draw_lock:
             if not is_current():
                 return False

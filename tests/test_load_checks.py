@@ -69,3 +69,16 @@ def test_stale_checks_recheck_a_state_that_moved_but_report_real_mismatches(monk
     monkeypatch.setattr(load, "check_final_state", lambda *a: calls.append(1) or list(moving))
     assert load.stale_checks(None, None, None, 0, attempts=3) == moving  # never settles: reported
     assert len(calls) == 3
+
+
+def test_the_breakdown_splits_a_decoded_view_and_a_first_motion_into_their_stages():
+    from snakeloco.app.session import Timing
+
+    t = Timing(1, submitted=0.0, started=0.002, decoded=0.010, first_chunk=0.060, first_motion=0.065)
+    t.decode_ms = 5.0
+    young = Timing(2, submitted=1.0, started=1.001, decoded=1.009)  # superseded before it moved
+    young.decode_ms = 4.0
+    got = load.breakdown_p95([t, young])
+    assert set(got) == {f"{k}_p95_ms" for k in load.BREAKDOWN}
+    assert abs(got["physics_p95_ms"] - 50.0) < 1e-6 and abs(got["motion_draw_p95_ms"] - 5.0) < 1e-6
+    assert abs(got["draw_p95_ms"] - 3.95) < 1e-6  # 8 - 5 and 8 - 4 ms: their p95

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from snakeloco.app.bench.load_browser import (
+    BREAKDOWN,
     Pages,
     browser_phase,
     require_browser,
@@ -167,10 +168,8 @@ def bench_load(
         ),
         "replay_worst_best": _spread([c["replay_p95_ms"] for c in multi["clients"]]),
         "first_motion_worst_best": _spread([c["first_motion_p95_ms"] for c in multi["clients"]]),
-        "single_breakdown_p95_ms": {k: single[f"{k}_p95_ms"] for k in ("wait", "decode", "draw")},
-        "multi_breakdown_p95_ms": {
-            k: [c[f"{k}_p95_ms"] for c in multi["clients"]] for k in ("wait", "decode", "draw")
-        },
+        "single_breakdown_p95_ms": {k: single[f"{k}_p95_ms"] for k in BREAKDOWN},
+        "multi_breakdown_p95_ms": {k: [c[f"{k}_p95_ms"] for c in multi["clients"]] for k in BREAKDOWN},
         "p95_ratio": float(np.nanmax(p95s) / single["decoded_p95_ms"]),
         "updates": [c["updates"] for c in multi["clients"]],
         # Replays that finished before a newer slider value superseded them (their latencies above).

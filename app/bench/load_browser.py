@@ -63,13 +63,21 @@ def percentile(values, q: float) -> float:
     return float(np.percentile(v, q)) if v.size else float("nan")
 
 
+BREAKDOWN = ("wait", "decode", "draw", "physics", "motion_draw")
+"""The stages ``breakdown_p95`` times: a decoded view's (waiting for a decode turn, decoding,
+drawing) and its first motion's (decoded view drawn -> first chunk simulated, that chunk drawn)."""
+
+
 def breakdown_p95(timings) -> dict[str, float]:
-    """Where a tab's decoded views went (p95, ms): waiting for its decode worker, decoding, drawing."""
+    """Where a tab's decoded views and first motions went (p95, ms; ``BREAKDOWN``)."""
     drawn = [t for t in timings if np.isfinite(t.decoded) and np.isfinite(t.started)]
+    moved = [t for t in drawn if np.isfinite(t.first_motion) and np.isfinite(t.first_chunk)]
     return {
         "wait_p95_ms": percentile([1e3 * (t.started - t.submitted) for t in drawn], 95),
         "decode_p95_ms": percentile([t.decode_ms for t in drawn], 95),
         "draw_p95_ms": percentile([1e3 * (t.decoded - t.started) - t.decode_ms for t in drawn], 95),
+        "physics_p95_ms": percentile([1e3 * (t.first_chunk - t.decoded) for t in moved], 95),
+        "motion_draw_p95_ms": percentile([1e3 * (t.first_motion - t.first_chunk) for t in moved], 95),
     }
 
 

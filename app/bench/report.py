@@ -87,6 +87,11 @@ def load(r: dict) -> None:
         + "/".join(f"{v:.1f}" for v in r["multi_breakdown_p95_ms"][k])
         for k in ("wait", "decode", "draw")
     )
+    motion = "; ".join(
+        f"{k} {r['single_breakdown_p95_ms'][k]:.0f} -> "
+        + "/".join(f"{v:.0f}" for v in r["multi_breakdown_p95_ms"][k])
+        for k in ("physics", "motion_draw")
+    )
     print(
         f"{where}\n"
         f"1 client: decoded view p50 {r['single_decoded_p50_ms']:.1f} ms, p95 {r['single_decoded_p95_ms']:.1f} ms\n"
@@ -97,6 +102,7 @@ def load(r: dict) -> None:
         f"first motion p95: 1 client {r['single_first_motion_p95_ms']:.0f} ms, each of {r['clients']} "
         + ", ".join(f"{v:.0f}" for v in r["multi_first_motion_p95_ms"])
         + f" ms (worst / single {r['first_motion_p95_ratio']:.2f}, worst / best {r['first_motion_worst_best']:.2f})\n"
+        f"first motion p95 breakdown (ms), 1 client -> each of {r['clients']}: {motion}\n"
         f"replay ready p95: 1 client {r['single_replay_p95_ms']:.0f} ms, each of {r['clients']} "
         + ", ".join(f"{v:.0f}" for v in r["multi_replay_p95_ms"])
         + f" ms (worst / single {r['replay_p95_ratio']:.2f}, worst / best {r['replay_worst_best']:.2f}; "
