@@ -186,6 +186,21 @@ def body_frame_velocities(body: np.ndarray) -> np.ndarray:
     return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
+def kind_weights(members: list[Member], of: list[Member] | None = None) -> np.ndarray:
+    """Weights (N,) for ``of`` (default ``members``) under which every kind among ``members`` weighs
+    the same in total: 1 / (its share of ``members`` x the number of kinds), so a mean over
+    ``members`` stays 1. A kind of ``of`` that ``members`` lacks gets 1."""
+    kinds = [m.kind for m in members]
+    names, counts = np.unique(kinds, return_counts=True)
+    share = dict(zip(names.tolist(), (counts / len(kinds)).tolist(), strict=True))
+    return np.array(
+        [
+            1.0 / (share[m.kind] * len(names)) if m.kind in share else 1.0
+            for m in (members if of is None else of)
+        ]
+    )
+
+
 def path_scales(body: np.ndarray) -> np.ndarray:
     """(N, T, 6) body series (m, rad) -> (N,) each path's scale: the RMS distance (m) of its plane
     position from its start."""
@@ -211,6 +226,7 @@ def fit_member_head(
     seed: int = 0,
     xy_scale: tuple[np.ndarray, np.ndarray] | None = None,
     xy_floor: float = 0.0,
+    example_weights: tuple[np.ndarray, np.ndarray] | None = None,
     path: HeadPath = "direct",
     body_norm: tuple[np.ndarray, np.ndarray] | None = None,
     log: Callable[[str], None] | None = print,
@@ -221,7 +237,9 @@ def fit_member_head(
     validation), each (N,) m: every example's own path scale (``path_scales``); given, an example's
     forward and sideways errors are weighted by 1 / (scale² + ``xy_floor``²), normalised to a mean of
     1 over the training examples, so the loss scores a path's shape relative to its own size, as
-    the designer's figures do (xy R², final-position error over the distance). ``path``: how the
+    the designer's figures do (xy R², final-position error over the distance). ``example_weights``
+    (training, validation), each (N,): every example's whole error is weighted so (``kind_weights``:
+    each kind of member counts as much as any other). ``path``: how the
     head draws the plane path (``HeadPath``); a heading head needs ``body_norm``, the (mean, std) (6,)
     the body series are normalised by. Returns the head and what it scored."""
 
@@ -261,22 +279,27 @@ def fit_member_head(
     if xy_scale is not None:
         inv, vinv = (1.0 / (np.asarray(s, np.float64) ** 2 + xy_floor**2) for s in xy_scale)
         ew, vew = (torch.as_tensor(i / inv.mean(), dtype=torch.float32) for i in (inv, vinv))
+    kw, vkw = (
+        (torch.ones(len(x)), torch.ones(len(vx)))
+        if example_weights is None
+        else (torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in example_weights)
+    )
 
-    def loss(pred: torch.Tensor, true: torch.Tensor, ex_w: torch.Tensor) -> torch.Tensor:
+    def loss(pred: torch.Tensor, true: torch.Tensor, ex_w: torch.Tensor, k_w: torch.Tensor) -> torch.Tensor:
         per = ((pred - true) ** 2).mean(dim=1)  # (B, C)
-        per = torch.where(xy, per * ex_w[:, None], per)
+        per = torch.where(xy, per * ex_w[:, None], per) * k_w[:, None]
         return (per.mean(dim=0) * w).sum() / w.sum()
 
     def val_loss() -> float:
         head.eval()
         with torch.no_grad():
-            return float(loss(head(vx), vy, vew))
+            return float(loss(head(vx), vy, vew, vkw))
 
     best_epoch, history = fit_best(
         head,
         head,
         len(x),
-        lambda idx: loss(head(x[idx]), y[idx], ew[idx]),
+        lambda idx: loss(head(x[idx]), y[idx], ew[idx], kw[idx]),
         val_loss,
         epochs,
         lr,
@@ -294,6 +317,7 @@ def fit_member_head(
         "lr": lr,
         "seed": seed,
         "xy_floor": xy_floor if xy_scale is not None else None,
+        "example_weights": example_weights is not None,
         "path": path,
     }
     if log:

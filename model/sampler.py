@@ -33,6 +33,7 @@ from snakeloco.model.member_path import (
     HeadInputs,
     HeadPath,
     fit_member_head,
+    kind_weights,
     member_inputs,
     path_scales,
     with_mirror_images,
@@ -112,6 +113,12 @@ class SamplerConfig(BaseModel):
         "metre is fitted as closely, relative to its size, as a 15 m undulation. None: errors in "
         "the family's metres (the library checkpoint's head).",
     )
+    balance_kinds: bool = Field(
+        False,
+        description="Weight each training example by 1 / its kind's share, so that every kind of member "
+        "(undulation, sidewinding, rolling, turning in place) weighs the same in the head's loss, as in "
+        "the per-kind figures (docs/model.md).",
+    )
 
     @model_validator(mode="after")
     def _mirror_has_no_z_b(self) -> SamplerConfig:
@@ -169,6 +176,25 @@ def _path_r2(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
     from snakeloco.sim.consistency import xy_r2
 
     return np.array([xy_r2(p, t) for p, t in zip(pred, true, strict=True)])
+
+
+def by_kind(members: list[Member], pred: np.ndarray, true: np.ndarray) -> dict[str, dict[str, float]]:
+    """Per kind of member: how many, the xy-path R² median and the final-position error median
+    over the distance travelled, of predicted vs true body series (n, T, 6)."""
+    r2 = _path_r2(pred, true)
+    start = true[:, 0, 1:3]
+    travelled = np.linalg.norm(true[:, -1, 1:3] - start, axis=-1)
+    error = np.linalg.norm(pred[:, -1, 1:3] - pred[:, 0, 1:3] - (true[:, -1, 1:3] - start), axis=-1)
+    rel = error / np.maximum(travelled, 1e-9)
+    kinds = np.array([m.kind for m in members])
+    return {
+        k: {
+            "n": int((kinds == k).sum()),
+            "xy_r2_median": float(np.median(r2[kinds == k])),
+            "final_error_rel_median": float(np.median(rel[kinds == k])),
+        }
+        for k in sorted(set(kinds.tolist()))
+    }
 
 
 def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
@@ -253,6 +279,9 @@ def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
         vx = member_inputs(va_members, support, z_va_all, cfg.head_inputs)
         vy = np.concatenate([ds.body_ds[va_idx], gaits["body"][g_val]])
         scales = None if cfg.xy_floor is None else (path_scales(y), path_scales(vy))
+        balance = (
+            (kind_weights(tr_members), kind_weights(tr_members, va_members)) if cfg.balance_kinds else None
+        )
         y, vy = norm(y), norm(vy)
         t0 = time.perf_counter()
         head, head_fit = fit_member_head(
@@ -270,6 +299,7 @@ def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
             seed=cfg.seed,
             xy_scale=scales,
             xy_floor=cfg.xy_floor or 0.0,
+            example_weights=balance,
             path=cfg.head_path,
             body_norm=(model._body_mean, model._body_std),
             log=fit.log,
@@ -280,6 +310,7 @@ def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
         )
         pred = model.predict_paths(g_va_members, z_g_val)
         head_fit["held_out_xy_r2_median"] = float(np.median(_path_r2(pred, gaits["body"][g_val])))
+        head_fit["held_out_by_kind"] = by_kind(g_va_members, pred, gaits["body"][g_val])
         pred = model.predict_paths(rec_va, z_va)
         head_fit["val_records_xy_r2_median"] = float(np.median(_path_r2(pred, ds.body_ds[va_idx])))
         head_cfg = head.cfg.model_copy(update={"summary": head_fit})

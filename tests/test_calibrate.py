@@ -184,3 +184,19 @@ def test_head_loss_prefers_the_median():
     assert head_loss(median, y) < head_loss(mean, y)
     assert head_loss(median, y) == pytest.approx(10.0 / 40)
     assert torch.nn.functional.mse_loss(mean, y) < torch.nn.functional.mse_loss(median, y)
+
+
+def test_kind_weights_make_every_kind_of_member_weigh_the_same():
+    from types import SimpleNamespace
+
+    from snakeloco.model.member_path import kind_weights
+
+    members = [SimpleNamespace(kind=k) for k in ["undulate"] * 6 + ["roll"] * 2 + ["turn"]]
+    w = kind_weights(members)
+    assert np.isclose(w.mean(), 1.0)
+    for kind in ("undulate", "roll", "turn"):
+        assert np.isclose(w[[m.kind == kind for m in members]].sum(), 3.0), kind
+    # Another set (the validation examples) by the same shares; a kind the first set lacks weighs 1.
+    assert np.allclose(
+        kind_weights(members, [SimpleNamespace(kind="roll"), SimpleNamespace(kind="sidewind")]), [1.5, 1.0]
+    )

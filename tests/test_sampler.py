@@ -228,8 +228,11 @@ def test_sampler_gaits_of_another_density_are_refused_and_a_named_mirrored_head_
     body = m.decode_members(m.sample_z_b(2, seed=1))[3]
     assert body.shape == (2, 500, 6) and np.isfinite(body).all()
     # The arcs family's head reads the curve too (this family's members are all straight: zeros there).
-    curving = named.model_copy(update={"head_inputs": "named_curve"})
-    fit_sampler(Fit(path, data, tmp_path / "f", fresh, workers=2, log=None), curving)
+    curving = named.model_copy(update={"head_inputs": "named_curve", "balance_kinds": True})
+    summary = fit_sampler(Fit(path, data, tmp_path / "f", fresh, workers=2, log=None), curving)
+    assert summary["member_head"]["example_weights"] and set(summary["member_head"]["held_out_by_kind"]) == {
+        "undulate"
+    }
     m = load_pretrained(tmp_path / "f")
     assert len(m.config.member_head.input_mean) == NAMED_INPUTS + CURVE_INPUTS
     body = m.decode_members(m.sample_z_b(2, seed=1))[3]
