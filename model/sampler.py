@@ -40,7 +40,7 @@ from snakeloco.model.member_path import (
 )
 from snakeloco.model.replays import Fit, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.train import split_records
-from snakeloco.sim import DatasetError, joint_shape
+from snakeloco.sim import BODY_RATE, DatasetError, joint_shape
 from snakeloco.sim.members import Member
 from snakeloco.sim.projection import project_many
 
@@ -181,11 +181,11 @@ def _path_r2(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
 def by_kind(members: list[Member], pred: np.ndarray, true: np.ndarray) -> dict[str, dict[str, float]]:
     """Per kind of member: how many, the xy-path R² median and the final-position error median
     over the distance travelled, of predicted vs true body series (n, T, 6)."""
+    from snakeloco.sim.consistency import path_stats
+
     r2 = _path_r2(pred, true)
-    start = true[:, 0, 1:3]
-    travelled = np.linalg.norm(true[:, -1, 1:3] - start, axis=-1)
-    error = np.linalg.norm(pred[:, -1, 1:3] - pred[:, 0, 1:3] - (true[:, -1, 1:3] - start), axis=-1)
-    rel = error / np.maximum(travelled, 1e-9)
+    p, t = path_stats(pred, BODY_RATE), path_stats(true, BODY_RATE)
+    rel = np.linalg.norm(p["final_xy"] - t["final_xy"], axis=-1) / np.maximum(t["displacement"], 1e-9)
     kinds = np.array([m.kind for m in members])
     return {
         k: {

@@ -82,16 +82,15 @@ def load(r: dict) -> None:
         if r["server_cpus"]
         else "server and browsers share the CPUs"
     )
-    breakdown = "; ".join(
-        f"{k} {r['single_breakdown_p95_ms'][k]:.1f} -> "
-        + "/".join(f"{v:.1f}" for v in r["multi_breakdown_p95_ms"][k])
-        for k in ("wait", "decode", "draw")
-    )
-    motion = "; ".join(
-        f"{k} {r['single_breakdown_p95_ms'][k]:.0f} -> "
-        + "/".join(f"{v:.0f}" for v in r["multi_breakdown_p95_ms"][k])
-        for k in ("physics", "motion_draw")
-    )
+
+    def split(stages: tuple[str, ...], digits: int) -> str:
+        return "; ".join(
+            f"{k} {r['single_breakdown_p95_ms'][k]:.{digits}f} -> "
+            + "/".join(f"{v:.{digits}f}" for v in r["multi_breakdown_p95_ms"][k])
+            for k in stages
+        )
+
+    breakdown, motion = split(("wait", "decode", "draw"), 1), split(("physics", "motion_draw"), 0)
     print(
         f"{where}\n"
         f"1 client: decoded view p50 {r['single_decoded_p50_ms']:.1f} ms, p95 {r['single_decoded_p95_ms']:.1f} ms\n"
