@@ -48,25 +48,34 @@ def lead_in_window(cfg: CommandRule) -> np.ndarray:
     return np.where(j < cfg.ramp, 0.5 - 0.5 * np.cos(np.pi * j / cfg.ramp), 1.0)
 
 
-def expand_commands(commands: np.ndarray, substeps: int, cfg: CommandRule) -> np.ndarray:
+def expand_commands(
+    commands: np.ndarray, substeps: int, cfg: CommandRule, steps: tuple[int, int] | None = None
+) -> np.ndarray:
     """Per-physics-step servo targets for a batch of records (the command rule above).
 
     Args:
         commands: (B, T, 8) rad.
         substeps: physics steps per command sample.
         cfg: lead-in settings.
+        steps: only physics steps [begin, end) (a chunk of a streamed or resumed rollout): the same
+            values as those of the whole expansion, without computing the rest (a replay superseded
+            after its first chunk expanded 2000 samples for 80).
 
     Returns:
-        (B, (lead_in + T) * substeps, 8) float64 servo targets (rad).
+        (B, (lead_in + T) * substeps, 8) float64 servo targets (rad); (B, end - begin, 8) with ``steps``.
     """
     if cfg.lead_in > commands.shape[1]:
         raise ValueError(f"lead-in of {cfg.lead_in} samples exceeds the record ({commands.shape[1]})")
     pre = commands[:, commands.shape[1] - cfg.lead_in :] * lead_in_window(cfg)[None, :, None]
     held = np.concatenate([pre, commands], axis=1)  # (B, lead+T, 8)
     nxt = np.concatenate([held[:, 1:], commands[:, :1]], axis=1)  # u[n+1], periodic at the end
+    begin, end = (0, held.shape[1] * substeps) if steps is None else steps
+    first, last = begin // substeps, -(-end // substeps)  # the samples whose steps are asked for
+    held, nxt = held[:, first:last], nxt[:, first:last]
     frac = (np.arange(substeps) / substeps)[None, None, :, None]  # (1, 1, S, 1)
-    ctrl = held[:, :, None] + (nxt - held)[:, :, None] * frac  # (B, lead+T, S, 8)
-    return ctrl.reshape(commands.shape[0], -1, N_JOINTS)
+    ctrl = held[:, :, None] + (nxt - held)[:, :, None] * frac  # (B, samples, S, 8)
+    offset = first * substeps
+    return ctrl.reshape(commands.shape[0], -1, N_JOINTS)[:, begin - offset : end - offset]
 
 
 def why_broken(

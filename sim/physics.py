@@ -219,14 +219,14 @@ class Simulator:
         start: Paused | None,
         runner: FairRunner | None = None,
     ) -> BatchResult | None:
-        ctrl = expand_commands(commands, self.substeps, self.config)
         first = 0 if start is None else start.samples
         # Steps [begin, end): a resumed rollout starts where the paused one stopped.
         begin = 0 if start is None else (self.config.lead_in + first) * self.substeps
         end = (self.config.lead_in + samples) * self.substeps
+        ctrl = expand_commands(commands, self.substeps, self.config, (begin, end))
         pause = samples < self.excitation.n_samples
         warm_out = np.empty((len(commands), self.model.nv)) if pause else None
-        rolled = self.rollout(ctrl[:, begin:end], wanted, start, warm_out, runner)
+        rolled = self.rollout(ctrl, wanted, start, warm_out, runner)
         if rolled is None:
             return None
         state, sens = rolled
@@ -307,8 +307,7 @@ class Simulator:
             raise ValueError(f"expected ({n_t}, {N_JOINTS}) commands, got {commands.shape}")
         if not np.isfinite(commands).all():
             raise ValueError("commands contain NaN or Inf")
-        ctrl = expand_commands(commands[None], self.substeps, self.config)
-        m, n_steps = self.model, ctrl.shape[1]
+        m, n_steps = self.model, self.n_steps
         state = np.empty((n_steps, mujoco.mj_stateSize(m, _STATE_SPEC)))
         sens = np.empty((n_steps, m.nsensordata))
         record = self.config.lead_in * self.substeps + self.substeps * np.arange(n_t)
@@ -322,21 +321,23 @@ class Simulator:
             chunk_runner = runner(k) if callable(runner) else runner
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
-            # Into the stream's own arrays: a chunk allocates nothing.
+            # Into the stream's own arrays; each chunk's servo targets only (most replays are
+            # superseded after their first chunk).
             out_state, out_sens = state[None, done:end], sens[None, done:end]
+            ctrl = expand_commands(commands[None], self.substeps, self.config, (done, end))
             if chunk_runner is None:
                 mj_rollout.rollout(
                     m,
                     data,
                     initial,
-                    ctrl[:, done:end],
+                    ctrl,
                     initial_warmstart=warm,
                     state=out_state,
                     sensordata=out_sens,
                 )
             else:
                 (chunk,) = chunk_runner.rollout(
-                    m, initial, ctrl[:, done:end], warm, out_state, out_sens, data=data, wait=False
+                    m, initial, ctrl, warm, out_state, out_sens, data=data, wait=False
                 )
                 while wanted is not None and not chunk.done():
                     if not wanted():  # queued: never runs; running: finishes unread

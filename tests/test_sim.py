@@ -137,6 +137,23 @@ def test_command_rule_lead_in_and_linear_interpolation():
     np.testing.assert_array_equal(ctrl[0, (cfg.lead_in - 1) * 20], commands[0, -1])
 
 
+def test_command_rule_expands_a_range_of_steps_as_the_whole():
+    cfg = CommandRule()
+    commands = random_commands(2, seed=4)
+    whole = expand_commands(commands, 20, cfg)
+    # Chunk bounds of a stream (the lead-in and 20 samples, then 50), and ones off the sample grid.
+    for begin, end in [
+        (0, 1600),
+        (1600, 2600),
+        (whole.shape[1] - 1000, whole.shape[1]),
+        (7, 33),
+        (19, 21),
+        (0, 1),
+    ]:
+        part = expand_commands(commands, 20, cfg, (begin, end))
+        np.testing.assert_array_equal(part, whole[:, begin:end])
+
+
 def test_joint_tracking_at_excited_frequencies():
     commands = random_commands(4, seed=2)
     result = Simulator(workers=2).simulate(commands)
