@@ -22,7 +22,7 @@ import viser
 
 from snakeloco.app.decode_process import DecodePool
 from snakeloco.app.gait_csv import MAX_BYTES
-from snakeloco.app.tab import PHYSICS_NICE, DesignerClient
+from snakeloco.app.tab import FIRST_MOTION_THREADS_PER_CORE, PHYSICS_NICE, DesignerClient
 from snakeloco.app.viser_patches import refuse_large_uploads, share_prop_hints
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import SHIPPED, CheckpointError, resolve_checkpoint
@@ -150,7 +150,10 @@ class DesignerServer:
         # Every tab's replays and ensembles take fair turns on one pool of physics threads, one a
         # core, below the decoding and drawing threads (``sim.scheduler``: every tab's replay before
         # any tab's ensemble, round robin between tabs, superseded work dropped unrun).
-        self.physics = FairPhysics(resolve_workers(workers), nice=PHYSICS_NICE)
+        threads = resolve_workers(workers)
+        self.physics = FairPhysics(
+            threads, PHYSICS_NICE, first_threads=FIRST_MOTION_THREADS_PER_CORE * threads
+        )
         self.decoding = DecodePool(
             [m.path for m in self.models.values() if m.path is not None],
             torch.get_num_threads(),

@@ -201,7 +201,7 @@ class GaitSession:
         on_part: Callable[[StreamedReplay], bool],
         settled: Callable[[], bool] | None = None,
         wanted: Callable[[], bool] | None = None,
-        held: Callable[[], bool] | None = None,
+        held_at: float | None = None,
     ) -> SimulatedGait | None:
         """``replay`` in chunks (``Simulator.stream``): ``on_part`` gets what is simulated so far after
         each chunk and returns whether to go on. Returns the same SimulatedGait as ``replay`` (bit for
@@ -210,8 +210,8 @@ class GaitSession:
         The chunks run on the physics pool: the first as a first motion, each later one as settled
         where ``settled()`` says the user has let go of this gait, else as dragged through, so the
         replay of a gait some tab has settled on comes before the chunks of gaits other tabs are
-        still dragging through (same results whichever turn a chunk runs in). ``held()``: whether the
-        value is held long enough for its first motion to go before settled replays (``LANES``).
+        still dragging through (same results whichever turn a chunk runs in). ``held_at``: when the
+        value counts as held, its first motion then going before settled replays (``LANES``).
         ``wanted``: asked when a chunk's turn comes and polled while it runs; once False the replay
         ends (None)."""
         t0 = time.perf_counter()
@@ -219,7 +219,7 @@ class GaitSession:
 
         def runner(k: int):
             if k == 0:
-                return self.physics.runner(self.tab, Turn.FIRST_MOTION, wanted, held)
+                return self.physics.runner(self.tab, Turn.FIRST_MOTION, wanted, held_at)
             settle = settled is None or settled()
             return self.physics.runner(self.tab, Turn.SETTLED if settle else Turn.DRAGGED, wanted)
 

@@ -47,6 +47,14 @@ and drawing for every tab come first). They hold the GIL only to enter and leave
 2.05, replay ready 3.64, against 1.39-2.18 and 3.46-3.75 at +10: no gain for the replays, less room
 for decoding."""
 
+FIRST_MOTION_THREADS_PER_CORE = 1
+"""The server's first-motion threads (``FairPhysics(first_threads=...)``) per physics thread: they run
+held first motions alone, at ``PHYSICS_NICE``, and while they run the pool's threads start no new
+chunk. With 8 tabs the two physics threads were always busy with replays: a held first motion
+waited for one to finish its chunk (p95 ~65 ms after its hold), then ran beside the other (~40 ms of
+physics took 82 ms p50, 156 p95). At nice +5 (tried) first motions came sooner still but decoding
+lost the cores (8 clients, decoded view worst / single 3.15 and 3.98 against 2.62 without)."""
+
 
 class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
     """One browser tab: GUI, scene, session, a decode worker and a physics worker."""

@@ -16,7 +16,12 @@ through) and the rows of an ensemble. ``FairPhysics`` runs them on ``threads`` n
 
 A task that is running is not preempted: a replay chunk (~0.02-0.04 s of physics) or an ensemble
 row's segment (``SEGMENT_SAMPLES``, ~0.06 s) is the longest a waiting replay chunk waits for a free
-thread. The pool counts each class's thread time (``busy_s``: ``bench load`` reports it).
+thread. ``first_threads`` more threads, at ``first_nice``, serve held first motions alone
+(``FIRST_LANES``): with several tabs the pool's threads are always busy with replays, and a first
+motion neither waits for one of them to finish its chunk nor runs level with them, since at most
+``threads`` tasks run at once: while first motions run, the pool's threads start no new task (a
+running one finishes its chunk). The pool counts each class's thread time (``busy_s``: ``bench
+load`` reports it).
 """
 
 from __future__ import annotations
@@ -48,10 +53,10 @@ class _Task:
     run: Callable[[], None]
     turn: Turn
     wanted: Callable[[], bool] | None = None
-    held: Callable[[], bool] | None = None  # a first motion: whether its value is held (None: yes)
+    held_at: float | None = None  # a first motion: when its value counts as held (perf_counter; None: held)
 
     def is_held(self) -> bool:
-        return self.held is None or self.held()
+        return self.held_at is None or time.perf_counter() >= self.held_at
 
 
 @dataclass
@@ -82,9 +87,13 @@ LANES = (
     (Turn.DESIGN, False),
 )
 """The order ``FairPhysics`` serves in: (class, held values only). A first motion whose slider
-value is younger than its tab's hold (``held()`` False: the slider may be passing through it) comes
+value is younger than its tab's hold (before ``held_at``: the slider may be passing through it) comes
 after every tab's settled replay chunks, so tabs dragging sliders do not hold up a replay another
 tab waits for; with no settled chunk waiting it runs at once, and once held it is first again."""
+
+FIRST_LANES = ((Turn.FIRST_MOTION, True),)
+"""What a first-motion thread serves (``FairPhysics(first_threads=...)``): held first motions alone,
+so that it is free when one comes (a value a slider passes through is left to the pool)."""
 
 
 class FairPhysics:
@@ -95,7 +104,14 @@ class FairPhysics:
     pool-less rollout on one thread, from its own initial state and warm start).
     """
 
-    def __init__(self, threads: int, nice: int = 0, name: str = "physics") -> None:
+    def __init__(
+        self,
+        threads: int,
+        nice: int = 0,
+        name: str = "physics",
+        first_threads: int = 0,
+        first_nice: int | None = None,
+    ) -> None:
         self.threads = max(1, int(threads))
         self._classes = {turn: _Class() for turn in Turn}
         self._cond = threading.Condition()
@@ -103,9 +119,16 @@ class FairPhysics:
         self.served: dict[Turn, int] = dict.fromkeys(Turn, 0)
         self.busy_s: dict[Turn, float] = dict.fromkeys(Turn, 0.0)  # thread seconds run, per class
         self.dropped = 0
+        self._running = 0  # tasks running now, on any thread
+        first_nice = nice if first_nice is None else first_nice
         self._workers = [
-            threading.Thread(target=self._loop, args=(int(nice),), name=f"{name}-{i}", daemon=True)
+            threading.Thread(target=self._loop, args=(int(nice), LANES), name=f"{name}-{i}", daemon=True)
             for i in range(self.threads)
+        ] + [
+            threading.Thread(
+                target=self._loop, args=(int(first_nice), FIRST_LANES), name=f"{name}-first-{i}", daemon=True
+            )
+            for i in range(max(0, int(first_threads)))
         ]
         for worker in self._workers:
             worker.start()
@@ -115,10 +138,10 @@ class FairPhysics:
         tab: Hashable,
         turn: Turn,
         wanted: Callable[[], bool] | None = None,
-        held: Callable[[], bool] | None = None,
+        held_at: float | None = None,
     ) -> FairRunner:
         """Where a tab's work of one class goes (``rollout`` as ``RolloutThreads.rollout``)."""
-        return FairRunner(self, tab, Turn(turn), wanted, held)
+        return FairRunner(self, tab, Turn(turn), wanted, held_at)
 
     def submit(
         self,
@@ -126,18 +149,18 @@ class FairPhysics:
         turn: Turn,
         run: Callable[[], None],
         wanted: Callable[[], bool] | None = None,
-        held: Callable[[], bool] | None = None,
+        held_at: float | None = None,
     ) -> Future:
         """Queue ``run()`` for ``tab`` in class ``turn``; its future completes when it has run (or is
-        cancelled: dropped as unwanted, or by ``Future.cancel`` while queued). ``held``: for a first
-        motion, whether its slider value is held yet (``LANES``)."""
+        cancelled: dropped as unwanted, or by ``Future.cancel`` while queued). ``held_at``: for a first
+        motion, when its slider value counts as held (``time.perf_counter``; ``LANES``)."""
         future: Future = Future()
         with self._cond:
             if self._closed:
                 raise RuntimeError("the physics pool was closed (the server is stopping)")
             queues = self._classes[Turn(turn)].queues
-            queues.setdefault(tab, deque()).append(_Task(future, run, Turn(turn), wanted, held))
-            self._cond.notify()
+            queues.setdefault(tab, deque()).append(_Task(future, run, Turn(turn), wanted, held_at))
+            self._cond.notify_all()  # threads serve different lanes: any of them may be the one
         return future
 
     def pending(self) -> dict[Turn, int]:
@@ -145,32 +168,44 @@ class FairPhysics:
         with self._cond:
             return {t: sum(map(len, c.queues.values())) for t, c in self._classes.items()}
 
-    def _next(self) -> _Task | None:
-        """The next task to run, None once closed (caller holds the condition)."""
+    def _next(self, lanes=LANES) -> _Task | None:
+        """The next task in ``lanes`` to run, None once closed (caller holds the condition)."""
         while True:
-            for turn, held_only in LANES:
+            # A pool thread starts a task only in a free slot; a first-motion thread always can.
+            free = lanes is FIRST_LANES or self._running < self.threads
+            for turn, held_only in lanes if free else ():
                 task = self._classes[turn].pop(held_only)
                 if task is not None:
                     self.served[turn] += 1
+                    self._running += 1
                     return task
             if self._closed:
                 return None
-            self._cond.wait()
+            self._cond.wait(self._until_held() if lanes is FIRST_LANES else None)
 
-    def _loop(self, nice: int) -> None:
+    def _until_held(self) -> float | None:
+        """Seconds until the next queued first motion is held (a hold is a time, not an event: a
+        first-motion thread wakes for it), None where none waits (caller holds the condition)."""
+        times = [q[0].held_at for q in self._classes[Turn.FIRST_MOTION].queues.values() if q[0].held_at]
+        return max(0.0, min(times) - time.perf_counter()) if times else None
+
+    def _loop(self, nice: int, lanes=LANES) -> None:
         if nice > 0:
             lower_thread_priority(nice)
         while True:
             with self._cond:
-                task = self._next()
+                task = self._next(lanes)
             if task is None:
                 return
             if task.wanted is not None and not task.wanted():
                 _drop(task.future)
                 with self._cond:
                     self.dropped += 1
+                    self._ended()
                 continue
             if not task.future.set_running_or_notify_cancel():
+                with self._cond:
+                    self._ended()
                 continue  # cancelled while queued
             t0, error = time.perf_counter(), None
             try:
@@ -179,10 +214,17 @@ class FairPhysics:
                 error = exc
             with self._cond:
                 self.busy_s[task.turn] += time.perf_counter() - t0
+                self._ended()
             if error is None:
                 task.future.set_result(None)
             else:
                 task.future.set_exception(error)
+
+    def _ended(self) -> None:
+        """A task's slot is free (caller holds the condition): wake a pool thread that waits for one."""
+        self._running -= 1
+        if self._running == self.threads - 1:
+            self._cond.notify_all()
 
     def close(self) -> None:
         """Cancel what is queued, let running tasks finish, stop the threads."""
@@ -215,12 +257,12 @@ class FairRunner(RowRunner):
         tab: Hashable,
         turn: Turn,
         wanted: Callable[[], bool] | None,
-        held: Callable[[], bool] | None = None,
+        held_at: float | None = None,
     ):
-        self.pool, self.tab, self.turn, self.wanted, self.held = pool, tab, turn, wanted, held
+        self.pool, self.tab, self.turn, self.wanted, self.held_at = pool, tab, turn, wanted, held_at
 
     def _submit(self, call: Callable[[], None]) -> Future:
-        return self.pool.submit(self.tab, self.turn, call, self.wanted, self.held)
+        return self.pool.submit(self.tab, self.turn, call, self.wanted, self.held_at)
 
 
 SEGMENT_SAMPLES = 125

@@ -343,8 +343,8 @@ def test_a_replay_the_user_is_still_dragging_through_runs_below_settled_ones(che
         gait = session.decode(Latents(z_b=(0.5, -0.5, 0.0)))
         whole = session.replay(gait)
         turns, runner = [], session.physics.runner
-        session.physics.runner = lambda tab, turn, wanted=None, held=None: (
-            turns.append(turn) or runner(tab, turn, wanted, held)
+        session.physics.runner = lambda tab, turn, wanted=None, held_at=None: (
+            turns.append(turn) or runner(tab, turn, wanted, held_at)
         )
         settled = iter([False, False, True] + [True] * 100)  # held after its third chunk
         sim = session.replay_streamed(gait, lambda part: True, settled=lambda: next(settled))

@@ -3,6 +3,7 @@ superseded work dropped unrun, results unchanged."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -69,14 +70,14 @@ def test_a_first_motion_of_a_value_not_yet_held_waits_for_settled_replays_and_it
     it is first again. The pool counts each class's thread time."""
     pool, gate = _blocked_pool()
     ran: list[str] = []
-    held = {"b": False}
+    later = time.perf_counter() + 3600.0  # not held while this test runs
     try:
         futures = [
             pool.submit("a", Turn.ENSEMBLE, lambda: ran.append("a-ens")),
-            pool.submit("b", Turn.FIRST_MOTION, lambda: ran.append("b-young"), held=lambda: held["b"]),
+            pool.submit("b", Turn.FIRST_MOTION, lambda: ran.append("b-young"), held_at=later),
             pool.submit("c", Turn.DRAGGED, lambda: ran.append("c-dragged")),
             pool.submit("d", Turn.SETTLED, lambda: ran.append("d-settled")),
-            pool.submit("e", Turn.FIRST_MOTION, lambda: ran.append("e-held"), held=lambda: True),
+            pool.submit("e", Turn.FIRST_MOTION, lambda: ran.append("e-held"), held_at=time.perf_counter()),
         ]
         gate.set()
         for f in futures:
@@ -88,10 +89,12 @@ def test_a_first_motion_of_a_value_not_yet_held_waits_for_settled_replays_and_it
         assert started.wait(10)
         futures = [
             pool.submit("d", Turn.SETTLED, lambda: ran.append("d-settled")),
-            pool.submit("b", Turn.FIRST_MOTION, lambda: ran.append("b-held"), held=lambda: held["b"]),
+            pool.submit(
+                "b", Turn.FIRST_MOTION, lambda: ran.append("b-held"), held_at=time.perf_counter() + 0.05
+            ),
             pool.submit("f", Turn.DESIGN, lambda: time.sleep(0.05)),  # work of a known length
         ]
-        held["b"] = True  # held by the time a thread is free
+        time.sleep(0.06)  # held by the time a thread is free
         gate.set()
         for f in futures:
             f.result(10)
@@ -102,6 +105,62 @@ def test_a_first_motion_of_a_value_not_yet_held_waits_for_settled_replays_and_it
     assert ran == ["b-held", "d-settled"]
     assert 0.05 <= busy[Turn.DESIGN] < 1.0  # each class's thread time, counted where it ran
     assert 0.0 < busy[Turn.ENSEMBLE] < 0.05 and busy[Turn.SETTLED] < 0.05
+
+
+def test_a_first_motion_thread_runs_held_first_motions_alone_and_at_its_own_priority():
+    """With the pool's thread busy, a first motion that becomes held runs at once on the
+    first-motion thread (no new submission wakes it: a hold is a time); that thread takes neither a
+    value not yet held nor any other work, and runs at its own nice, between the pool's and the
+    caller's."""
+    pool = FairPhysics(1, nice=10, first_threads=1, first_nice=5)
+    gate, started = threading.Event(), threading.Event()
+    where: dict[str, tuple[str, int]] = {}
+
+    def note(name: str) -> None:
+        where[name] = (
+            threading.current_thread().name,
+            os.getpriority(os.PRIO_PROCESS, threading.get_native_id()),
+        )
+
+    try:
+        blocker = pool.submit("a", Turn.SETTLED, lambda: (note("a-settled"), started.set(), gate.wait(10)))
+        assert started.wait(10)
+        held_at = time.perf_counter() + 0.3
+        young = pool.submit("b", Turn.FIRST_MOTION, lambda: note("b-first"), held_at=held_at)
+        settled = pool.submit("c", Turn.SETTLED, lambda: note("c-settled"))
+        time.sleep(0.1)
+        assert not young.done() and not settled.done()  # the first-motion thread left both alone
+        young.result(10)  # ran once held, while the pool's thread was still held
+        assert time.perf_counter() >= held_at
+        assert not settled.done() and not blocker.done()
+        gate.set()
+        settled.result(10)
+    finally:
+        gate.set()
+        pool.close()
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    assert where["b-first"] == ("physics-first-0", min(base + 5, 19))
+    assert where["a-settled"][0] == where["c-settled"][0] == "physics-0"
+    assert where["c-settled"][1] == min(base + 10, 19)
+
+
+def test_while_first_motions_run_the_pools_threads_start_no_new_task():
+    """At most ``threads`` tasks run at once: a first motion on its own thread takes a core from the
+    replays (an idle pool thread waits for it) rather than sharing one with them."""
+    pool = FairPhysics(1, first_threads=1)
+    gate, started = threading.Event(), threading.Event()
+    try:
+        first = pool.submit("a", Turn.FIRST_MOTION, lambda: (started.set(), gate.wait(10)))
+        assert started.wait(10)
+        settled = pool.submit("b", Turn.SETTLED, lambda: None)
+        time.sleep(0.1)
+        assert not settled.done()  # the pool's thread is idle, but the one slot is the first motion's
+        gate.set()
+        first.result(10)
+        settled.result(10)
+    finally:
+        gate.set()
+        pool.close()
 
 
 def test_unwanted_and_cancelled_work_never_runs_and_errors_reach_the_caller():
