@@ -133,3 +133,46 @@ def test_bunched_arrivals_tell_clients_in_step_from_independent_ones():
     out_of_step, _ = bunched_arrivals(tabs([0.0, 0.0125, 0.025, 0.0375]))
     assert out_of_step == 0.0
     assert np.isnan(bunched_arrivals([])[0])
+
+
+def test_clients_of_one_gaits_seed_drag_through_the_same_gaits_at_times_of_their_own(monkeypatch):
+    """``bench load`` compares the same work alone and among others: every client drags the same
+    sliders to the same values in the same steps, but starts and rests when its own seed says."""
+    import asyncio
+
+    slept: dict[int, list[float]] = {}
+
+    def client(seed: int) -> ProtocolClient:
+        c = ProtocolClient("http://127.0.0.1:1", seed=seed, gaits_seed=42)
+        c.gui = {
+            f"u{i}": {
+                "type": "GuiSliderMessage",
+                "props": {"label": f"z_B {i}", "min": -3.0, "max": 3.0, "step": 0.01},
+            }
+            for i in (1, 2, 3)
+        }
+        c.values = [0.0, 0.0, 0.0]
+        c.sent = []
+
+        async def send(uuid, value):
+            c.sent.append((uuid, value))
+
+        c.send = send
+        return c
+
+    async def sleep(s):
+        slept[id(asyncio.current_task())].append(s)
+
+    async def run(c: ProtocolClient) -> None:
+        slept[id(asyncio.current_task())] = c.slept = []
+        for _ in range(5):
+            await c.drag(3.0)
+
+    monkeypatch.setattr("snakeloco.app.bench.protocol.asyncio.sleep", sleep)
+    a, b = client(1), client(2)
+    for c in (a, b):
+        asyncio.run(run(c))
+    assert a.sent == b.sent and len(a.sent) > 5 * 10  # the same sliders, values and steps
+    assert [d.values for d in a.drags] == [d.values for d in b.drags]
+    rests = lambda c: [s for s in c.slept if s != 0.05]  # noqa: E731 (the 50 ms sends are alike)
+    assert len(rests(a)) == 5 and rests(a) != rests(b)

@@ -99,10 +99,19 @@ def _match(server: DesignerServer, before: set, summaries: list[dict]) -> list[D
 
 
 def protocol_phase(
-    server: DesignerServer, n: int, seconds: float, rng, tmp: Path, log, pages, with_page: bool
+    server: DesignerServer,
+    n: int,
+    seconds: float,
+    rng,
+    tmp: Path,
+    log,
+    pages,
+    with_page: bool,
+    gaits_seed: int | None = None,
 ) -> dict:
     """``n`` protocol clients drag for ``seconds`` (plus, ``with_page``, one Chromium page); the
-    phase in ``bench_load``'s form."""
+    phase in ``bench_load``'s form. ``gaits_seed``: every client drags through the same gaits
+    (``ProtocolClient``), each at times of its own seed from ``rng``; None: gaits of its own too."""
 
     before = set(server.clients)
     browser, page_tab, process = None, None, None
@@ -133,6 +142,7 @@ def protocol_phase(
                 pages.dwell,
                 CLIENT_NICE,
                 SETTLE_S,
+                gaits_seed,
             ),
             name="bench-load-protocol",
         )

@@ -64,7 +64,7 @@ class BenchLoad(Command):
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait (as in `snakeloco serve`)."""
     seed: Seed = 0
-    """Seed of the drag targets."""
+    """Seed of the drag targets (with --driver protocol every client drags through the same ones, each at times of its own)."""
     render: bool = False
     """Let the pages draw the 3D view and animate the snake (software WebGL: far fewer slider updates)."""
     pin_cpus: bool = False

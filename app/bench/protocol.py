@@ -66,9 +66,12 @@ class ProtocolClient:
     """One designer user on the wire. ``run`` joins, prepares the page as the browser driver does,
     then ``drag_for``; everything received is read as it comes."""
 
-    def __init__(self, url: str, seed: int) -> None:
+    def __init__(self, url: str, seed: int, gaits_seed: int | None = None) -> None:
         self.url = url.replace("http://", "ws://")
-        self.rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng(seed)  # when: the start and the rests
+        # what: which slider goes where, in which steps; clients with one ``gaits_seed`` drag through
+        # the same gaits in the same order, each at its own times (None: ``seed``).
+        self.gaits = np.random.default_rng(seed if gaits_seed is None else gaits_seed)
         self.gui: dict[str, dict] = {}  # uuid -> {"type", "value", "props"}
         self.bytes = 0
         self.frames = 0
@@ -182,11 +185,11 @@ class ProtocolClient:
         """Drag one random slider to a random value in 10-30 sends 50 ms apart (the last one sent
         twice, as viser's trailing send), then rest ``dwell`` s on average (``DWELL_SPREAD``)."""
         uuids = self.sliders()
-        i = int(self.rng.integers(len(uuids)))
+        i = int(self.gaits.integers(len(uuids)))
         props = self.gui[uuids[i]]["props"]
         lo, hi, step = float(props["min"]), float(props["max"]), float(props["step"])
-        start, target = self.values[i], float(self.rng.uniform(lo, hi))
-        n = int(self.rng.integers(10, 30))
+        start, target = self.values[i], float(self.gaits.uniform(lo, hi))
+        n = int(self.gaits.integers(10, 30))
         path = [
             round(round(min(max(start + (target - start) * k / n, lo), hi) / step) * step, 6)
             for k in range(1, n + 1)
@@ -213,9 +216,9 @@ class ProtocolClient:
         ``after_s`` more: the bytes that move cost this client (its decoded view, streamed replay,
         ensemble; playback is paused)."""
         uuids = self.sliders()
-        i = int(self.rng.integers(len(uuids)))
+        i = int(self.gaits.integers(len(uuids)))
         props = self.gui[uuids[i]]["props"]
-        value = round(float(self.rng.uniform(props["min"], props["max"])) / props["step"]) * props["step"]
+        value = round(float(self.gaits.uniform(props["min"], props["max"])) / props["step"]) * props["step"]
         self.values[i] = round(value, 6)
         before = self.bytes
         await self.send(uuids[i], self.values[i])
@@ -296,12 +299,15 @@ def stream_problems(s: dict) -> list[str]:
     return problems
 
 
-async def _run(url: str, seeds: list[int], seconds: float, dwell: float, settle_s: float, done=None) -> dict:
+async def _run(
+    url: str, seeds: list[int], seconds: float, dwell: float, settle_s: float, done=None, gaits_seed=None
+) -> dict:
     """Join ``len(seeds)`` clients, drag for ``seconds``, wait for each last drag's replay; returns the
-    clients' summaries and the cores this process used while they dragged. ``done``: a coroutine
-    function awaited, clients still connected and reading, before they leave (the caller checks the
-    server's tabs meanwhile)."""
-    clients = [ProtocolClient(url, seed) for seed in seeds]
+    clients' summaries and the cores this process used while they dragged. ``gaits_seed``: every
+    client drags through the gaits this seed draws (``ProtocolClient``), at times of its own seed.
+    ``done``: a coroutine function awaited, clients still connected and reading, before they leave
+    (the caller checks the server's tabs meanwhile)."""
+    clients = [ProtocolClient(url, seed, gaits_seed) for seed in seeds]
     await asyncio.gather(*(c.join() for c in clients))
     bytes_before = [c.bytes for c in clients]
     cpu0, wall0 = time.process_time(), time.perf_counter()
@@ -334,8 +340,17 @@ async def _run(url: str, seeds: list[int], seconds: float, dwell: float, settle_
     return result
 
 
-def main(conn, url: str, seeds: list[int], seconds: float, dwell: float, nice: int, settle_s: float) -> None:
-    """Process entry (``bench load``): run the clients, send ``("ok", result)`` (or ``("error",
+def main(
+    conn,
+    url: str,
+    seeds: list[int],
+    seconds: float,
+    dwell: float,
+    nice: int,
+    settle_s: float,
+    gaits_seed=None,
+) -> None:
+    """Process entry (``bench load``): run the clients (``_run``), send ``("ok", result)`` (or ``("error",
     message)``), and keep them connected until the benchmark sends anything back."""
     import traceback
 
@@ -347,7 +362,7 @@ def main(conn, url: str, seeds: list[int], seconds: float, dwell: float, nice: i
         await asyncio.get_running_loop().run_in_executor(None, conn.poll, 600.0)
 
     try:
-        asyncio.run(_run(url, seeds, seconds, dwell, settle_s, done))
+        asyncio.run(_run(url, seeds, seconds, dwell, settle_s, done, gaits_seed))
     except Exception as exc:
         conn.send(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=4)}"))
     finally:
