@@ -22,7 +22,7 @@ import viser
 
 from snakeloco.app.decode_process import DecodePool
 from snakeloco.app.gait_csv import MAX_BYTES
-from snakeloco.app.tab import FIRST_MOTION_THREADS_PER_CORE, PHYSICS_NICE, DesignerClient
+from snakeloco.app.tab import FIRST_MOTION_NICE, FIRST_MOTION_THREADS_PER_CORE, PHYSICS_NICE, DesignerClient
 from snakeloco.app.viser_patches import refuse_large_uploads, share_prop_hints
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import SHIPPED, CheckpointError, resolve_checkpoint
@@ -152,7 +152,10 @@ class DesignerServer:
         # any tab's ensemble, round robin between tabs, superseded work dropped unrun).
         threads = resolve_workers(workers)
         self.physics = FairPhysics(
-            threads, PHYSICS_NICE, first_threads=FIRST_MOTION_THREADS_PER_CORE * threads
+            threads,
+            PHYSICS_NICE,
+            first_threads=FIRST_MOTION_THREADS_PER_CORE * threads,
+            first_nice=FIRST_MOTION_NICE,
         )
         self.decoding = DecodePool(
             [m.path for m in self.models.values() if m.path is not None],

@@ -49,11 +49,16 @@ for decoding."""
 
 FIRST_MOTION_THREADS_PER_CORE = 1
 """The server's first-motion threads (``FairPhysics(first_threads=...)``) per physics thread: they run
-held first motions alone, at ``PHYSICS_NICE``, and while they run the pool's threads start no new
-chunk. With 8 tabs the two physics threads were always busy with replays: a held first motion
-waited for one to finish its chunk (p95 ~65 ms after its hold), then ran beside the other (~40 ms of
-physics took 82 ms p50, 156 p95). At nice +5 (tried) first motions came sooner still but decoding
-lost the cores (8 clients, decoded view worst / single 3.15 and 3.98 against 2.62 without)."""
+held first motions alone, and while they run the pool's threads start no new chunk. With 8 tabs the
+two physics threads were always busy with replays: a held first motion waited for one to finish its
+chunk (p95 ~65 ms after its hold), then ran beside the other (~40 ms of physics took 82 ms p50, 156
+p95)."""
+
+FIRST_MOTION_NICE = 5
+"""Nice increment of the first-motion threads: above the replays and ensembles (3 to 1 where they
+share a core for the rest of a chunk), below decoding and drawing (1 to 3). 8 clients (bench load,
+2026-12-05), the worst client's first motion p95: 204-289 ms at +5 (3 runs), 261-326 at +10 (2), 306
+without these threads; its decoded view 46-61 ms, 46-48 and 42 (docs/load.md)."""
 
 
 class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
