@@ -321,8 +321,7 @@ class Simulator:
             chunk_runner = runner(k) if callable(runner) else runner
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
-            # Into the stream's own arrays; each chunk's servo targets only (most replays are
-            # superseded after their first chunk).
+            # Into the stream's own arrays; this chunk's servo targets alone (most streams end at it).
             out_state, out_sens = state[None, done:end], sens[None, done:end]
             ctrl = expand_commands(commands[None], self.substeps, self.config, (done, end))
             if chunk_runner is None:
