@@ -122,11 +122,11 @@ class FairPhysics:
         self._running = 0  # tasks running now, on any thread
         first_nice = nice if first_nice is None else first_nice
         self._workers = [
-            threading.Thread(target=self._loop, args=(int(nice), LANES), name=f"{name}-{i}", daemon=True)
+            threading.Thread(target=self._loop, args=(int(nice), False), name=f"{name}-{i}", daemon=True)
             for i in range(self.threads)
         ] + [
             threading.Thread(
-                target=self._loop, args=(int(first_nice), FIRST_LANES), name=f"{name}-first-{i}", daemon=True
+                target=self._loop, args=(int(first_nice), True), name=f"{name}-first-{i}", daemon=True
             )
             for i in range(max(0, int(first_threads)))
         ]
@@ -168,11 +168,13 @@ class FairPhysics:
         with self._cond:
             return {t: sum(map(len, c.queues.values())) for t, c in self._classes.items()}
 
-    def _next(self, lanes=LANES) -> _Task | None:
-        """The next task in ``lanes`` to run, None once closed (caller holds the condition)."""
+    def _next(self, first: bool = False) -> _Task | None:
+        """The next task to run (``first``: for a first-motion thread, in ``FIRST_LANES``, else in
+        ``LANES``), None once closed (caller holds the condition)."""
+        lanes = FIRST_LANES if first else LANES
         while True:
             # A pool thread starts a task only in a free slot; a first-motion thread always can.
-            free = lanes is FIRST_LANES or self._running < self.threads
+            free = first or self._running < self.threads
             for turn, held_only in lanes if free else ():
                 task = self._classes[turn].pop(held_only)
                 if task is not None:
@@ -181,7 +183,7 @@ class FairPhysics:
                     return task
             if self._closed:
                 return None
-            self._cond.wait(self._until_held() if lanes is FIRST_LANES else None)
+            self._cond.wait(self._until_held() if first else None)
 
     def _until_held(self) -> float | None:
         """Seconds until the next queued first motion is held (a hold is a time, not an event: a
@@ -189,12 +191,12 @@ class FairPhysics:
         times = [q[0].held_at for q in self._classes[Turn.FIRST_MOTION].queues.values() if q[0].held_at]
         return max(0.0, min(times) - time.perf_counter()) if times else None
 
-    def _loop(self, nice: int, lanes=LANES) -> None:
+    def _loop(self, nice: int, first: bool = False) -> None:
         if nice > 0:
             lower_thread_priority(nice)
         while True:
             with self._cond:
-                task = self._next(lanes)
+                task = self._next(first)
             if task is None:
                 return
             if task.wanted is not None and not task.wanted():

@@ -107,11 +107,11 @@ def protocol_phase(
     log,
     pages,
     with_page: bool,
-    gaits_seed: int | None = None,
+    gaits_seed: int,
 ) -> dict:
     """``n`` protocol clients drag for ``seconds`` (plus, ``with_page``, one Chromium page); the
     phase in ``bench_load``'s form. ``gaits_seed``: every client drags through the same gaits
-    (``ProtocolClient``), each at times of its own seed from ``rng``; None: gaits of its own too."""
+    (``ProtocolClient``), each at times of its own seed from ``rng``."""
 
     before = set(server.clients)
     browser, page_tab, process = None, None, None
