@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 
 import numpy as np
 import pytest
 import torch
 
 from snakeloco.app.bench.load_driver import wait_until
-from snakeloco.app.decode_process import DecodePool, DecodeProcess, decode_pids
+from snakeloco.app.decode_process import IN_FLIGHT, DecodePool, DecodeProcess, decode_pids
 from snakeloco.app.session import Latents, decode_latents
 from snakeloco.model.api import load_pretrained
 
@@ -50,6 +51,43 @@ def test_the_decode_process_decodes_the_same_bits_as_a_thread(checkpoint):
         process.close()
     assert process.pid not in decode_pids() and process.failed == "closed"
     assert process.decode(models[0].path, latents) is None
+
+
+def test_requests_in_flight_together_each_get_their_own_reply(checkpoint):
+    """``IN_FLIGHT`` requests share one child: the next waits in its socket while it decodes the
+    first, and every caller reads the reply to its own request, in the order they were sent."""
+    model = load_pretrained(checkpoint)
+    pool = DecodePool([model.path], torch.get_num_threads(), processes=1)
+    (process,) = pool.processes
+    rows = np.random.default_rng(2).normal(size=(6, 4, model.z_b_dim))
+    got: dict[tuple[int, int], object] = {}
+    most = []
+
+    def tab(i: int) -> None:
+        for j, row in enumerate(rows[i]):
+            latents = Latents(z_b=tuple(map(float, row)))
+            with pool.turns:
+                most.append((pool.turns.queued(), process.in_flight))
+                got[i, j] = pool.decode(model.path, latents, lambda _: None)
+
+    try:
+        assert wait_until(lambda: process.ready, 120), process.failed
+        threads = [threading.Thread(target=tab, args=(i,)) for i in range(len(rows))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(120)
+        assert len(got) == rows.shape[0] * rows.shape[1] and process.served == len(got)
+        for (i, j), decoded in got.items():
+            assert decoded.latents.z_b == tuple(map(float, rows[i, j]))  # its own, not a neighbour's
+        here = decode_latents(model, got[3, 2].latents)
+        assert np.array_equal(got[3, 2].commands, here.commands)
+        # a request went out while another's was in flight; more tabs than that waited their turn
+        assert max(f for _, f in most) == IN_FLIGHT - 1 and max(q for q, _ in most) > IN_FLIGHT
+        assert process.in_flight == 0 and process.failed is None
+    finally:
+        pool.close()
+    assert process.failed == "closed"
 
 
 def test_a_pool_without_processes_decodes_in_the_callers_thread_one_at_a_time():
