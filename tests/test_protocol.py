@@ -160,8 +160,11 @@ def test_clients_of_one_gaits_seed_drag_through_the_same_gaits_at_times_of_their
         c.send = send
         return c
 
+    clock = [0.0]
+
     async def sleep(s):
         slept[id(asyncio.current_task())].append(s)
+        clock[0] += s
 
     async def run(c: ProtocolClient) -> None:
         slept[id(asyncio.current_task())] = c.slept = []
@@ -169,10 +172,54 @@ def test_clients_of_one_gaits_seed_drag_through_the_same_gaits_at_times_of_their
             await c.drag(3.0)
 
     monkeypatch.setattr("snakeloco.app.bench.protocol.asyncio.sleep", sleep)
+    monkeypatch.setattr("snakeloco.app.bench.protocol.time.perf_counter", lambda: clock[0])
     a, b = client(1), client(2)
     for c in (a, b):
         asyncio.run(run(c))
     assert a.sent == b.sent and len(a.sent) > 5 * 10  # the same sliders, values and steps
     assert [d.values for d in a.drags] == [d.values for d in b.drags]
-    rests = lambda c: [s for s in c.slept if s != 0.05]  # noqa: E731 (the 50 ms sends are alike)
+    rests = lambda c: [s for s in c.slept if abs(s - 0.05) > 1e-9]  # noqa: E731 (the sends are alike)
     assert len(rests(a)) == 5 and rests(a) != rests(b)
+
+
+def test_a_drag_keeps_to_its_own_50_ms_grid_after_a_stall(monkeypatch):
+    """The clients share one event loop: a stall delays whatever sends fall in it, but each drag's
+    later sends come back to its own grid rather than staying in step with the other delayed ones."""
+    import asyncio
+
+    clock = [100.0]
+    sent: list[float] = []
+    c = ProtocolClient("http://127.0.0.1:1", seed=0)
+    c.gui = {
+        "u1": {"type": "GuiSliderMessage", "props": {"label": "z_B 1", "min": -3.0, "max": 3.0, "step": 0.01}}
+    }
+    c.values = [0.0]
+
+    async def send(uuid, value):
+        sent.append(clock[0])
+        if len(sent) == 3:
+            clock[0] += 0.03  # the loop stalls 30 ms after the third send
+
+    async def sleep(s):
+        clock[0] += s
+
+    c.send = send
+    monkeypatch.setattr("snakeloco.app.bench.protocol.asyncio.sleep", sleep)
+    monkeypatch.setattr("snakeloco.app.bench.protocol.time.perf_counter", lambda: clock[0])
+    asyncio.run(c.drag(0.0))
+    grid = 100.0 + 0.05 * np.arange(len(sent))
+    assert len(sent) >= 11 and np.allclose(sent, grid, atol=1e-9)  # the stall ends before the fourth is due
+    assert max(c.send_late_s) < 1e-9
+
+    clock[0], sent[:] = 100.0, []
+    c.send_late_s = []
+
+    async def slow_send(uuid, value):
+        sent.append(clock[0])
+        if len(sent) == 3:
+            clock[0] += 0.07  # past the fourth send's time: that one goes out late ...
+
+    c.send = slow_send
+    asyncio.run(c.drag(0.0))
+    assert sent[3] == pytest.approx(100.17) and c.send_late_s[2] == pytest.approx(0.02)
+    assert np.allclose(sent[4:], 100.0 + 0.05 * np.arange(4, len(sent)), atol=1e-9)  # ... the rest on time
