@@ -82,3 +82,48 @@ def test_the_breakdown_splits_a_decoded_view_and_a_first_motion_into_their_stage
     assert set(got) == {f"{k}_p95_ms" for k in load.BREAKDOWN}
     assert abs(got["physics_p95_ms"] - 50.0) < 1e-6 and abs(got["motion_draw_p95_ms"] - 5.0) < 1e-6
     assert abs(got["draw_p95_ms"] - 3.95) < 1e-6  # 8 - 5 and 8 - 4 ms: their p95
+
+
+def test_browser_nice_puts_the_browsers_threads_at_its_nice_and_in_the_idle_class():
+    """The page beside the protocol clients stands for a browser on another machine: nice 19 and
+    ``SCHED_IDLE``, every thread of every process this one started (not its decode processes)."""
+    import os
+    import subprocess
+    import sys
+
+    import pytest
+
+    from snakeloco.app.bench.load_driver import wait_until
+    from snakeloco.app.bench.processes import BrowserNice
+
+    if not hasattr(os, "SCHED_IDLE") or not os.path.isdir("/proc/self/task"):
+        pytest.skip("no idle scheduling class here")
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import threading, time; threading.Thread(target=time.sleep, args=(30,)).start(); time.sleep(30)",
+        ]
+    )
+    idle, plain = BrowserNice(19, period=0.05, idle=True), None
+    try:
+
+        def settled(pid: int) -> bool:
+            tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+            return len(tids) == 2 and all(
+                os.getpriority(os.PRIO_PROCESS, t) == 19 and os.sched_getscheduler(t) == os.SCHED_IDLE
+                for t in tids
+            )
+
+        assert wait_until(lambda: settled(child.pid), 10)
+        assert os.sched_getscheduler(0) != os.SCHED_IDLE  # this process keeps its class
+        idle.stop()
+        plain = BrowserNice(10, period=0.05)  # without idle: a browser's class is left as it is
+        time.sleep(0.3)
+        assert os.sched_getscheduler(child.pid) == os.SCHED_IDLE
+    finally:
+        idle.stop()
+        if plain is not None:
+            plain.stop()
+        child.kill()
+        child.wait()

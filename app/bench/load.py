@@ -66,7 +66,8 @@ BROWSER_NICE = {"browser": 10, "protocol": 19}
 browser driver's pages are the load: level with the server's physics pool (+10), below its decoding.
 Beside the protocol clients one page checks what a page draws; it stands for a user's browser on
 another machine, so it takes what the server leaves (at +10, in the server's scheduling group, it
-used 0.5 of 2 cores against the physics threads' 1.3: 2026-12-04, docs/load.md)."""
+used 0.5 of 2 cores against the physics threads' 1.3: 2026-12-04, docs/load.md), in the idle
+scheduling class too (``BrowserNice(idle=True)``)."""
 
 
 def _ratio(pick, values: list[float], reference: float) -> float:
@@ -116,7 +117,8 @@ def bench_load(
     tune_process()  # as `snakeloco serve` runs it
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
     rss = RssSampler()
-    browser_group = BrowserNice(browser_nice)
+    browser_idle = driver == "protocol"  # the page stands for a browser on another machine
+    browser_group = BrowserNice(browser_nice, idle=browser_idle)
     pages = Pages(render, split[1] if split else None, dwell, browser_nice)
     rng = np.random.default_rng(seed)
     phases = {}
@@ -156,6 +158,7 @@ def bench_load(
         "rendered": render,
         "dwell_s": dwell,
         "browser_nice": browser_nice,
+        "browser_idle": browser_idle,
         "server_cpus": split[0] if split else None,
         "browser_cpus": split[1] if split else None,
         "single_decoded_p50_ms": single["decoded_p50_ms"],

@@ -80,7 +80,8 @@ class BenchLoad(Command):
     """Nice of the browsers (and their scheduling group). Default: 10 for --driver browser (the load
     generators level with the server's physics); 19 for the one Chromium page beside the protocol
     clients, which checks what a page draws and stands for a user's browser on another machine (at 10
-    it took 0.5 of the 2 cores from the physics it shares a scheduling group with)."""
+    it took 0.5 of the 2 cores from the physics it shares a scheduling group with); that page also
+    runs in the idle scheduling class."""
 
 
 class BenchTabs(Command):

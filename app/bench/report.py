@@ -107,7 +107,9 @@ def load(r: dict) -> None:
         + f" ms (worst / single {r['replay_p95_ratio']:.2f}, worst / best {r['replay_worst_best']:.2f}; "
         f"replays finished: 1 client {r['single_replays_drawn']}, each of {r['clients']} "
         + ", ".join(str(v) for v in r["replays_drawn"])
-        + f"; {r['dwell_s']:g} s rest after each drag; browsers at nice +{r['browser_nice']})\n"
+        + f"; {r['dwell_s']:g} s rest after each drag; browsers at nice +{r['browser_nice']}"
+        + (", idle class" if r.get("browser_idle") else "")
+        + ")\n"
         f"browser side, a page taking a pointer move p95: 1 client {r['single_move_p95_ms']:.0f} ms, each of "
         f"{r['clients']} " + ", ".join(f"{v:.0f}" for v in r["multi_move_p95_ms"]) + " ms\n"
         f"cores used over the drags (of {r['cpus']}): 1 client: server {r['single_cores']['server']:.2f}, "
