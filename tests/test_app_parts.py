@@ -199,3 +199,24 @@ def test_framing_sends_a_camera_move_only_where_the_view_would_move():
     assert framer.frame(path * 1.2) and len(moves) == 4  # 2 m further: the camera follows
     camera.position = camera.position + 1.0  # the user moved it
     assert not framer.frame(path) and framer.frame(path, force=True)
+
+
+def test_a_started_server_leaves_its_objects_out_of_the_garbage_collection():
+    """``freeze_started`` (called by ``serve`` once the server is built): a full collection then walks
+    only what came since, not the ~265,000 objects of the checkpoints, torch and viser (in a process of
+    its own: freezing is process-wide)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import gc, time\n"
+        "from snakeloco.app.server import freeze_started\n"
+        "kept = [{'i': i} for i in range(50000)]\n"
+        "freeze_started()\n"
+        "new = [{'i': i} for i in range(100)]\n"
+        "assert gc.get_freeze_count() >= 50000, gc.get_freeze_count()\n"
+        "assert len(gc.get_objects()) < 20000, len(gc.get_objects())\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

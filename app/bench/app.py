@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 
 from snakeloco.app.bench.headless import HeadlessClient
-from snakeloco.app.server import DesignerServer, tune_process
+from snakeloco.app.server import DesignerServer, freeze_started, tune_process
 from snakeloco.sim import expand_commands, load_model
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, perturbed_commands
 from snakeloco.sim.physics import Simulator
@@ -24,6 +24,7 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, s
     """
     tune_process()  # as `snakeloco serve` runs it
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
+    freeze_started()  # as `snakeloco serve` does
     client = HeadlessClient(server.port)
     try:
         for _ in range(200):

@@ -58,7 +58,7 @@ from snakeloco.app.bench.processes import (
     slope_mb_per_min,
     split_cpus,
 )
-from snakeloco.app.server import DesignerServer, tune_process
+from snakeloco.app.server import DesignerServer, freeze_started, tune_process
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
 BROWSER_NICE = {"browser": 10, "protocol": 19}
@@ -116,6 +116,7 @@ def bench_load(
         pin_process(split[0])  # before the server starts: its threads inherit the server half
     tune_process()  # as `snakeloco serve` runs it
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
+    freeze_started()  # as `snakeloco serve` does
     rss = RssSampler()
     browser_idle = driver == "protocol"  # the page stands for a browser on another machine
     browser_group = BrowserNice(browser_nice, idle=browser_idle)

@@ -37,7 +37,7 @@ from snakeloco.app.bench.load_browser import percentile, require_browser
 from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.bench.processes import BrowserNice, RssSampler
 from snakeloco.app.gait_csv import read_gait_csv
-from snakeloco.app.server import DesignerServer, tune_process
+from snakeloco.app.server import DesignerServer, freeze_started, tune_process
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 
 LAYOUT_TIMEOUT_S = 120.0
@@ -80,6 +80,7 @@ def bench_tabs(
 
     tune_process()
     server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
+    freeze_started()  # as `snakeloco serve` does
     rss = RssSampler()
     nice = BrowserNice(browser_nice)
     press_server: list[list[float]] = [[] for _ in range(tabs)]
