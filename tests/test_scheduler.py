@@ -222,8 +222,14 @@ def test_replays_and_batches_on_the_pool_are_bit_identical_to_the_simulators_own
 
 
 @pytest.mark.slow
-def test_tabs_decode_one_at_a_time_each_its_newest_value(checkpoint):
+def test_tabs_decode_in_turns_each_its_newest_value(checkpoint):
+    """The decode stage holds ``IN_FLIGHT`` requests a process (the child decodes one while the next
+    waits in its socket); beyond that the tabs wait their turns, and a tab that waited decodes only
+    the value it ended on."""
+    from contextlib import ExitStack
+
     from snakeloco.app.bench.load_driver import wait_until
+    from snakeloco.app.decode_process import IN_FLIGHT
     from snakeloco.app.server import DesignerServer
 
     from helpers import connect_headless
@@ -246,18 +252,21 @@ def test_tabs_decode_one_at_a_time_each_its_newest_value(checkpoint):
             return real(path, latents, fallback)
 
         srv.decoding.decode = slow
-        with srv.decoding.turns:  # every tab's decode waits for its turn while its slider moves on
+        slots = IN_FLIGHT * len(srv.decoding.processes)
+        with ExitStack() as held:  # every tab's decode waits for its turn while its slider moves on
+            for _ in range(slots):
+                held.enter_context(srv.decoding.turns)
             for v in (0.5, 1.0, 1.5):
                 for sign, (_, d) in zip((1, -1), tabs, strict=True):
                     before = d.version
                     d.sliders[0].value = sign * v
                     assert wait_until(lambda d=d, before=before: d.version > before, 30)
-                if v == 0.5:  # both tabs' decodes of it wait behind the test's turn
-                    assert wait_until(lambda: srv.decoding.turns.queued() == 3, 30)
+                if v == 0.5:  # both tabs' decodes of it wait behind the test's turns
+                    assert wait_until(lambda: srv.decoding.turns.queued() == slots + 2, 30)
         assert all(d.wait_idle(60) for _, d in tabs)
-        # One decode at a time, and each tab decoded only the value it ended on: the values it moved
-        # through while waiting were dropped, not decoded late.
-        assert most[0] == 1
+        # As many decodes at once as the stage holds (here both tabs'), and each tab decoded only the
+        # value it ended on: the values it moved through while waiting were dropped, not decoded late.
+        assert slots == 2 and most[0] == 2
         assert sorted(decoded) == [-1.5, 1.5]  # the first tab's values are > 0, the second's < 0
         assert [d.decoded.latents.z_b[0] for _, d in tabs] == [1.5, -1.5]
     finally:
