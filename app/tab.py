@@ -60,6 +60,11 @@ share a core for the rest of a chunk), below decoding and drawing (1 to 3). 8 cl
 2026-12-05), the worst client's first motion p95: 204-289 ms at +5 (3 runs), 261-326 at +10 (2), 306
 without these threads; its decoded view 46-61 ms, 46-48 and 42 (docs/load.md)."""
 
+TIMINGS_KEPT = 1000
+"""Request timings a tab keeps (its newest; ``DesignerClient.timings``), for the benchmarks: a 60 s
+drag phase sends ~600 a tab. A tab's memory stays bounded; with 2000 kept (and up to 4000 indexed),
+8 tabs of a 10-minute run were still adding ~0.6 MB a minute in its sixth."""
+
 
 class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
     """One browser tab: GUI, scene, session, a decode worker and a physics worker."""
@@ -103,7 +108,9 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self.streaming = None  # the current gait's streamed replay so far (sim.StreamedReplay)
         self._path_drawn = 0.0
         self._readout_drawn = 0.0
-        self.timings: deque[Timing] = deque(maxlen=2000)
+        self.timings: deque[Timing] = deque(maxlen=TIMINGS_KEPT)
+        self.values_received = 0  # slider values since the tab joined (all, not only those timed)
+        self.views_drawn = 0  # decoded views drawn since the tab joined
         self._timing_by_version: dict[int, Timing] = {}
         self._draw_lock = threading.RLock()
         self._programmatic_z: tuple[float, ...] | None = None  # slider values set from Python
@@ -262,11 +269,11 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
 
     def _record(self, version: int) -> None:
         timing = Timing(version=version, submitted=time.perf_counter())
+        self.values_received += 1
+        if len(self.timings) == self.timings.maxlen:  # versions rise: the oldest leaves both
+            self._timing_by_version.pop(self.timings[0].version, None)
         self._timing_by_version[version] = timing
         self.timings.append(timing)
-        if len(self._timing_by_version) > 4000:
-            for v in sorted(self._timing_by_version)[:2000]:
-                del self._timing_by_version[v]
 
     def _on_latents_changed(self) -> None:
         # Reading under the lock that _write_sliders holds: a callback never sees half-set sliders.

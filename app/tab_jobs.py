@@ -58,6 +58,7 @@ class TabJobs:
             self.decoded, self.simulated, self.streaming = decoded, None, None
             self._draw_decoded(decoded)
             timing.decoded = time.perf_counter()
+            self.views_drawn += 1
             self.physics.submit((version, ("gait", decoded)))
 
     def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:

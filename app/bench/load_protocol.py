@@ -173,10 +173,10 @@ def protocol_phase(
         for i, (s, d) in enumerate(zip(result["clients"], matched, strict=True)):
             stale = protocol.stream_problems(s)
             stale += server_problems(d, s) if d is not None else ["no server tab at its values"]
-            views = max(1, sum(1 for t in (d.timings if d else []) if np.isfinite(t.decoded)))
+            views = max(1, d.views_drawn if d else 0)
             clients.append(
                 {
-                    "updates": len(d.timings) if d else 0,
+                    "updates": d.values_received if d else 0,
                     "decoded_drawn": len(s["decoded_ms"]),
                     "replays_drawn": len(s["replay_ms"]),
                     "decoded_p50_ms": percentile(s["decoded_ms"], 50),
