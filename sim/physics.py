@@ -308,31 +308,26 @@ class Simulator:
         if not np.isfinite(commands).all():
             raise ValueError("commands contain NaN or Inf")
         m, n_steps = self.model, self.n_steps
-        state = np.empty((n_steps, mujoco.mj_stateSize(m, _STATE_SPEC)))
-        sens = np.empty((n_steps, m.nsensordata))
         record = self.config.lead_in * self.substeps + self.substeps * np.arange(n_t)
         bounds = [
             *range(record[0] + first_samples * self.substeps, n_steps, chunk_samples * self.substeps),
             n_steps,
         ]
-        initial, warm, done = self.initial_state[None], np.zeros((1, m.nv)), 0
+        # One chunk's steps, reused: the whole record's were ~17 MB a stream, resident as they filled.
+        widest = int(np.diff([0, *bounds]).max())
+        state, sens = (np.empty((1, widest, w)) for w in (mujoco.mj_stateSize(m, _STATE_SPEC), m.nsensordata))
+        sampled, qpos = np.empty((n_t, m.nsensordata)), np.empty((n_t, m.nq))  # the record's samples
+        initial, warm, done, n = self.initial_state[None], np.zeros((1, m.nv)), 0, 0
         data = mujoco.MjData(m)
         for k, end in enumerate(bounds):
             chunk_runner = runner(k) if callable(runner) else runner
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
-            # Into the stream's own arrays; this chunk's servo targets alone (most streams end at it).
-            out_state, out_sens = state[None, done:end], sens[None, done:end]
+            out_state, out_sens = state[:, : end - done], sens[:, : end - done]  # steps [done, end)
             ctrl = expand_commands(commands[None], self.substeps, self.config, (done, end))
             if chunk_runner is None:
                 mj_rollout.rollout(
-                    m,
-                    data,
-                    initial,
-                    ctrl,
-                    initial_warmstart=warm,
-                    state=out_state,
-                    sensordata=out_sens,
+                    m, data, initial, ctrl, initial_warmstart=warm, state=out_state, sensordata=out_sens
                 )
             else:
                 (chunk,) = chunk_runner.rollout(
@@ -349,18 +344,22 @@ class Simulator:
                 chunk.result()
             warm = data.qacc_warmstart[None].copy()
             # Only this chunk's steps are new to the checks (the same verdict as the whole prefix's).
-            failure = self._diagnose_one(state[done:end], sens[done:end], m.opt.timestep, first=done)
-            initial, done = state[None, end - 1], end
-            n = int(np.searchsorted(record, done))  # samples whose step has been simulated
-            sampled = sens[record[:n]]
-            quat = sampled[:, self._quat_cols]
+            failure = self._diagnose_one(out_state[0], out_sens[0], m.opt.timestep, first=done)
+            new = int(np.searchsorted(record, end))
+            rows = record[n:new] - done  # sample i: sensed as step record[i] begins, qpos after the last
+            sampled[n:new] = out_sens[0, rows]
+            before = out_state[0, np.maximum(rows - 1, 0)]
+            before[rows == 0] = initial[0]  # the step before the chunk: the previous chunk's last
+            qpos[n:new] = before[:, 1 : 1 + m.nq]
+            initial, done, n = out_state[:, -1].copy(), end, new
+            quat = sampled[:n, self._quat_cols]
             yield StreamedReplay(
                 samples=n,
-                joint_angles=sampled[:, self._q_cols],
-                qpos=state[record[:n] - 1, 1 : 1 + m.nq],
+                joint_angles=sampled[:n, self._q_cols],
+                qpos=qpos[:n].copy(),
                 failure=failure,
                 done=done == n_steps,
-                pos=sampled[:, self._pos_cols],
+                pos=sampled[:n, self._pos_cols],
                 quat=quat / np.linalg.norm(quat, axis=-1, keepdims=True).clip(min=1e-12),
             )
             if failure is not None:

@@ -224,6 +224,26 @@ def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_le
         next(simulator.stream(np.full((2000, 8), np.nan)))
 
 
+def test_a_streamed_replay_holds_one_chunk_of_steps_not_the_whole_record():
+    """A stream keeps the record's samples and one chunk's physics steps (~0.7 MB): the whole
+    record's steps (41,200 x 51 float64, ~17 MB) stayed resident in every tab's replay as it ran."""
+    import tracemalloc
+
+    from snakeloco.sim.gaits import PRESETS
+
+    simulator = Simulator(workers=1)
+    commands = PRESETS["sidewind"].gait.commands()
+    whole_steps = simulator.n_steps * 51 * 8
+    tracemalloc.start()
+    try:
+        parts = sum(1 for _ in simulator.stream(commands))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert parts > 30
+    assert peak < whole_steps / 4, f"peak {peak / 1e6:.1f} MB while streaming"
+
+
 def _thread_nices() -> list[int]:
     """Nice values of this process's threads (Linux /proc)."""
     nices = []
