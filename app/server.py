@@ -45,13 +45,20 @@ SWITCH_INTERVAL_S = 0.001
 _M_MMAP_THRESHOLD = -3  # glibc malloc.h
 
 
-def return_freed_buffers_to_the_os(threshold: int = 1 << 20) -> bool:
+MMAP_THRESHOLD = 256 << 10
+"""Bytes from which a designer server's allocations get mappings of their own
+(``return_freed_buffers_to_the_os``). A stream's reused chunk buffers are 270-390 kB: at 1 MB they
+came from glibc's 16 arenas, which held ~50 MB more of freed pages (8 clients, the server process
+~530 MB against ~495 at 256 kB; 2026-12-05, docs/load.md)."""
+
+
+def return_freed_buffers_to_the_os(threshold: int = MMAP_THRESHOLD) -> bool:
     """glibc: serve every allocation of ``threshold`` bytes or more with its own mmap, unmapped
     when freed. Returns whether the setting took (False elsewhere).
 
     By default glibc raises that threshold (up to 32 MB) after the first large free; from then on
-    each replay's 6-10 MB state and sensor arrays come from heap arenas, whose pages are kept after
-    the arrays die, and a server's RSS creeps up with every tab's replays.
+    each replay's arrays come from heap arenas, whose pages are kept after the arrays die, and a
+    server's RSS creeps up with every tab's replays.
     """
     if not sys.platform.startswith("linux"):
         return False
