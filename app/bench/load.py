@@ -14,7 +14,9 @@ one call: one client alone, then ``clients`` at once, each for ``seconds``. Repo
   and the exported CSV (downloaded through the browser) vs an independent decode of those values,
   and the simulated path vs the replay of those commands;
 - server memory: resident set size sampled every 0.5 s (start, end, peak, and the slope of a
-  least-squares line over the multi-client phase and over its second half, MB/min), and with the
+  least-squares line over the multi-client phase, over its second half, and from its
+  ``RSS_SETTLE_S``-th second on, there for this process and the decode processes apart, MB/min;
+  ``rss_series_mb`` rows: seconds, MB in all, this process, the decode processes), and with the
   tabs connected and idle just before and just after the drags: what load leaves behind, without
   the replays in flight (each holds its physics steps for a moment) that make the samples jump;
 - cores used over each phase's drags by this process (the server) and by the browsers it started:
@@ -68,6 +70,12 @@ Beside the protocol clients one page checks what a page draws; it stands for a u
 another machine, so it takes what the server leaves (at +10, in the server's scheduling group, it
 used 0.5 of 2 cores against the physics threads' 1.3: 2026-12-04, docs/load.md), in the idle
 scheduling class too (``BrowserNice(idle=True)``)."""
+
+RSS_SETTLE_S = 60.0
+"""Seconds into the multi-client phase from which its RSS counts as settled: as the tabs join and
+drag, their first replays and ensembles allocate what a tab keeps (8 clients, 2026-12-05: 738 -> 825
+MB within 55 s, then +11 MB over the next 8 minutes). A least-squares line through that step reads
+as a slope of ~2 MB/min over 10 minutes, which is not a creep."""
 
 
 def _ratio(pick, values: list[float], reference: float) -> float:
@@ -149,6 +157,7 @@ def bench_load(
     late = (
         window[window[:, 0] >= window[0, 0] + (window[-1, 0] - window[0, 0]) / 2] if len(window) else window
     )
+    settled = window[window[:, 0] >= window[0, 0] + RSS_SETTLE_S] if len(window) else window
     all_rss = np.asarray(rss.samples)[:, 1]
     p95s = [c["decoded_p95_ms"] for c in multi["clients"]]
     pages_checked = [ph["page"] for ph in phases.values() if ph.get("page")]
@@ -245,6 +254,12 @@ def bench_load(
         "rss_late_slope_mb_per_min": slope_mb_per_min(late),
         "rss_late_start_mb": float(late[0, 1]) if len(late) else float("nan"),
         "rss_late_end_mb": float(late[-1, 1]) if len(late) else float("nan"),
-        "rss_series_mb": [[round(float(t), 1), round(float(mb), 1)] for t, mb in rss.samples[::10]],
+        "rss_settle_s": RSS_SETTLE_S,
+        "rss_settled_slope_mb_per_min": slope_mb_per_min(settled),
+        "rss_settled_parts_slope_mb_per_min": {
+            "server_process": slope_mb_per_min(settled, 2),
+            "decode_processes": slope_mb_per_min(settled, 3),
+        },
+        "rss_series_mb": [[round(float(v), 1) for v in row] for row in rss.samples[::10]],
     }
     return result

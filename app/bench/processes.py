@@ -51,15 +51,20 @@ def browser_pids() -> list[int]:
 
 def rss_mb() -> float:
     """Resident set size of the server: this process and its decode processes (MB)."""
+    return sum(rss_split_mb())
+
+
+def rss_split_mb() -> tuple[float, float]:
+    """Resident set sizes (MB) of this process and of its decode processes together."""
     import psutil
 
-    total = 0
+    sizes = []
     for pid in server_pids():
         try:
-            total += psutil.Process(pid).memory_info().rss
+            sizes.append(psutil.Process(pid).memory_info().rss / 2**20)
         except psutil.NoSuchProcess:
-            pass
-    return total / 2**20
+            sizes.append(0.0)
+    return sizes[0], sum(sizes[1:])
 
 
 def descendants(root: int) -> list[int]:
@@ -165,8 +170,11 @@ class BrowserNice:
 
 
 class RssSampler:
+    """The server's RSS every ``period`` s: ``samples`` rows (seconds, MB in all, this process's MB,
+    the decode processes' MB)."""
+
     def __init__(self, period: float = 0.5) -> None:
-        self.samples: list[tuple[float, float]] = []
+        self.samples: list[tuple[float, float, float, float]] = []
         self._stop = threading.Event()
         self._period = period
         self._t0 = time.monotonic()
@@ -175,7 +183,8 @@ class RssSampler:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.samples.append((time.monotonic() - self._t0, rss_mb()))
+            this, decode = rss_split_mb()
+            self.samples.append((time.monotonic() - self._t0, this + decode, this, decode))
             self._stop.wait(self._period)
 
     def window(self, start: float, end: float) -> np.ndarray:
@@ -187,6 +196,9 @@ class RssSampler:
         self._thread.join(timeout=5)
 
 
-def slope_mb_per_min(samples: np.ndarray) -> float:
-    """Least-squares slope of (seconds, MB) samples, in MB per minute (NaN for fewer than 3)."""
-    return float(np.polyfit(samples[:, 0], samples[:, 1], 1)[0] * 60.0) if len(samples) > 2 else float("nan")
+def slope_mb_per_min(samples: np.ndarray, column: int = 1) -> float:
+    """Least-squares slope of (seconds, MB, ...) samples' MB ``column``, in MB per minute (NaN for
+    fewer than 3)."""
+    if len(samples) < 3:
+        return float("nan")
+    return float(np.polyfit(samples[:, 0], samples[:, column], 1)[0] * 60.0)

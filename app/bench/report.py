@@ -120,7 +120,10 @@ def load(r: dict) -> None:
         f"server RSS {r['rss_start_mb']:.0f} MB at start, {r['rss_multi_start_mb']:.0f} -> "
         f"{r['rss_multi_end_mb']:.0f} MB over the {r['clients']}-client phase "
         f"(slope {r['rss_slope_mb_per_min']:+.1f} MB/min; second half {r['rss_late_start_mb']:.0f} -> "
-        f"{r['rss_late_end_mb']:.0f} MB, slope {r['rss_late_slope_mb_per_min']:+.1f} MB/min), "
+        f"{r['rss_late_end_mb']:.0f} MB, slope {r['rss_late_slope_mb_per_min']:+.1f} MB/min; settled, "
+        f"from the {r['rss_settle_s']:.0f}th s, {r['rss_settled_slope_mb_per_min']:+.1f} MB/min: this process "
+        f"{r['rss_settled_parts_slope_mb_per_min']['server_process']:+.1f}, the decode processes "
+        f"{r['rss_settled_parts_slope_mb_per_min']['decode_processes']:+.1f}), "
         f"peak {r['rss_peak_mb']:.0f} MB; tabs idle before / after the drags "
         f"{r['rss_idle_before_mb']:.0f} / {r['rss_idle_after_mb']:.0f} MB"
     )
