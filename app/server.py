@@ -43,6 +43,7 @@ the decoded view was no faster (worst / single p95 3.34 against 2.87-4.15), for 
 SWITCH_INTERVAL_S = 0.001
 """Python's GIL switch interval in a designer server (default 0.005 s)."""
 _M_MMAP_THRESHOLD = -3  # glibc malloc.h
+_M_ARENA_MAX = -8
 
 
 MMAP_THRESHOLD = 256 << 10
@@ -50,6 +51,25 @@ MMAP_THRESHOLD = 256 << 10
 (``return_freed_buffers_to_the_os``). A stream's reused chunk buffers are 270-390 kB: at 1 MB they
 came from glibc's 16 arenas, which held ~50 MB more of freed pages (8 clients, the server process
 ~530 MB against ~495 at 256 kB; 2026-12-05, docs/load.md)."""
+
+
+MALLOC_ARENAS = 2
+"""glibc malloc arenas of a designer server process (``limit_malloc_arenas``). By default glibc
+makes up to 8 a core, and the server's ~65 threads filled 16 on 2 cores, each keeping freed pages of
+its own. 8 protocol clients (2026-12-05, docs/load.md), from the second to the sixth minute: the
+server process's RSS ~490-500 MB, +2.4 MB a minute (its malloc heap ~206-212 MB, +1.3); with 2,
+~483-488 MB, +1.3 (heap ~192-194 MB, +0.5)."""
+
+
+def _mallopt(param: int, value: int) -> bool:
+    """glibc's ``mallopt``: whether the setting took (False off Linux or off glibc)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(param, int(value)))
+    except (OSError, AttributeError):  # not glibc
+        return False
 
 
 def return_freed_buffers_to_the_os(threshold: int = MMAP_THRESHOLD) -> bool:
@@ -60,13 +80,13 @@ def return_freed_buffers_to_the_os(threshold: int = MMAP_THRESHOLD) -> bool:
     each replay's arrays come from heap arenas, whose pages are kept after the arrays die, and a
     server's RSS creeps up with every tab's replays.
     """
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, int(threshold)))
-    except (OSError, AttributeError):  # not glibc
-        return False
+    return _mallopt(_M_MMAP_THRESHOLD, threshold)
+
+
+def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:
+    """glibc: at most ``arenas`` malloc arenas for the threads started from now on (``MALLOC_ARENAS``
+    says why). Returns whether the setting took (False elsewhere)."""
+    return _mallopt(_M_ARENA_MAX, arenas)
 
 
 def tune_process() -> None:
@@ -80,6 +100,7 @@ def tune_process() -> None:
     default 5 ms to get it back.
     """
     torch.set_num_threads(DECODE_THREADS)
+    limit_malloc_arenas()
     return_freed_buffers_to_the_os()
     sys.setswitchinterval(SWITCH_INTERVAL_S)
 

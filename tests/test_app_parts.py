@@ -141,6 +141,57 @@ def test_large_freed_buffers_go_back_to_the_os_on_glibc():
     assert kept["off"] > 150 and kept["on"] < 40, kept
 
 
+_ARENAS = """
+import ctypes, re, sys, threading
+from snakeloco.app.server import limit_malloc_arenas
+if sys.argv[1] == "on":
+    assert limit_malloc_arenas(2)
+libc = ctypes.CDLL("libc.so.6")
+go, done = threading.Barrier(9), threading.Barrier(9)
+def work():
+    go.wait()
+    kept = [ctypes.create_string_buffer(4096) for _ in range(64)]  # malloc'd on this thread
+    done.wait()
+threads = [threading.Thread(target=work) for _ in range(8)]
+for t in threads:
+    t.start()
+go.wait()
+done.wait()
+for t in threads:
+    t.join()
+libc.open_memstream.restype = ctypes.c_void_p
+libc.open_memstream.argtypes = [ctypes.POINTER(ctypes.c_char_p), ctypes.POINTER(ctypes.c_size_t)]
+libc.malloc_info.argtypes, libc.fclose.argtypes = [ctypes.c_int, ctypes.c_void_p], [ctypes.c_void_p]
+buf, size = ctypes.c_char_p(), ctypes.c_size_t()
+f = libc.open_memstream(ctypes.byref(buf), ctypes.byref(size))
+libc.malloc_info(0, f)
+libc.fclose(f)
+print(len(re.findall(r'<heap nr=', ctypes.string_at(buf, size.value).decode())))
+"""
+
+
+def test_malloc_arenas_are_limited_on_glibc():
+    """Eight threads allocating at once: glibc gives each an arena of its own (9 with the main
+    thread's; up to 8 a core), each keeping freed pages; limited, they share 2."""
+    import platform
+    import subprocess
+    import sys
+
+    if not (platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"):
+        from snakeloco.app.server import limit_malloc_arenas
+
+        assert limit_malloc_arenas() is False
+        return
+    heaps = {}
+    for mode in ("off", "on"):
+        out = subprocess.run(
+            [sys.executable, "-c", _ARENAS, mode], capture_output=True, text=True, timeout=120
+        )
+        assert out.returncode == 0, out.stderr
+        heaps[mode] = int(out.stdout.strip())
+    assert heaps["on"] == 2 and heaps["off"] > 2, heaps
+
+
 def test_panel_spread_is_relative_only_where_the_mean_is_a_scale():
     assert spread_text(1.0, 0.023) == "±1 (2.3%)"
     assert spread_text(0.0091, 0.273) == "±0.0091 (27.3%)"
