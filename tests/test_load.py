@@ -75,7 +75,9 @@ def test_bench_load_protocol_clients_with_a_page_beside_them(checkpoint, capsys)
     assert 0 <= r["driver_cores"] < 1.0 and np.isfinite(r["delivery_p95_ms"]).all()
     # How late each client's 50 ms send timer fired (the driver's own delay, beside the server's).
     assert len(r["send_late_p95_ms"]) == r["clients"] and min(r["send_late_p95_ms"]) > -1.0
-    # The server's RSS, in all and split: this process and its decode process (there is one).
+    # The server's RSS, in all and split: this process and its decode process (there is one); no
+    # settled slope in a 6 s phase.
+    assert np.isnan(r["rss_settled_slope_mb_per_min"]) and np.isfinite(r["rss_slope_mb_per_min"])
     assert all(
         abs(t - this - decode) < 0.2 and this > 0 and decode > 0 for _, t, this, decode in r["rss_series_mb"]
     )

@@ -15,7 +15,8 @@ one call: one client alone, then ``clients`` at once, each for ``seconds``. Repo
   and the simulated path vs the replay of those commands;
 - server memory: resident set size sampled every 0.5 s (start, end, peak, and the slope of a
   least-squares line over the multi-client phase, over its second half, and from its
-  ``RSS_SETTLE_S``-th second on, there for this process and the decode processes apart, MB/min;
+  ``RSS_SETTLE_S``-th second on in phases three times as long, there for this process and the
+  decode processes apart, MB/min;
   ``rss_series_mb`` rows: seconds, MB in all, this process, the decode processes), and with the
   tabs connected and idle just before and just after the drags: what load leaves behind, without
   the replays in flight (each holds its physics steps for a moment) that make the samples jump;
@@ -157,7 +158,9 @@ def bench_load(
     late = (
         window[window[:, 0] >= window[0, 0] + (window[-1, 0] - window[0, 0]) / 2] if len(window) else window
     )
-    settled = window[window[:, 0] >= window[0, 0] + RSS_SETTLE_S] if len(window) else window
+    # Settled only in a phase three times as long: else a fit through a few seconds' noise.
+    long_enough = len(window) and window[-1, 0] - window[0, 0] >= 3 * RSS_SETTLE_S
+    settled = window[window[:, 0] >= window[0, 0] + RSS_SETTLE_S] if long_enough else window[:0]
     all_rss = np.asarray(rss.samples)[:, 1]
     p95s = [c["decoded_p95_ms"] for c in multi["clients"]]
     pages_checked = [ph["page"] for ph in phases.values() if ph.get("page")]
