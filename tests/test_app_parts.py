@@ -118,27 +118,36 @@ print(round(rss() - before))
 """
 
 
-def test_large_freed_buffers_go_back_to_the_os_on_glibc():
-    """30 freed 8 MB arrays with live ones between them: by default glibc keeps the 240 MB of heap
-    pages (measured 244 MB); with the setting each was its own mapping and went back (4 MB)."""
+def _off_and_on(script: str, setting: str) -> dict[str, str] | None:
+    """What ``script`` prints in fresh processes without ("off") and with ("on") the glibc setting
+    ``app.server.<setting>``; None off glibc, where the setting says it did not take."""
     import platform
     import subprocess
     import sys
 
     if not (platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"):
-        from snakeloco.app.server import return_freed_buffers_to_the_os
+        from snakeloco.app import server
 
-        assert return_freed_buffers_to_the_os() is False
-        return
-    pytest.importorskip("psutil")
-    kept = {}
+        assert getattr(server, setting)() is False
+        return None
+    printed = {}
     for mode in ("off", "on"):
         out = subprocess.run(
-            [sys.executable, "-c", _FREED_MEMORY, mode], capture_output=True, text=True, timeout=120
+            [sys.executable, "-c", script, mode], capture_output=True, text=True, timeout=120
         )
         assert out.returncode == 0, out.stderr
-        kept[mode] = float(out.stdout.strip())
-    assert kept["off"] > 150 and kept["on"] < 40, kept
+        printed[mode] = out.stdout.strip()
+    return printed
+
+
+def test_large_freed_buffers_go_back_to_the_os_on_glibc():
+    """30 freed 8 MB arrays with live ones between them: by default glibc keeps the 240 MB of heap
+    pages (measured 244 MB); with the setting each was its own mapping and went back (4 MB)."""
+    pytest.importorskip("psutil")
+    printed = _off_and_on(_FREED_MEMORY, "return_freed_buffers_to_the_os")
+    if printed is not None:
+        kept = {mode: float(mb) for mode, mb in printed.items()}
+        assert kept["off"] > 150 and kept["on"] < 40, kept
 
 
 _ARENAS = """
@@ -173,23 +182,10 @@ print(len(re.findall(r'<heap nr=', ctypes.string_at(buf, size.value).decode())))
 def test_malloc_arenas_are_limited_on_glibc():
     """Eight threads allocating at once: glibc gives each an arena of its own (9 with the main
     thread's; up to 8 a core), each keeping freed pages; limited, they share 2."""
-    import platform
-    import subprocess
-    import sys
-
-    if not (platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"):
-        from snakeloco.app.server import limit_malloc_arenas
-
-        assert limit_malloc_arenas() is False
-        return
-    heaps = {}
-    for mode in ("off", "on"):
-        out = subprocess.run(
-            [sys.executable, "-c", _ARENAS, mode], capture_output=True, text=True, timeout=120
-        )
-        assert out.returncode == 0, out.stderr
-        heaps[mode] = int(out.stdout.strip())
-    assert heaps["on"] == 2 and heaps["off"] > 2, heaps
+    printed = _off_and_on(_ARENAS, "limit_malloc_arenas")
+    if printed is not None:
+        heaps = {mode: int(n) for mode, n in printed.items()}
+        assert heaps["on"] == 2 and heaps["off"] > 2, heaps
 
 
 def test_panel_spread_is_relative_only_where_the_mean_is_a_scale():
