@@ -397,22 +397,3 @@ def test_light_rendering_drops_shadows_environment_and_grid_and_full_brings_them
         assert d.controls.layers["Grid"].value is True and d.scene.grid.visible
     finally:
         client.close()
-
-
-def test_a_tab_keeps_its_newest_timings_indexed_and_counts_every_value():
-    """A tab's request timings are bounded, and so is their index by version (it kept up to 4000 a
-    tab beside 2000 timings: 8 tabs of a 10-minute run still grew in its sixth minute)."""
-    from collections import deque
-    from types import SimpleNamespace
-
-    from snakeloco.app.tab import TIMINGS_KEPT, DesignerClient
-
-    tab = SimpleNamespace(timings=deque(maxlen=TIMINGS_KEPT), _timing_by_version={}, values_received=0)
-    for version in range(1, 3 * TIMINGS_KEPT + 1):
-        DesignerClient._record(tab, version)
-    newest = list(range(2 * TIMINGS_KEPT + 1, 3 * TIMINGS_KEPT + 1))
-    assert tab.values_received == 3 * TIMINGS_KEPT
-    assert [t.version for t in tab.timings] == newest
-    assert sorted(tab._timing_by_version) == newest
-    assert all(tab._timing_by_version[t.version] is t for t in tab.timings)
-    assert not hasattr(tab.timings[0], "__dict__")  # slots
