@@ -82,7 +82,7 @@ class SimulatedGait:
 @dataclass(slots=True)
 class Timing:
     """When each stage of one request finished (perf_counter seconds), for ``bench app``. Slots: a
-    tab keeps its last ``TIMINGS_KEPT``, 8 tabs ~16,000 of them (~5 MB with a ``__dict__`` each)."""
+    tab keeps its last ``TIMINGS_KEPT`` (``app.tab``), and each would otherwise carry a ``__dict__``."""
 
     version: int
     submitted: float

@@ -62,8 +62,8 @@ without these threads; its decoded view 46-61 ms, 46-48 and 42 (docs/load.md).""
 
 TIMINGS_KEPT = 1000
 """Request timings a tab keeps (its newest; ``DesignerClient.timings``), for the benchmarks: a 60 s
-drag phase sends ~600 a tab. A tab's memory stays bounded; with 2000 kept (and up to 4000 indexed),
-8 tabs of a 10-minute run were still adding ~0.6 MB a minute in its sixth."""
+drag phase sends 310-333 a tab. With 2000 kept (and up to 4000 indexed), 8 tabs of a 10-minute
+run filled theirs only in its sixth minute, ~6 MB in all (docs/load.md)."""
 
 
 class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
