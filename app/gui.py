@@ -22,10 +22,12 @@ NO_BASELINE = "none"
 """The Baseline dropdown's entry for "no library gait"."""
 PATH_PLOTS = {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}
 """Generated-vs-simulated plots: title -> body channel (``sim.BODY_CHANNELS``)."""
-PATH_PLOT_STEP = 2
-"""The path plots show every 2nd sample of the 5 Hz body series (250 points over 100 s, in a plot a
-few hundred pixels wide)."""
-PATH_PLOT_TIMES = BODY_TIMES[::PATH_PLOT_STEP]
+PATH_PLOT_BUCKET = 4
+"""The path plots draw each 4 samples (0.8 s) of the 5 Hz body series as their lowest and highest
+value, in the order they came, at the bucket's first and last time (``path_plot_values``): 250
+points over 100 s in a plot a few hundred pixels wide. Every 2nd sample, the same bytes, lost the
+peaks of yaw's ~0.5 Hz wiggle unevenly (its band's edge drawn ragged); an envelope keeps them."""
+PATH_PLOT_TIMES = BODY_TIMES.reshape(-1, PATH_PLOT_BUCKET)[:, [0, -1]].ravel()
 PLOT_DTYPE = np.float32
 """What the plots' series are sent as (``viser_patches.set_plot_data``): float32 is a screen's
 resolution many times over and half of viser's float64."""
@@ -116,8 +118,8 @@ class Controls:
         """Generated vs simulated body series (500, 6) in the plots; a missing one is drawn as NaN."""
         missing = np.full(len(PATH_PLOT_TIMES), np.nan)
         for name, ch in PATH_PLOTS.items():
-            gen = generated[::PATH_PLOT_STEP, ch] if generated is not None else missing
-            sim = simulated[::PATH_PLOT_STEP, ch] if simulated is not None else missing
+            gen = path_plot_values(generated[:, ch]) if generated is not None else missing
+            sim = path_plot_values(simulated[:, ch]) if simulated is not None else missing
             set_plot_data(self.plots[name], plot_series(PATH_PLOT_TIMES, gen, sim))
 
     def show_commands(self, commands: np.ndarray) -> None:
@@ -130,6 +132,16 @@ class Controls:
 def plot_series(*series: np.ndarray) -> tuple[np.ndarray, ...]:
     """Series as the plots hold and send them (``PLOT_DTYPE``)."""
     return tuple(np.ascontiguousarray(s, dtype=PLOT_DTYPE) for s in series)
+
+
+def path_plot_values(series: np.ndarray) -> np.ndarray:
+    """What a path plot draws of one (500,) body series, as sent (``PLOT_DTYPE``): of each
+    ``PATH_PLOT_BUCKET`` samples the lowest and the highest, the earlier first (a monotone bucket
+    keeps its first and last sample exactly), at ``PATH_PLOT_TIMES``."""
+    buckets = np.asarray(series).reshape(-1, PATH_PLOT_BUCKET)
+    lo, hi = buckets.argmin(axis=1), buckets.argmax(axis=1)
+    order = np.where((lo <= hi)[:, None], np.stack([lo, hi], 1), np.stack([hi, lo], 1))
+    return plot_series(np.take_along_axis(buckets, order, axis=1).ravel())[0]
 
 
 def build_sliders(gui: viser.GuiApi, folder, z_b_dim: int, components: list[str] | None = None):

@@ -12,6 +12,7 @@ from test_app_parts import bad_gait_files
 
 from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.gait_csv import read_gait_csv, write_gait_csv
+from snakeloco.app.gui import path_plot_values
 from snakeloco.app.scene import FAN_STEP, shape_points
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.session import Latents
@@ -86,7 +87,7 @@ def test_slider_change_decodes_replays_and_draws(server):
         assert re.search(r"\|\n\nxy-path R²", d.controls.panel.content)
         # The drawn simulated path is this gait's replay.
         np.testing.assert_array_equal(
-            d.controls.plots["forward (m)"].data[2], d.simulated.body[::8, 1].astype(np.float32)
+            d.controls.plots["forward (m)"].data[2], path_plot_values(d.simulated.body[::4, 1])
         )
     finally:
         client.close()
@@ -288,7 +289,7 @@ def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server
         assert [n for z, n in parts if z == 1.6] == [*range(first_n, 2000, chunk), 2000]
         assert not np.isfinite(first.replayed) and np.isfinite(d.timings[-1].ensembled)
         np.testing.assert_array_equal(
-            d.controls.plots["forward (m)"].data[2], d.simulated.body[::8, 1].astype(np.float32)
+            d.controls.plots["forward (m)"].data[2], path_plot_values(d.simulated.body[::4, 1])
         )
         assert d.decoded.latents.z_b[0] == 1.6
     finally:

@@ -286,3 +286,44 @@ def test_a_tab_keeps_its_newest_timings_indexed_and_counts_every_value():
     assert sorted(tab._timing_by_version) == newest
     assert all(tab._timing_by_version[t.version] is t for t in tab.timings)
     assert not hasattr(tab.timings[0], "__dict__")  # slots
+
+
+def test_the_path_plots_draw_each_bucket_as_its_extremes_in_the_order_they_came():
+    """Yaw's ~0.5 Hz wiggle at 5 Hz: every 2nd sample lost its peaks unevenly; the envelope keeps
+    each cycle's highest and lowest sample in as many points, and a monotone path's samples exactly."""
+    from snakeloco.app.gui import PATH_PLOT_BUCKET, PATH_PLOT_TIMES, path_plot_values
+    from snakeloco.sim import BODY_TIMES
+
+    assert len(PATH_PLOT_TIMES) == 2 * len(BODY_TIMES) // PATH_PLOT_BUCKET and np.all(
+        np.diff(PATH_PLOT_TIMES) > 0
+    )
+    yaw = 0.3 * np.sin(2 * np.pi * 0.52 * BODY_TIMES) + 0.01 * BODY_TIMES
+    drawn = path_plot_values(yaw)
+    assert drawn.dtype == np.float32 and drawn.shape == PATH_PLOT_TIMES.shape
+    cycle = 1 / 0.52
+    for k in range(int(BODY_TIMES[-1] / cycle)):
+        at = (BODY_TIMES >= k * cycle) & (BODY_TIMES < (k + 1) * cycle)
+        near = (PATH_PLOT_TIMES >= k * cycle - 0.6) & (PATH_PLOT_TIMES < (k + 1) * cycle + 0.6)
+        assert drawn[near].max() >= np.float32(yaw[at].max()) and drawn[near].min() <= np.float32(
+            yaw[at].min()
+        )
+    every_2nd = yaw[::2]  # what was drawn before, in the same bytes: some cycles' peaks lost
+    lost = [
+        yaw[at].max() - every_2nd[at[::2]].max()
+        for k in range(50)
+        if (at := (BODY_TIMES // cycle == k)).any()
+    ]
+    assert max(lost) > 0.03
+    # Each bucket: its lowest and highest, the earlier first.
+    b = yaw.reshape(-1, PATH_PLOT_BUCKET)
+    pairs = drawn.reshape(-1, 2)
+    np.testing.assert_array_equal(
+        np.sort(pairs, axis=1), np.stack([b.min(1), b.max(1)], 1).astype(np.float32)
+    )
+    rising = b.argmin(1) < b.argmax(1)
+    assert np.all((pairs[:, 0] < pairs[:, 1]) == rising)
+    # A monotone path keeps its samples at the bucket's first and last time.
+    forward = 0.1 * BODY_TIMES + 0.02 * np.sin(BODY_TIMES)
+    np.testing.assert_array_equal(
+        path_plot_values(forward), np.interp(PATH_PLOT_TIMES, BODY_TIMES, forward).astype(np.float32)
+    )

@@ -18,7 +18,7 @@ from snakeloco.app.bench import load_driver
 from snakeloco.app.bench.load_driver import CHROMIUM, wait_until
 from snakeloco.app.bench.processes import CpuSplit, rss_mb
 from snakeloco.app.gait_csv import read_gait_csv
-from snakeloco.app.gui import PATH_PLOT_STEP, plot_series
+from snakeloco.app.gui import path_plot_values
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.tab import DesignerClient
 from snakeloco.sim import BODY_DOWNSAMPLE
@@ -175,7 +175,7 @@ def replay_problems(d: DesignerClient) -> list[str]:
     physics refused the gait (thrown, diverged), the panel saying so for that gait."""
     if d.simulated is not None:
         drawn = d.controls.plots["forward (m)"].data[2]
-        if np.array_equal(drawn, plot_series(d.simulated.body[:: BODY_DOWNSAMPLE * PATH_PLOT_STEP, 1])[0]):
+        if np.array_equal(drawn, path_plot_values(d.simulated.body[::BODY_DOWNSAMPLE, 1])):
             return []
         return ["drawn simulated path is not the final replay"]
     last = d.timings[-1] if d.timings else None
@@ -208,9 +208,7 @@ def check_final_state(browser: Browser, d: DesignerClient, tmp: Path, index: int
     else:
         shape, body = d.model.decode(z_b)
         commands = d.model.commands(shape[0])
-    if not np.array_equal(
-        d.controls.plots["forward (m)"].data[1], plot_series(body[0, ::PATH_PLOT_STEP, 1])[0]
-    ):
+    if not np.array_equal(d.controls.plots["forward (m)"].data[1], path_plot_values(body[0, :, 1])):
         problems.append("drawn generated path is not the decode of the final sliders")
     problems += replay_problems(d)
     path = tmp / f"client{index}.csv"

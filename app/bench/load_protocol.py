@@ -28,7 +28,7 @@ from snakeloco.app.bench.load_browser import (
 )
 from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.bench.processes import SPARED, CpuSplit, rss_mb
-from snakeloco.app.gui import PATH_PLOT_STEP, plot_series
+from snakeloco.app.gui import path_plot_values
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.tab import DesignerClient
 
@@ -78,7 +78,7 @@ def server_problems(d: DesignerClient, s: dict) -> list[str]:
         return ["no gait decoded for the final sliders"]
     _, body = d.model.decode(np.asarray(d.decoded.latents.z_b)[None])
     problems = []
-    want = plot_series(body[0, ::PATH_PLOT_STEP, 1])[0]
+    want = path_plot_values(body[0, :, 1])
     if s["generated"] is None or not np.array_equal(np.asarray(s["generated"], want.dtype), want):
         problems.append("the generated path the client received is not the decode of its final sliders")
     return problems + replay_problems(d)
