@@ -17,6 +17,11 @@ FRAME_HZ = 20.0
 not make 3 tabs rendering in one software-WebGL Chromium answer key presses sooner, docs/load.md)."""
 SCRUBBER_PERIOD_S = 0.5
 """How often the playing animation moves the time scrubber (the snake itself moves every frame)."""
+PAUSED_WAIT_S = 1.0
+"""A paused animation thread sleeps until played again, waking this often only to see whether its tab
+has closed. It woke 20 times a second to find itself paused: 8 protocol clients' paused tabs took
+0.011 cores and waited 0.03-0.04 thread-seconds a second for a core beside the decodes and draws
+(bench load, 2026-12-05, docs/load.md)."""
 
 PAUSE_WHEN_HIDDEN_JS = """
 (() => {
@@ -109,11 +114,22 @@ class Playback:
     ) -> None:
         self.controls = controls
         self.frame = 0
-        self.playing = True
+        self._playing = True
+        self._wake = threading.Event()  # set to wake a paused thread (played again, or closing)
         self._position = 0.0
         self._draw, self._ready, self._closed = draw, ready, closed
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
+
+    @property
+    def playing(self) -> bool:
+        return self._playing
+
+    @playing.setter
+    def playing(self, value: bool) -> None:
+        self._playing = bool(value)
+        if value:
+            self._wake.set()
 
     def toggle(self) -> None:
         """Play or pause."""
@@ -136,7 +152,13 @@ class Playback:
     def _run(self) -> None:
         last_scrub = 0.0
         step = RECORD.sample_rate / FRAME_HZ  # record samples per frame at speed 1
-        while not self._closed.wait(1.0 / FRAME_HZ):
+        while not self._closed.is_set():
+            if not self._playing:
+                self._wake.wait(PAUSED_WAIT_S)
+                self._wake.clear()  # then reads ``_playing`` again, which is set before the wake
+                continue
+            if self._closed.wait(1.0 / FRAME_HZ):
+                return
             if not self.playing or not self._ready():
                 continue
             try:
@@ -152,4 +174,6 @@ class Playback:
                     return
 
     def join(self, timeout: float = 5.0) -> None:
+        """Wait for the thread to end (after ``closed`` is set: a paused one is woken to see it)."""
+        self._wake.set()
         self._thread.join(timeout=timeout)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import re
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -327,3 +328,43 @@ def test_the_path_plots_draw_each_bucket_as_its_extremes_in_the_order_they_came(
     np.testing.assert_array_equal(
         path_plot_values(forward), np.interp(PATH_PLOT_TIMES, BODY_TIMES, forward).astype(np.float32)
     )
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads a thread's wake-ups from Linux /proc")
+def test_a_paused_animation_sleeps_until_played_and_closes_at_once():
+    """A paused tab's animation thread does not wake 20 times a second to find itself paused; playing
+    it again (the button, or ``playing`` set) wakes it; closing wakes a paused one too."""
+    from types import SimpleNamespace
+
+    from snakeloco.app.bench.load_driver import wait_until
+    from snakeloco.app.playback import FRAME_HZ, PAUSED_WAIT_S, Playback
+
+    def runs(thread: threading.Thread) -> int:
+        """How many times the thread has been put on a core (Linux schedstat): its wake-ups."""
+        with open(f"/proc/self/task/{thread.native_id}/schedstat") as f:
+            return int(f.read().split()[2])
+
+    draws = []
+    controls = SimpleNamespace(
+        play_button=SimpleNamespace(label="Pause"),
+        speed=SimpleNamespace(value=1.0),
+        scrubber=SimpleNamespace(value=0.0),
+    )
+    closed = threading.Event()
+    playback = Playback(controls, draws.append, lambda: True, closed, name="animate-test")
+    try:
+        assert wait_until(lambda: len(draws) >= 3, 5.0)  # playing: a pose every 1 / FRAME_HZ s
+        playback.toggle()
+        assert controls.play_button.label == "Play" and not playback.playing
+        time.sleep(2 / FRAME_HZ)  # a frame that was waiting may still finish
+        n_draws, n_runs = len(draws), runs(playback._thread)
+        time.sleep(0.6)  # 12 frames' time, under PAUSED_WAIT_S: asleep, not waking to poll
+        assert len(draws) == n_draws and runs(playback._thread) == n_runs
+        playback.playing = True  # as a hidden tab shown again sets it
+        assert wait_until(lambda: len(draws) > n_draws, 0.5 * PAUSED_WAIT_S)
+        playback.toggle()
+    finally:
+        closed.set()
+        t0 = time.perf_counter()
+        playback.join()
+        assert not playback._thread.is_alive() and time.perf_counter() - t0 < 0.5 * PAUSED_WAIT_S
