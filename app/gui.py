@@ -139,8 +139,7 @@ def path_plot_values(series: np.ndarray) -> np.ndarray:
     ``PATH_PLOT_BUCKET`` samples the lowest and the highest, the earlier first (a monotone bucket
     keeps its first and last sample exactly), at ``PATH_PLOT_TIMES``."""
     buckets = np.asarray(series).reshape(-1, PATH_PLOT_BUCKET)
-    lo, hi = buckets.argmin(axis=1), buckets.argmax(axis=1)
-    order = np.where((lo <= hi)[:, None], np.stack([lo, hi], 1), np.stack([hi, lo], 1))
+    order = np.sort(np.stack([buckets.argmin(axis=1), buckets.argmax(axis=1)], axis=1), axis=1)
     return plot_series(np.take_along_axis(buckets, order, axis=1).ravel())[0]
 
 
