@@ -13,6 +13,8 @@ structured family has none).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from snakeloco.sim.excitation import RECORD
@@ -162,6 +164,24 @@ def _fit_wave(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig)
     return GaitEquation(a_pitch=a_p, a_yaw=a_y, nu_pitch=nu_p, nu_yaw=nu_y, delta=delta, frequency=frequency)
 
 
+@functools.cache
+def _library_templates(kind: str) -> tuple[np.ndarray, dict[float, np.ndarray]]:
+    """The library gait's pitch template and its yaw template per direction (+1; -1 for an
+    undulation's backward wave), complex (8,): ``_fit_library``'s constants, made once a kind."""
+    base = library_gait(kind)
+    k = MODULES.astype(float)
+    pitch = np.where(PITCH, base.a_pitch * np.exp(1j * base.nu_pitch * k), 0)
+    signs = (1.0, -1.0) if kind == "undulate" else (1.0,)
+    yaws = {sign: np.where(PITCH, 0, base.a_yaw * np.exp(1j * sign * base.nu_yaw * k)) for sign in signs}
+    return _frozen(pitch), {sign: _frozen(yaw) for sign, yaw in yaws.items()}
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """``a``, read-only: a cached constant that no caller may change."""
+    a.flags.writeable = False
+    return a
+
+
 def _fit_library(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig) -> GaitEquation:
     """The library family's ``kind`` wave at ``frequency`` closest to coefficients c (8,) complex at
     its bin: the library gait's pitch and yaw templates, the yaw one forward or backward
@@ -170,12 +190,10 @@ def _fit_library(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConf
     in ``amplitude_scale``. Closed forms throughout: a member projects onto itself to rounding."""
     base = library_gait(kind)
     z = c * 1j  # A e^{i phi_k} (``_fit_wave``)
-    k = MODULES.astype(float)
-    pitch = np.where(PITCH, base.a_pitch * np.exp(1j * base.nu_pitch * k), 0)
+    pitch, yaws = _library_templates(kind)
     lo, hi = cfg.amplitude_scale
-    best: tuple[float, GaitEquation] | None = None
-    for sign in (1.0, -1.0) if kind == "undulate" else (1.0,):
-        yaw = np.where(PITCH, 0, base.a_yaw * np.exp(1j * sign * base.nu_yaw * k))
+    best: tuple[float, float, float, float] | None = None  # residual, scale, direction, offset
+    for sign, yaw in yaws.items():
         if kind in cfg.library_offsets:
             found = float(np.angle((z * np.conj(yaw)).sum()))
             ranges = [cfg.library_offsets[kind], tuple(np.add(cfg.library_offsets[kind], np.pi))]
@@ -187,15 +205,15 @@ def _fit_library(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConf
             s = float(np.clip((np.conj(template) * z).sum().real / (np.abs(template) ** 2).sum(), lo, hi))
             r = float(np.linalg.norm(z - s * template))
             if best is None or r < best[0] - 1e-12:
-                wave = base.scaled(s).model_copy(
-                    update={
-                        "nu_yaw": sign * base.nu_yaw,
-                        "delta": float(np.angle(np.exp(1j * delta))),
-                        "frequency": frequency,
-                    }
-                )
-                best = (r, wave)
-    return best[1]
+                best = (r, s, sign, delta)
+    _, s, sign, delta = best
+    return base.scaled(s).model_copy(
+        update={
+            "nu_yaw": sign * base.nu_yaw,
+            "delta": float(np.angle(np.exp(1j * delta))),
+            "frequency": frequency,
+        }
+    )
 
 
 def _nearest_in(angle: float, bounds: tuple[float, float]) -> float:
@@ -220,6 +238,13 @@ def _steering(c0: np.ndarray, cfg: StructuredConfig) -> tuple[float, float]:
     return float(np.clip(amplitude, lo, hi)), float(np.angle(s))
 
 
+@functools.cache
+def _curve_template(frequency: float, b: int, mirrored: bool) -> np.ndarray:
+    """The unit curving wave's coefficients (8,) complex at its bin b (``_curve``'s constants)."""
+    t = curve_wave(1.0, frequency, mirrored).shape()
+    return _frozen(t[:, b, 0] + 1j * t[:, b, 1])
+
+
 def _curve(c: np.ndarray, wave: GaitEquation, cfg: StructuredConfig) -> GaitEquation | None:
     """The curving wave (``curve_wave``) closest to coefficients c (8, L) complex beside the
     undulation ``wave``: as tuned or mirrored, whichever fits, at the least-squares scale snapped to
@@ -231,8 +256,7 @@ def _curve(c: np.ndarray, wave: GaitEquation, cfg: StructuredConfig) -> GaitEqua
     lo, hi = np.multiply(cfg.curve_scale, undulation_scale(wave))
     best: tuple[float, bool] = (-np.inf, False)
     for mirrored in (False, True):
-        t = curve_wave(1.0, cfg.curve_frequency, mirrored).shape()
-        t = t[:, b, 0] + 1j * t[:, b, 1]
+        t = _curve_template(cfg.curve_frequency, b, mirrored)
         s = float((np.conj(t) * c[:, b]).sum().real / (np.abs(t) ** 2).sum())
         if s > best[0]:
             best = (s, mirrored)
@@ -242,21 +266,25 @@ def _curve(c: np.ndarray, wave: GaitEquation, cfg: StructuredConfig) -> GaitEqua
     return curve_wave(float(np.clip(s, lo, hi)), cfg.curve_frequency, mirrored)
 
 
-def _within_limit(member: Member) -> Member:
-    """The member scaled as ``draw_structured`` scales a draw: its peak command at most the limit."""
+def _within_limit(member: Member) -> tuple[Member, np.ndarray]:
+    """The member scaled as ``draw_structured`` scales a draw (its peak command at most the limit),
+    and its shape (``Member.shape``)."""
     shape = member.shape()
     if np.hypot(shape[..., 0], shape[..., 1]).sum(axis=1).max() <= COMMAND_LIMIT:
-        return member  # the sum of a joint's amplitudes bounds its peak: no synthesis needed
+        return member, shape  # the sum of a joint's amplitudes bounds its peak: no synthesis needed
     peak = float(np.abs(shape_to_commands(shape, limit=np.inf)).max())
     if peak <= COMMAND_LIMIT:
-        return member
-    return member.scaled(COMMAND_LIMIT / peak)
+        return member, shape
+    member = member.scaled(COMMAND_LIMIT / peak)
+    return member, member.shape()
 
 
-def residual(shape: np.ndarray, member: Member) -> float:
-    """Relative distance of a commanded shape (8, L, 2) from a member: ||c - c_m|| / ||c||."""
+def residual(shape: np.ndarray, member: Member | np.ndarray) -> float:
+    """Relative distance of a commanded shape (8, L, 2) from a member (or the member's shape):
+    ||c - c_m|| / ||c||."""
     shape = np.asarray(shape, np.float64)
-    return float(np.linalg.norm(shape - member.shape()) / max(np.linalg.norm(shape), 1e-12))
+    theirs = member if isinstance(member, np.ndarray) else member.shape()
+    return float(np.linalg.norm(shape - theirs) / max(np.linalg.norm(shape), 1e-12))
 
 
 def project(
@@ -282,10 +310,10 @@ def project(
             fit = _fit_library if cfg.library else _fit_wave
             wave = fit(kind, c[:, b], float(FREQS[b]), cfg)
             curve = _curve(c, wave, cfg) if kind == "undulate" else None
-            member = _within_limit(
+            member, theirs = _within_limit(
                 Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase, curve=curve)
             )
-            r = residual(shape, member)
+            r = residual(shape, theirs)
             if best is None or r < best[0] - 1e-9:
                 best = (r, member)
         if best is not None:
