@@ -1,6 +1,6 @@
 """A designer server's decodes in a child process of their own, away from the server's GIL.
 
-Why: a decode is ~4 ms of torch graphs, numpy and Python alone, but in a server with 8 tabs it took
+Why: a decode is 3-4 ms of torch graphs, numpy and Python alone, but in a server with 8 tabs it took
 9-12 ms (p95): its every numpy call and Python line waits for the GIL that the server's drawing and
 websocket threads hold in bursts. In a child process the same decode took 4.0 / 4.2 ms (p50 / p95)
 beside two bursty Python threads where a thread took 8.1 / 10.6 (docs/load.md), and the server's
