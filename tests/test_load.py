@@ -73,6 +73,9 @@ def test_bench_load_protocol_clients_with_a_page_beside_them(checkpoint, capsys)
     )
     assert all(5 < kb < 500 for kb in [r["single_kb_per_move"], *r["kb_per_move"]]), r["kb_per_move"]
     assert 0 <= r["driver_cores"] < 1.0 and np.isfinite(r["delivery_p95_ms"]).all()
+    # Every decoded view the server drew, pooled over a phase's tabs: at least one a client.
+    assert r["views_drawn"] >= r["clients"]
+    assert 0 < r["multi_views_p95_ms"] <= r["multi_views_p99_ms"] and 0 < r["single_views_p95_ms"]
     # How late each client's 50 ms send timer fired (the driver's own delay, beside the server's).
     assert len(r["send_late_p95_ms"]) == r["clients"] and min(r["send_late_p95_ms"]) > -1.0
     # The server's RSS, in all and split: this process and its decode process (there is one); no

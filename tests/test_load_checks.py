@@ -6,6 +6,8 @@ import threading
 import time
 from types import SimpleNamespace
 
+import pytest
+
 import snakeloco.app.bench.load_browser as load
 
 
@@ -127,3 +129,12 @@ def test_browser_nice_puts_the_browsers_threads_at_its_nice_and_in_the_idle_clas
             plain.stop()
         child.kill()
         child.wait()
+
+
+def test_every_view_a_tab_drew_is_timed_server_side_and_the_superseded_ones_are_not():
+    from snakeloco.app.session import Timing
+
+    drawn, superseded, late = Timing(1, 10.0), Timing(2, 10.05), Timing(3, 10.1)
+    drawn.decoded, late.decoded = 10.012, 10.125  # the second value was overtaken before its draw
+    assert load.view_times_ms([drawn, superseded, late]) == pytest.approx([12.0, 25.0])
+    assert load.view_times_ms([]) == []

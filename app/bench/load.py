@@ -51,6 +51,7 @@ from snakeloco.app.bench.load_browser import (
     BREAKDOWN,
     Pages,
     browser_phase,
+    percentile,
     require_browser,
 )
 from snakeloco.app.bench.load_driver import DWELL_S
@@ -194,6 +195,12 @@ def bench_load(
         "single_breakdown_p95_ms": {k: single[f"{k}_p95_ms"] for k in BREAKDOWN},
         "multi_breakdown_p95_ms": {k: [c[f"{k}_p95_ms"] for c in multi["clients"]] for k in BREAKDOWN},
         "p95_ratio": float(np.nanmax(p95s) / single["decoded_p95_ms"]),
+        # Every decoded view drawn in a phase, pooled over its tabs (``view_times_ms``).
+        "views_drawn": len(views := [v for c in multi["clients"] for v in c["view_ms"]]),
+        "single_views_p95_ms": percentile(single["view_ms"], 95),
+        "single_views_p99_ms": percentile(single["view_ms"], 99),
+        "multi_views_p95_ms": percentile(views, 95),
+        "multi_views_p99_ms": percentile(views, 99),
         "updates": [c["updates"] for c in multi["clients"]],
         # Replays that finished before a newer slider value superseded them (their latencies above).
         "replays_drawn": [c["replays_drawn"] for c in multi["clients"]],

@@ -81,6 +81,13 @@ def breakdown_p95(timings) -> dict[str, float]:
     }
 
 
+def view_times_ms(timings) -> list[float]:
+    """Every decoded view a tab drew, server side (value in -> view drawn; ms): each value a drag
+    passed through, not only its last, so that a phase has thousands where it has ~100 drags (the
+    tail of the server's own time, steady from run to run where the worst client's p95 is not)."""
+    return [1e3 * (t.decoded - t.submitted) for t in timings if np.isfinite(t.decoded)]
+
+
 class Browser:
     """One user: a Chromium page driven from a process of its own (``load_driver``), so that
     every page drags at its own pace, as users' browsers on their own machines do."""
@@ -286,6 +293,7 @@ def _drive(
                 "decoded_p50_ms": percentile(dec, 50),
                 "decoded_p95_ms": percentile(dec, 95),
                 **breakdown_p95(ts),
+                "view_ms": view_times_ms(ts),
                 "replay_p50_ms": percentile(rep, 50),
                 "replay_p95_ms": percentile(rep, 95),
                 "first_motion_p50_ms": percentile(motion, 50),

@@ -24,6 +24,7 @@ from snakeloco.app.bench.load_browser import (
     percentile,
     replay_problems,
     stale_checks,
+    view_times_ms,
     wait_quiet,
 )
 from snakeloco.app.bench.load_driver import wait_until
@@ -190,6 +191,7 @@ def protocol_phase(
                     "delivery_p95_ms": s["delivery_p95_ms"],
                     "send_late_p95_ms": s["send_late_p95_ms"],
                     **breakdown_p95(d.timings if d else []),
+                    "view_ms": view_times_ms(d.timings if d else []),
                     "drags": s["drags"],
                     "kb_per_drag": s["bytes_dragging"] / 1e3 / max(1, s["drags"]),
                     "kb_per_view": s["bytes_dragging"] / 1e3 / views,

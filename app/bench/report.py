@@ -98,6 +98,9 @@ def load(r: dict) -> None:
         + ", ".join(f"{v:.1f}" for v in r["multi_decoded_p95_ms"])
         + f" ms; worst / single p95 = {r['p95_ratio']:.2f} (goal <= 2)\n"
         f"p95 breakdown (ms), 1 client -> each of {r['clients']}: {breakdown}\n"
+        f"every decoded view drawn, server side: p95 {r['single_views_p95_ms']:.1f} -> "
+        f"{r['multi_views_p95_ms']:.1f} ms, p99 {r['single_views_p99_ms']:.1f} -> {r['multi_views_p99_ms']:.1f} "
+        f"ms ({r['views_drawn']} views with {r['clients']} clients)\n"
         f"first motion p95: 1 client {r['single_first_motion_p95_ms']:.0f} ms, each of {r['clients']} "
         + ", ".join(f"{v:.0f}" for v in r["multi_first_motion_p95_ms"])
         + f" ms (worst / single {r['first_motion_p95_ratio']:.2f}, worst / best {r['first_motion_worst_best']:.2f})\n"
