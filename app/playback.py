@@ -101,7 +101,7 @@ class Playback:
     """Which record sample the snake shows, advanced one sample per frame at speed 1 (20 Hz).
 
     ``draw(frame)`` poses the snake at a record sample; ``ready()`` says whether there is a replay to
-    play. The thread stops when ``closed`` is set (``join`` waits for it).
+    play, and a page to play it to. The thread stops when ``closed`` is set (``join`` waits for it).
     """
 
     def __init__(

@@ -32,7 +32,7 @@ from snakeloco.app.readout import TabReadout
 from snakeloco.app.scene import END_SPREAD, TabScene
 from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
 from snakeloco.app.tab_jobs import TabJobs
-from snakeloco.app.viser_patches import run_javascript
+from snakeloco.app.viser_patches import connection_closed, run_javascript
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
@@ -145,7 +145,10 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self.playback = Playback(
             self.controls,
             self._draw_snake,
-            lambda: self.simulated is not None or self.streaming is not None,
+            # a replay to play, and a page to play it to (viser closes the tab after its connection)
+            lambda: (
+                (self.simulated is not None or self.streaming is not None) and not connection_closed(client)
+            ),
             self._closed,
             name=f"animate-{client.client_id}",
         )
@@ -252,7 +255,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
 
     def is_current(self, version: int) -> bool:
         """Whether ``version`` is still this tab's newest request (only then may it be drawn)."""
-        return version == self._version and not self._closed.is_set()
+        return version == self._version and not self._closed.is_set() and not connection_closed(self.client)
 
     def idle(self) -> bool:
         return self.decoder.idle() and self.physics.idle() and self.ensembles.idle()
@@ -350,9 +353,10 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self.client.flush()
 
     def _draw_snake(self, frame: int | None = None) -> None:
-        """Pose the snake at record sample ``frame`` (default: the playback's) of the current replay."""
+        """Pose the snake at record sample ``frame`` (default: the playback's) of the current replay
+        (nothing once the page has left: viser closes the tab a moment after its connection)."""
         motion = self.simulated if self.simulated is not None else self.streaming
-        if motion is None:
+        if motion is None or self._closed.is_set() or connection_closed(self.client):
             return
         frame = self.playback.frame if frame is None else frame
         qpos = motion.qpos

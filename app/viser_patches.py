@@ -133,6 +133,15 @@ def set_plot_data(handle, data: tuple[np.ndarray, ...]) -> None:
     handle._queue_update("data", data)
 
 
+def connection_closed(client: viser.ClientHandle) -> bool:
+    """Whether ``client``'s connection has closed (its page left): what is queued for it now is never
+    delivered, and viser warns of it. viser calls its disconnect callbacks a moment later; until
+    then a tab's threads may still draw. False where the internals differ."""
+    connection = getattr(client, "_websock_connection", None)
+    buffer = getattr(connection, "get_message_buffer", None)
+    return bool(buffer is not None and getattr(buffer(), "done", False))
+
+
 def run_javascript(client: viser.ClientHandle, source: str) -> bool:
     """Run ``source`` once in ``client``'s page (viser's own message for plotly's set-up); whether
     it was sent."""

@@ -119,6 +119,36 @@ def test_a_client_that_stops_reading_does_not_stall_the_others_and_is_closed(che
         srv.stop()
 
 
+@pytest.mark.slow
+def test_a_tab_whose_page_has_left_draws_nothing_more(checkpoint):
+    """Between a page's connection closing and viser's disconnect callback closing its tab, the
+    tab's threads (the animation, a replay's chunks) may still draw: they see the connection closed
+    and stop, where each draw would be dropped and viser would warn of it."""
+    import warnings
+
+    from snakeloco.app.viser_patches import connection_closed
+
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    try:
+        c, d = connect_headless(srv)
+        assert d.simulated is not None
+        close, d.close = d.close, lambda: None  # the server's disconnect callback: held back
+        version = d.version
+        assert d.is_current(version) and not connection_closed(d.client)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            c.close()
+            assert wait_until(lambda: connection_closed(d.client), 30)
+            assert not d.is_current(version)  # a replay's chunk or ensemble draws nothing more
+            for frame in (7, 11):  # the animation's draws, at poses the snake is not in
+                d._draw_snake(frame)
+            time.sleep(0.3)  # the animation thread's own frames meanwhile
+        assert [str(w.message) for w in caught] == []
+        close()
+    finally:
+        srv.stop()
+
+
 def test_bunched_arrivals_tell_clients_in_step_from_independent_ones():
     from types import SimpleNamespace as NS
 
