@@ -90,6 +90,7 @@ def set_arrays(handle, **values: np.ndarray) -> None:
     positions and orientations), 20 times a second per animating tab. Here the handle's stored
     props are updated as viser's own setter does (same dtype, a private copy for the wire) and one
     message carries both. Where the internals differ, each property is assigned the usual way.
+    Nothing is queued once the connection has closed (its page left): viser would drop it and warn.
     """
     impl = getattr(handle, "_impl", None)
     api = getattr(impl, "api", None)
@@ -115,7 +116,7 @@ def set_arrays(handle, **values: np.ndarray) -> None:
         else:
             setattr(props, name, value.copy())
         updates[name] = value.copy()
-    if updates:
+    if updates and not _closed(getattr(api, "_websock_interface", None)):  # else never delivered
         api._queue_scene_message(_messages.SceneNodeUpdateMessage(impl.name, updates))
 
 
@@ -137,7 +138,11 @@ def connection_closed(client: viser.ClientHandle) -> bool:
     """Whether ``client``'s connection has closed (its page left): what is queued for it now is never
     delivered, and viser warns of it. viser calls its disconnect callbacks a moment later; until
     then a tab's threads may still draw. False where the internals differ."""
-    connection = getattr(client, "_websock_connection", None)
+    return _closed(getattr(client, "_websock_connection", None))
+
+
+def _closed(connection) -> bool:
+    """Whether a viser connection (a client's, or the server's) has closed its message buffer."""
     buffer = getattr(connection, "get_message_buffer", None)
     return bool(buffer is not None and getattr(buffer(), "done", False))
 

@@ -219,6 +219,22 @@ def test_the_metre_grid_is_thin_quads_on_the_ground_one_per_line():
     assert np.all((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0] > 0)  # facing up
 
 
+def test_set_arrays_sends_one_update_and_nothing_once_the_connection_has_closed():
+    from types import SimpleNamespace as NS
+
+    from snakeloco.app.viser_patches import set_arrays
+
+    buffer, sent = NS(done=False), []
+    api = NS(_queue_scene_message=sent.append, _websock_interface=NS(get_message_buffer=lambda: buffer))
+    props = NS(points=np.zeros((2, 3), np.float32), colors=np.zeros((2, 3), np.uint8))
+    handle = NS(_impl=NS(api=api, props=props, name="/cloud", removed=False))
+    set_arrays(handle, points=np.ones((2, 3)), colors=np.full((2, 3), 9))
+    assert len(sent) == 1 and set(sent[0].updates) == {"points", "colors"}  # one message for both
+    buffer.done = True  # the page left
+    set_arrays(handle, points=np.full((2, 3), 2.0))
+    assert len(sent) == 1 and props.points[0, 0] == 2.0  # kept, not sent
+
+
 def test_framing_sends_a_camera_move_only_where_the_view_would_move():
     """A drag's next path frames within ``FRAME_STILL`` of the last: no camera message for it; a path
     that outgrows the view moves the camera; a user's own camera is left alone unless forced."""
