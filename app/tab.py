@@ -145,10 +145,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self.playback = Playback(
             self.controls,
             self._draw_snake,
-            # a replay to play, and a page to play it to (viser closes the tab after its connection)
-            lambda: (
-                (self.simulated is not None or self.streaming is not None) and not connection_closed(client)
-            ),
+            lambda: (self.simulated is not None or self.streaming is not None) and not self.page_left,
             self._closed,
             name=f"animate-{client.client_id}",
         )
@@ -255,7 +252,13 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
 
     def is_current(self, version: int) -> bool:
         """Whether ``version`` is still this tab's newest request (only then may it be drawn)."""
-        return version == self._version and not self._closed.is_set() and not connection_closed(self.client)
+        return version == self._version and not self.page_left
+
+    @property
+    def page_left(self) -> bool:
+        """Whether this tab is closed or its page's connection is (viser closes the tab a moment after
+        its connection): then nothing is drawn, as nothing would be delivered."""
+        return self._closed.is_set() or connection_closed(self.client)
 
     def idle(self) -> bool:
         return self.decoder.idle() and self.physics.idle() and self.ensembles.idle()
@@ -354,9 +357,9 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
 
     def _draw_snake(self, frame: int | None = None) -> None:
         """Pose the snake at record sample ``frame`` (default: the playback's) of the current replay
-        (nothing once the page has left: viser closes the tab a moment after its connection)."""
+        (nothing once the page has left)."""
         motion = self.simulated if self.simulated is not None else self.streaming
-        if motion is None or self._closed.is_set() or connection_closed(self.client):
+        if motion is None or self.page_left:
             return
         frame = self.playback.frame if frame is None else frame
         qpos = motion.qpos
