@@ -19,12 +19,16 @@ from snakeloco.app.bench import report
 from snakeloco.app.bench.options import BENCH_HELP, BENCH_MODULES, BENCHES
 from snakeloco.app.commands import (
     COMMANDS,
+    ROBOT_COMMANDS,
     Calibrate,
     Design,
     Evaluate,
     Figures,
     Gait,
     Generate,
+    Robot,
+    RobotMjcf,
+    RobotShow,
     Serve,
     Train,
 )
@@ -41,6 +45,7 @@ OUTPUTS: dict[type, dict[str, str]] = {
     Evaluate: {"report": "file", "replays": "file"},
     Calibrate: {"out": "dir", "gaits": "file"},
     Figures: {"out": "dir"},
+    RobotMjcf: {"out": "file"},
 }
 REUSED_WHEN_PRESENT = {"replays", "gaits"}
 
@@ -257,6 +262,35 @@ def run_serve(cmd: Serve) -> None:
     serve(cmd.host, cmd.port, cmd.checkpoint, cmd.ensemble)
 
 
+def _robot(path: Path | None):
+    from snakeloco.sim.robot import RobotError, resolve_robot
+
+    try:
+        return resolve_robot(path)
+    except RobotError as exc:
+        raise OptionError(str(exc)) from None
+
+
+def run_robot_show(cmd: RobotShow) -> dict:
+    """Print a robot description's derived figures (refusing a bad file with the field and reason)."""
+    robot = _robot(cmd.robot)
+    figures = robot.figures()
+    width = max(map(len, figures))
+    print("\n".join(f"{k:<{width}}  {v}" for k, v in figures.items()))
+    if cmd.json:
+        print(jsonlib.dumps({"robot": robot.model_dump(mode="json"), "figures": figures}))
+    return figures
+
+
+def run_robot_mjcf(cmd: RobotMjcf) -> Path:
+    """Write a robot description's MJCF."""
+    robot = _robot(cmd.robot)
+    cmd.out.parent.mkdir(parents=True, exist_ok=True)
+    cmd.out.write_text(robot.mjcf())
+    print(f"wrote {cmd.out} ({robot.name}: {robot.n_joints} joints, {robot.joint_pattern}, {robot.body_length:.3f} m)")
+    return cmd.out
+
+
 def run_bench(cmd: Command) -> dict:
     """Run a benchmark (``BENCH_MODULES[NAME]``), print its summary (``app/bench/report.py``) and, with
     --json, its figures as one JSON object on the last line."""
@@ -280,6 +314,8 @@ RUNNERS = {
     Calibrate: run_calibrate,
     Figures: run_figures,
     Serve: run_serve,
+    RobotShow: run_robot_show,
+    RobotMjcf: run_robot_mjcf,
     **dict.fromkeys(BENCHES.values(), run_bench),
 }
 
@@ -298,6 +334,8 @@ def parse_args(args: list[str]) -> Command:
     """The command ``args`` ask for (``OptionError`` when a value is out of its bounds)."""
     if args[:1] == ["bench"]:
         return parse(BENCHES, args[1:], "snakeloco bench", BENCH_HELP)
+    if args[:1] == ["robot"]:
+        return parse(ROBOT_COMMANDS, args[1:], "snakeloco robot", Robot.__doc__)
     name = _preset(args) if args[:1] == ["train"] else None
     if name in PRESETS:
         # The preset supplies the defaults; the flags given beside it still override them. (An unknown

@@ -158,6 +158,30 @@ class Serve(Command):
     """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
 
 
+class RobotShow(Command):
+    """Check a robot description (YAML) and print its derived figures: body length, mass, servo bandwidth, MJCF hash. A bad file is refused naming the field and the reason."""
+
+    robot: Annotated[Path | None, tyro.conf.Positional] = None
+    """Robot description YAML (docs/robot.md, "Your robot"); none: the default robot (sim/snake.xml)."""
+    json: Json = False
+
+
+class RobotMjcf(Command):
+    """Write a robot description's MuJoCo model (MJCF, built with mujoco.MjSpec)."""
+
+    robot: Annotated[Path | None, tyro.conf.Positional] = None
+    """Robot description YAML; none: the default robot."""
+    out: Path
+    """Destination .xml."""
+
+
+class Robot(Command):
+    """A robot as data: `snakeloco robot show ROBOT.yaml` (check it, print its figures), `snakeloco robot mjcf ROBOT.yaml --out X.xml` (its MuJoCo model)."""
+
+
+ROBOT_COMMANDS: dict[str, type[Command]] = {"show": RobotShow, "mjcf": RobotMjcf}
+
+
 COMMANDS: dict[str, type[Command]] = {
     "generate": Generate,
     "design": Design,
@@ -168,4 +192,5 @@ COMMANDS: dict[str, type[Command]] = {
     "figures": Figures,
     "serve": Serve,
     "bench": Bench,  # listed here for `snakeloco --help`; `snakeloco bench ...` parses BENCHES
+    "robot": Robot,  # the same: `snakeloco robot ...` parses ROBOT_COMMANDS
 }

@@ -9,6 +9,8 @@ Used identically by data generation, ``replay`` and CSV import (numpy only; ``si
    measured.
 3. Between samples the servo target is linearly interpolated from u[n] to u[n+1] (u[T] = u[0]),
    updated every physics step (2.5 ms, 20 steps per sample).
+3a. A robot with command latency (``Robot.latency``) gets each step's target that many whole
+   physics steps late; before the first target arrives the servos hold the rest pose (0 rad).
 4. Measurements at record sample n are taken at t_n = n / 20 s, at the start of the interval whose
    target starts at u[n].
 """
@@ -18,7 +20,6 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from snakeloco.sim.robot import N_JOINTS
 
 
 class CommandRule(BaseModel):
@@ -49,21 +50,34 @@ def lead_in_window(cfg: CommandRule) -> np.ndarray:
 
 
 def expand_commands(
-    commands: np.ndarray, substeps: int, cfg: CommandRule, steps: tuple[int, int] | None = None
+    commands: np.ndarray,
+    substeps: int,
+    cfg: CommandRule,
+    steps: tuple[int, int] | None = None,
+    delay: int = 0,
 ) -> np.ndarray:
     """Per-physics-step servo targets for a batch of records (the command rule above).
 
     Args:
-        commands: (B, T, 8) rad.
+        commands: (B, T, J) rad.
         substeps: physics steps per command sample.
         cfg: lead-in settings.
         steps: only physics steps [begin, end) (a chunk of a streamed or resumed rollout): the same
             values as those of the whole expansion, without computing the rest (a replay superseded
             after its first chunk expanded 2000 samples for 80).
+        delay: command latency in physics steps: step s gets the target of step s - delay (the rest
+            pose, 0 rad, before step ``delay``).
 
     Returns:
-        (B, (lead_in + T) * substeps, 8) float64 servo targets (rad); (B, end - begin, 8) with ``steps``.
+        (B, (lead_in + T) * substeps, J) float64 servo targets (rad); (B, end - begin, J) with ``steps``.
     """
+    n_joints = commands.shape[2]
+    if delay:
+        total = (cfg.lead_in + commands.shape[1]) * substeps
+        begin, end = (0, total) if steps is None else steps
+        late = expand_commands(commands, substeps, cfg, (max(begin - delay, 0), max(end - delay, 0)))
+        rest = np.zeros((commands.shape[0], min(end, delay) - min(begin, delay), n_joints))
+        return np.concatenate([rest, late], axis=1)
     if cfg.lead_in > commands.shape[1]:
         raise ValueError(f"lead-in of {cfg.lead_in} samples exceeds the record ({commands.shape[1]})")
     pre = commands[:, commands.shape[1] - cfg.lead_in :] * lead_in_window(cfg)[None, :, None]
@@ -75,7 +89,7 @@ def expand_commands(
     frac = (np.arange(substeps) / substeps)[None, None, :, None]  # (1, 1, S, 1)
     ctrl = held[:, :, None] + (nxt - held)[:, :, None] * frac  # (B, samples, S, 8)
     offset = first * substeps
-    return ctrl.reshape(commands.shape[0], -1, N_JOINTS)[:, begin - offset : end - offset]
+    return ctrl.reshape(commands.shape[0], -1, n_joints)[:, begin - offset : end - offset]
 
 
 def why_broken(

@@ -8,7 +8,7 @@ as broken (``CommandRule`` holds the limits) and is named, never returned as dat
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import wait as wait_futures
 
 import mujoco
@@ -28,7 +28,7 @@ from snakeloco.sim.results import (
     SimulationError,
     StreamedReplay,
 )
-from snakeloco.sim.robot import BODY_SITE, N_JOINTS, load_model
+from snakeloco.sim.robot import BODY_SITE, Robot, resolve_robot
 from snakeloco.sim.scheduler import FairRunner
 from snakeloco.sim.threads import FifoLock, RolloutThreads, resolve_workers
 
@@ -53,10 +53,13 @@ class Simulator:
         config: CommandRule | None = None,
         nice: int = 0,
         max_batch: int | None = None,
+        robot: Robot | None = None,
     ) -> None:
         self.excitation = excitation or ExcitationConfig()
         self.config = config or CommandRule()
-        self.model = load_model()
+        self.robot = resolve_robot(robot)
+        self.model = self.robot.compile()
+        self._variation_models: dict[Robot, mujoco.MjModel] = {}
         self.workers = resolve_workers(workers)
         # Records rolled out per call: a rollout keeps every physics step (~16 MB per record), so a
         # larger batch runs as consecutive calls of this many (2 per thread keeps both balanced).
@@ -72,12 +75,13 @@ class Simulator:
         if abs(self.substeps * dt * self.excitation.sample_rate - 1.0) > 1e-9:
             raise ValueError(f"timestep {dt} s does not divide the command period")
         self.n_steps = (self.config.lead_in + self.excitation.n_samples) * self.substeps
+        self.delay = self.latency_steps(self.robot)
         data = mujoco.MjData(self.model)  # reset state: straight snake resting on the floor
         self.initial_state = np.empty(mujoco.mj_stateSize(self.model, _STATE_SPEC))
         mujoco.mj_getState(self.model, data, self.initial_state, _STATE_SPEC)
         sensor = {self.model.sensor(i).name: i for i in range(self.model.nsensor)}
         adr = self.model.sensor_adr
-        self._q_cols = np.array([adr[sensor[f"q{k + 1}"]] for k in range(N_JOINTS)])
+        self._q_cols = np.array([adr[sensor[f"q{k + 1}"]] for k in range(self.robot.n_joints)])
         self._pos_cols = adr[sensor["body_pos"]] + np.arange(3)
         self._quat_cols = adr[sensor["body_quat"]] + np.arange(4)
         self._com_cols = adr[sensor["com_pos"]] + np.arange(3)
@@ -91,6 +95,7 @@ class Simulator:
         start: Paused | None = None,
         warm_out: np.ndarray | None = None,
         runner: FairRunner | None = None,
+        models: list[mujoco.MjModel] | None = None,
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """Raw rollouts from the resting state (or from ``start``): ctrl (B, n_steps, 8) -> (state,
         sensordata).
@@ -100,6 +105,7 @@ class Simulator:
         ``wanted``: asked when the batch gets its turn; False: nothing is rolled out (None).
         ``warm_out`` (B, nv): filled with each row's warm start after its last step. ``runner``: run
         the rows on a shared pool's turns (``FairPhysics.runner``; None where one was dropped).
+        ``models``: one model per row (variations of this robot: one size signature), else this one.
         """
         batch = ctrl.shape[0]
         if start is None:
@@ -113,7 +119,7 @@ class Simulator:
         if runner is not None:
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
-            rows = runner.rollout(m, initial, ctrl, warm, state, sens, warm_out=warm_out)
+            rows = runner.rollout(models or m, initial, ctrl, warm, state, sens, warm_out=warm_out)
             return None if any(f.cancelled() for f in rows) else (state, sens)
         with self._lock:
             if self._closed:
@@ -122,12 +128,12 @@ class Simulator:
                 return None  # left while it waited for the callers before it
             if self._pool is None and warm_out is None:
                 mj_rollout.rollout(
-                    m, self._data, initial, ctrl, initial_warmstart=warm, state=state, sensordata=sens
+                    models or m, self._data, initial, ctrl, initial_warmstart=warm, state=state, sensordata=sens
                 )
             elif self._pool is None:  # one row at a time, each one's final warm start kept
                 for i in range(batch):
                     mj_rollout.rollout(
-                        m,
+                        m if models is None else models[i],
                         self._data,
                         initial[i : i + 1],
                         ctrl[i : i + 1],
@@ -137,8 +143,26 @@ class Simulator:
                     )
                     warm_out[i] = self._data.qacc_warmstart
             else:
-                self._pool.rollout(m, initial, ctrl, warm, state, sens, warm_out=warm_out)
+                self._pool.rollout(models or m, initial, ctrl, warm, state, sens, warm_out=warm_out)
         return state, sens
+
+    def latency_steps(self, robot: Robot) -> int:
+        """A robot's command latency in whole physics steps of this simulator."""
+        return round(robot.latency / self.model.opt.timestep)
+
+    def variation_model(self, robot: Robot) -> mujoco.MjModel:
+        """The compiled model of ``robot``, a variation of this simulator's robot (kept: a variation
+        set is a few models used again and again); ValueError where it changes more than physics."""
+        if robot == self.robot:
+            return self.model
+        model = self._variation_models.get(robot)
+        if model is None:
+            fixed = ("n_joints", "link_length", "link_radius", "joint_pattern", "timestep")
+            changed = [f for f in fixed if getattr(robot, f) != getattr(self.robot, f)]
+            if changed:
+                raise ValueError(f"a variation changes physics, not {', '.join(changed)}")
+            model = self._variation_models[robot] = robot.compile()
+        return model
 
     def close(self) -> None:
         """Stop the rollout threads, if there are any (then the Simulator cannot roll out)."""
@@ -154,6 +178,7 @@ class Simulator:
         samples: int | None = None,
         resume: Paused | None = None,
         runner: FairRunner | None = None,
+        robots: Sequence[Robot] | None = None,
     ) -> BatchResult | None:
         """Simulate a batch of records under the command rule and measure them.
 
@@ -168,6 +193,9 @@ class Simulator:
             wanted: asked each time a part of the batch gets its turn (callers sharing the
                 simulator roll out first come, first served); False: the rest is not simulated (None).
             runner: on a shared pool's turns (``rollout``); None where a row was dropped.
+            robots: one description per record, each a variation of this simulator's robot (the
+                same geometry: ``variation_model``), e.g. one gait on a set of variations in one
+                batch; None: this robot.
 
         Returns:
             BatchResult with (B, T, 8) joint angles and (B, T, 6) body states; a failed row's
@@ -176,7 +204,7 @@ class Simulator:
             time, the results are one call's.
         """
         commands = np.asarray(commands, dtype=np.float64)
-        expected = (self.excitation.n_samples, N_JOINTS)
+        expected = (self.excitation.n_samples, self.robot.n_joints)
         if commands.ndim != 3 or commands.shape[1:] != expected:
             raise ValueError(f"expected (B, {expected[0]}, {expected[1]}) commands, got {commands.shape}")
         samples = expected[0] if samples is None else int(samples)
@@ -185,11 +213,14 @@ class Simulator:
             raise ValueError(f"samples must be {first + 1}-{expected[0]}, got {samples}")
         if resume is not None and len(resume.state) != len(commands):
             raise ValueError(f"resuming {len(resume.state)} paused rollouts with {len(commands)} records")
+        if robots is not None and len(robots) != len(commands):
+            raise ValueError(f"{len(robots)} robots for {len(commands)} records")
         parts = []
         for i in range(0, len(commands), self.max_batch):
             rows = slice(i, i + self.max_batch)
             start = None if resume is None else resume.rows(rows)
-            parts.append(self._simulate(commands[rows], wanted, samples, start, runner))
+            part_robots = None if robots is None else robots[rows]
+            parts.append(self._simulate(commands[rows], wanted, samples, start, runner, part_robots))
             if parts[-1] is None:
                 return None
         if len(parts) == 1:
@@ -218,15 +249,26 @@ class Simulator:
         samples: int,
         start: Paused | None,
         runner: FairRunner | None = None,
+        robots: Sequence[Robot] | None = None,
     ) -> BatchResult | None:
         first = 0 if start is None else start.samples
         # Steps [begin, end): a resumed rollout starts where the paused one stopped.
         begin = 0 if start is None else (self.config.lead_in + first) * self.substeps
         end = (self.config.lead_in + samples) * self.substeps
-        ctrl = expand_commands(commands, self.substeps, self.config, (begin, end))
+        models = None
+        if robots is None:
+            ctrl = expand_commands(commands, self.substeps, self.config, (begin, end), self.delay)
+        else:
+            models = [self.variation_model(r) for r in robots]
+            ctrl = np.concatenate(
+                [
+                    expand_commands(c[None], self.substeps, self.config, (begin, end), self.latency_steps(r))
+                    for c, r in zip(commands, robots, strict=True)
+                ]
+            )
         pause = samples < self.excitation.n_samples
         warm_out = np.empty((len(commands), self.model.nv)) if pause else None
-        rolled = self.rollout(ctrl, wanted, start, warm_out, runner)
+        rolled = self.rollout(ctrl, wanted, start, warm_out, runner, models)
         if rolled is None:
             return None
         state, sens = rolled
@@ -303,8 +345,8 @@ class Simulator:
         """
         commands = np.asarray(commands, dtype=np.float64)
         n_t = self.excitation.n_samples
-        if commands.shape != (n_t, N_JOINTS):
-            raise ValueError(f"expected ({n_t}, {N_JOINTS}) commands, got {commands.shape}")
+        if commands.shape != (n_t, self.robot.n_joints):
+            raise ValueError(f"expected ({n_t}, {self.robot.n_joints}) commands, got {commands.shape}")
         if not np.isfinite(commands).all():
             raise ValueError("commands contain NaN or Inf")
         m, n_steps = self.model, self.n_steps
@@ -324,7 +366,7 @@ class Simulator:
             if self._closed:
                 raise SimulationError("the simulator was closed (the server is stopping)")
             out_state, out_sens = state[:, : end - done], sens[:, : end - done]  # steps [done, end)
-            ctrl = expand_commands(commands[None], self.substeps, self.config, (done, end))
+            ctrl = expand_commands(commands[None], self.substeps, self.config, (done, end), self.delay)
             if chunk_runner is None:
                 mj_rollout.rollout(
                     m, data, initial, ctrl, initial_warmstart=warm, state=out_state, sensordata=out_sens

@@ -93,7 +93,7 @@ class RowRunner:
 
     def rollout(
         self,
-        model: mujoco.MjModel,
+        model: mujoco.MjModel | list[mujoco.MjModel],
         initial: np.ndarray,
         ctrl: np.ndarray,
         warm: np.ndarray,
@@ -106,8 +106,9 @@ class RowRunner:
         """Roll out rows ``initial`` (B, nstate), ``ctrl`` (B, nstep, nu) from ``warm`` (B, nv) into
         ``state`` (B, nstep, nstate) and ``sensordata`` (B, nstep, nsensordata), one row per task;
         ``data``: the MjData to use (one row only: a stream keeps its own); ``warm_out`` (B, nv):
-        where to put each row's warm start after its last step. Blocks until all are in, unless not
-        ``wait``: then returns the rows' futures at once."""
+        where to put each row's warm start after its last step; ``model``: one, or one per row (of
+        one size signature). Blocks until all are in, unless not ``wait``: then returns the rows'
+        futures at once."""
         if data is not None and len(ctrl) != 1:
             raise ValueError("a given MjData serves one row at a time")
         futures = [
@@ -115,7 +116,7 @@ class RowRunner:
                 functools.partial(
                     rollout_row,
                     _THREAD,
-                    model,
+                    model[i] if isinstance(model, list) else model,
                     data,
                     None if warm_out is None else warm_out[i],
                     initial_state=initial[i : i + 1],
