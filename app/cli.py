@@ -287,7 +287,9 @@ def run_robot_mjcf(cmd: RobotMjcf) -> Path:
     robot = _robot(cmd.robot)
     cmd.out.parent.mkdir(parents=True, exist_ok=True)
     cmd.out.write_text(robot.mjcf())
-    print(f"wrote {cmd.out} ({robot.name}: {robot.n_joints} joints, {robot.joint_pattern}, {robot.body_length:.3f} m)")
+    print(
+        f"wrote {cmd.out} ({robot.name}: {robot.n_joints} joints, {robot.joint_pattern}, {robot.body_length:.3f} m)"
+    )
     return cmd.out
 
 

@@ -21,7 +21,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 
-
 class CommandRule(BaseModel):
     """How commands are applied and when a simulation counts as broken."""
 

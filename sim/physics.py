@@ -128,7 +128,13 @@ class Simulator:
                 return None  # left while it waited for the callers before it
             if self._pool is None and warm_out is None:
                 mj_rollout.rollout(
-                    models or m, self._data, initial, ctrl, initial_warmstart=warm, state=state, sensordata=sens
+                    models or m,
+                    self._data,
+                    initial,
+                    ctrl,
+                    initial_warmstart=warm,
+                    state=state,
+                    sensordata=sens,
                 )
             elif self._pool is None:  # one row at a time, each one's final warm start kept
                 for i in range(batch):

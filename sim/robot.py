@@ -270,10 +270,14 @@ class Robot(BaseModel):
         for k, joint in enumerate(self.joint_names, start=1):
             spec.add_sensor(name=f"q{k}", type=sens.mjSENS_JOINTPOS, objtype=obj.mjOBJ_JOINT, objname=joint)
         spec.add_sensor(name="body_pos", type=sens.mjSENS_FRAMEPOS, objtype=obj.mjOBJ_SITE, objname=BODY_SITE)
-        spec.add_sensor(name="body_quat", type=sens.mjSENS_FRAMEQUAT, objtype=obj.mjOBJ_SITE, objname=BODY_SITE)
+        spec.add_sensor(
+            name="body_quat", type=sens.mjSENS_FRAMEQUAT, objtype=obj.mjOBJ_SITE, objname=BODY_SITE
+        )
         # Whole-robot centre of mass and its velocity: used only to detect a snake thrown into the air.
         spec.add_sensor(name="com_pos", type=sens.mjSENS_SUBTREECOM, objtype=obj.mjOBJ_BODY, objname="link1")
-        spec.add_sensor(name="com_vel", type=sens.mjSENS_SUBTREELINVEL, objtype=obj.mjOBJ_BODY, objname="link1")
+        spec.add_sensor(
+            name="com_vel", type=sens.mjSENS_SUBTREELINVEL, objtype=obj.mjOBJ_BODY, objname="link1"
+        )
         return spec
 
     def compile(self) -> mujoco.MjModel:

@@ -163,7 +163,9 @@ def sampled_set(n: int = 16, seed: int = 0) -> tuple[Variation, ...]:
         draw = {}
         for name, (kind, lo, hi) in SAMPLED_RANGES.items():
             u = rng.uniform()
-            draw[name] = float(np.exp(np.log(lo) + u * np.log(hi / lo)) if kind == "log" else lo + u * (hi - lo))
+            draw[name] = float(
+                np.exp(np.log(lo) + u * np.log(hi / lo)) if kind == "log" else lo + u * (hi - lo)
+            )
         scale = {
             "friction_along": round(draw["friction"] * draw["friction_along"], 4),
             "friction_across": round(draw["friction"], 4),

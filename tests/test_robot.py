@@ -137,7 +137,11 @@ EXPECTED_FIELDS = {
 
 @pytest.mark.parametrize("field", sorted(EXPECTED_FIELDS))
 def test_each_variation_changes_the_model_field_it_names_and_only_it(field):
-    v = Variation(name=field, scale={field: 1.5}) if field != "slope_deg" else Variation(name=field, add={field: 5})
+    v = (
+        Variation(name=field, scale={field: 1.5})
+        if field != "slope_deg"
+        else Variation(name=field, add={field: 5})
+    )
     changed = changed_fields(DEFAULT_ROBOT.compile(), v.apply(DEFAULT_ROBOT).compile())
     assert changed == EXPECTED_FIELDS[field]
 
