@@ -23,12 +23,14 @@ from snakeloco.app.commands import (
     Calibrate,
     Design,
     Evaluate,
+    Export,
     Figures,
     Gait,
     Generate,
     Robot,
     RobotMjcf,
     RobotShow,
+    Robustness,
     Serve,
     Train,
 )
@@ -46,6 +48,7 @@ OUTPUTS: dict[type, dict[str, str]] = {
     Calibrate: {"out": "dir", "gaits": "file"},
     Figures: {"out": "dir"},
     RobotMjcf: {"out": "file"},
+    Export: {"out": "file"},
 }
 REUSED_WHEN_PRESENT = {"replays", "gaits"}
 
@@ -293,6 +296,91 @@ def run_robot_mjcf(cmd: RobotMjcf) -> Path:
     return cmd.out
 
 
+def run_robustness(cmd: Robustness) -> dict:
+    """Replay a gait over a variation set and print where each variation ends (``sim.robustness``)."""
+    from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv
+    from snakeloco.sim.physics import Simulator
+    from snakeloco.sim.robustness import readout_line, robustness
+    from snakeloco.sim.variations import variation_set
+
+    robot = _robot(cmd.robot)
+    try:
+        table = read_gait_csv(cmd.gait.read_bytes())
+    except GaitCSVError as exc:
+        raise OptionError(f"{cmd.gait}: {exc}") from None
+    variations = variation_set(cmd.set)
+    t0 = time.perf_counter()
+    report = robustness(table.commands, variations, Simulator(workers=cmd.workers, robot=robot))
+    report.pop("bodies")
+    report["seconds"] = round(time.perf_counter() - t0, 2)
+    nom = report["nominal"]
+    lines = [
+        f"{cmd.gait} on {robot.name} and {len(variations)} variations ({cmd.set} set), "
+        f"{report['seconds']:.1f} s",
+        f"{'':<28}{'forward m':>10}{'sideways m':>11}{'heading deg':>12}{'end error m':>12}{'rel':>7}",
+        f"{'nominal':<28}{nom['forward']:>10.2f}{nom['sideways']:>11.2f}{nom['heading_deg']:>12.0f}",
+    ]
+    for r in report["variations"]:
+        if r["failure"] is not None:
+            lines.append(f"{r['name']:<28}  broke: {r['failure']}")
+        else:
+            lines.append(
+                f"{r['name']:<28}{r['forward']:>10.2f}{r['sideways']:>11.2f}{r['heading_deg']:>12.0f}"
+                f"{r['end_error_m']:>12.2f}{100 * r['rel']:>6.0f}%"
+            )
+    lines.append(readout_line(report))
+    print("\n".join(lines))
+    if cmd.json:
+        print(jsonlib.dumps(report))
+    return report
+
+
+def run_export(cmd: Export) -> dict:
+    """Write a gait in the chosen format (``app.export``, ``app.share``); refuse with the joint, the
+    time and the value where it breaks the robot's limits."""
+    from snakeloco.app import export
+    from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv
+
+    robot = _robot(cmd.robot)
+    try:
+        text = cmd.gait.read_text()
+        table = read_gait_csv(text)
+        if cmd.format == "html":
+            from snakeloco.app.share import share_html
+
+            if cmd.out.exists() and not cmd.out.is_dir():
+                raise OptionError(f"--out {cmd.out}: exists and is not a directory (html writes a folder)")
+            result = share_html(table.commands, cmd.out, robot, title=cmd.gait.name, workers=cmd.workers)
+            print(
+                f"wrote {result['path']} ({result['bytes'] / 2**20:.2f} MiB, {result['frames']} frames) in "
+                f"{result['seconds']:.1f} s: open it in a browser, no server needed"
+            )
+            return result
+        if cmd.units == "deg" and cmd.format != "csv":
+            raise OptionError(f"--units deg is for --format csv; {cmd.format} has its own units")
+        about = {"gait": str(cmd.gait), "robot": robot.name}
+        if cmd.format == "gait-equation":
+            body = export.write_gait_equation(export.gait_equation_of(text), robot)
+            clipped: list[str] = []
+        else:
+            traj = export.trajectory(table.commands, robot, cmd.rate, cmd.periods, cmd.lead_in, cmd.clip)
+            clipped = traj.clipped
+            if cmd.format == "csv":
+                body = export.write_csv(traj, cmd.units, cmd.velocities, about)
+            elif cmd.format == "ros2":
+                body = export.write_ros2(traj, robot, about)
+            else:
+                body = export.write_dynamixel(traj, robot, about)
+    except (GaitCSVError, export.ExportError) as exc:
+        raise OptionError(f"{cmd.gait}: {exc}") from None
+    cmd.out.parent.mkdir(parents=True, exist_ok=True)
+    cmd.out.write_text(body)
+    print(f"wrote {cmd.out} ({cmd.format}, {len(body) / 1024:.0f} kB)")
+    for line in clipped:
+        print(f"clipped {line}")
+    return {"path": str(cmd.out), "bytes": len(body), "clipped": clipped}
+
+
 def run_bench(cmd: Command) -> dict:
     """Run a benchmark (``BENCH_MODULES[NAME]``), print its summary (``app/bench/report.py``) and, with
     --json, its figures as one JSON object on the last line."""
@@ -317,6 +405,8 @@ RUNNERS = {
     Figures: run_figures,
     Serve: run_serve,
     RobotShow: run_robot_show,
+    Robustness: run_robustness,
+    Export: run_export,
     RobotMjcf: run_robot_mjcf,
     **dict.fromkeys(BENCHES.values(), run_bench),
 }

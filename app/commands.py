@@ -158,6 +158,47 @@ class Serve(Command):
     """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
 
 
+class Robustness(Command):
+    """Replay a gait CSV on the nominal robot and on each physics variation of a set (friction, anisotropy, masses, servo gains, slope, latency): where each ends and how far from the nominal end point."""
+
+    gait: Annotated[Path, tyro.conf.Positional]
+    """The gait CSV (Export CSV's format, or `snakeloco gait NAME --out`)."""
+    set: Literal["default", "sampled"] = "default"
+    """default: one change at a time, the reason for each in docs/robustness.md; sampled: 16 robots with every change at once."""
+    robot: Path | None = None
+    """Robot description YAML the gait runs on (default: the paper's robot, sim/snake.xml)."""
+    workers: Workers = None
+    """Simulation threads (default: all cores). Does not change the result."""
+    json: Json = False
+
+
+class Export(Command):
+    """Export a gait CSV for a robot's stack or for colleagues: a ROS 2 JointTrajectory, a resampled CSV, gait-equation parameters, Dynamixel goal positions, or a replay page that opens with no server (html)."""
+
+    gait: Annotated[Path, tyro.conf.Positional]
+    """The gait CSV (Export CSV's format, or `snakeloco gait NAME --out`)."""
+    format: Literal["ros2", "csv", "gait-equation", "dynamixel", "html"]
+    """ros2: trajectory_msgs/JointTrajectory YAML (positions and velocities); csv: commands at --rate; gait-equation: the gait's named parameters (structured-family members and library gaits); dynamixel: goal positions in ticks per servo id; html: a folder whose index.html plays the replay in any browser."""
+    out: Path
+    """Destination file (a folder for html)."""
+    rate: Annotated[float, Field(gt=0, le=1000)] = 100.0
+    """Samples per second of ros2, csv and dynamixel (the command rule's straight lines between the 20 Hz samples)."""
+    units: Literal["rad", "deg"] = "rad"
+    """Units of the csv format's angles (ros2 and dynamixel have their own)."""
+    velocities: bool = False
+    """csv: add vel_1..vel_N columns (rad/s or deg/s)."""
+    periods: Annotated[int, Field(ge=1, le=100)] = 1
+    """Records (100 s each) one after another."""
+    lead_in: bool = True
+    """Start with the command rule's 3 s lead-in from the straight rest pose, as the simulation does."""
+    clip: bool = False
+    """Clip commands beyond the robot's command limit and slow those beyond its joint speed limit (and say what was clipped) instead of refusing."""
+    robot: Path | None = None
+    """Robot description YAML: joint names, limits, servo ids and home offsets (default: the paper's robot)."""
+    workers: Workers = None
+    """html: simulation threads for the replay and its fan (default: all cores)."""
+
+
 class RobotShow(Command):
     """Check a robot description (YAML) and print its derived figures: body length, mass, servo bandwidth, MJCF hash. A bad file is refused naming the field and the reason."""
 
@@ -192,5 +233,7 @@ COMMANDS: dict[str, type[Command]] = {
     "figures": Figures,
     "serve": Serve,
     "bench": Bench,  # listed here for `snakeloco --help`; `snakeloco bench ...` parses BENCHES
+    "robustness": Robustness,
+    "export": Export,
     "robot": Robot,  # the same: `snakeloco robot ...` parses ROBOT_COMMANDS
 }

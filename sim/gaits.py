@@ -136,6 +136,16 @@ def gait_figures(ensemble_body: np.ndarray) -> GaitFigures:
     )
 
 
+class WorstCase(BaseModel):
+    """How far a gait's 100 s end point moves over the default variation set (``sim.robustness``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    end_error_m: float = Field(description="Largest distance of a variation's end from the nominal end (m).")
+    rel: float = Field(description="That distance over max(nominal distance, 0.5 m).")
+    variation: str = Field(description="The variation that moved it most.")
+
+
 class GaitPreset(BaseModel):
     """A named gait of the library, with what it is for and the figures it was measured to give."""
 
@@ -144,6 +154,7 @@ class GaitPreset(BaseModel):
     gait: GaitEquation
     about: str
     measured: GaitFigures
+    worst: WorstCase
 
 
 def measure_gait(gait: GaitEquation, simulator, ensemble: int = 4, seed: int = 0) -> GaitFigures:
@@ -161,48 +172,58 @@ def measure_gait(gait: GaitEquation, simulator, ensemble: int = 4, seed: int = 0
 
 _LIBRARY = (
     # name, gait, what it is for, measured: displacement (m), straightness, heading (deg), net roll
-    # (rad), net yaw (rad), spread
+    # (rad), net yaw (rad), spread; worst case over the default variation set: end error (m),
+    # relative, which variation
     (
         "sidewind",
         GaitEquation(a_pitch=0.4, a_yaw=0.7, nu_pitch=0.8, nu_yaw=0.8, delta=0.7854, frequency=0.93),
         "sidewinding: the fastest straight non-rolling gait of the search that physics predicts to 5%; travels sideways",
         (23.96, 0.8557, 93.38, -0.1552, 1.349, 0.016),
+        (35.77, 1.493, "link masses x1.5"),
     ),
     (
         "undulate",
         GaitEquation(a_yaw=0.7, nu_yaw=0.7, frequency=0.93),
         "lateral undulation (yaw wave only): the fastest forward gait found",
         (32.63, 0.8098, 0.02802, 0.00253, 0.2155, 0.06386),
+        (53.85, 1.65, "5 deg slope uphill ahead"),
     ),
     (
         "roll",
         GaitEquation(a_pitch=0.35, a_yaw=0.35, nu_pitch=0.71, nu_yaw=0.71, delta=1.5708, frequency=0.52),
         "lateral rolling: rolls over and over and moves sideways, the straightest gait found",
         (8.444, 0.9718, -95.12, 326.6, -0.6007, 0.01082),
+        (3.004, 0.3558, "5 deg slope uphill left"),
     ),
     (
         "turn",
         GaitEquation(a_pitch=0.12, a_yaw=0.95, nu_pitch=1.95, nu_yaw=-0.66, delta=-1.9, frequency=0.52),
         "turning in place (clockwise): the largest heading change found without rolling",
         (0.6414, 0.02623, -157.3, -0.01751, -40.12, 0.03566),
+        (9.652, 15.05, "5 deg slope uphill left"),
     ),
 )
 PRESETS: dict[str, GaitPreset] = {
     name: GaitPreset(
-        gait=gait, about=about, measured=GaitFigures(**dict(zip(GaitFigures.model_fields, m, strict=True)))
+        gait=gait,
+        about=about,
+        measured=GaitFigures(**dict(zip(GaitFigures.model_fields, m, strict=True))),
+        worst=WorstCase(**dict(zip(WorstCase.model_fields, w, strict=True))),
     )
-    for name, gait, about, m in _LIBRARY
+    for name, gait, about, m, w in _LIBRARY
 }
 """The library: gait-equation gaits tuned on this robot, each with the figures it was measured to
-give (``measure_gait``: a 4-member ensemble, seed 0, MuJoCo 4.0.0). docs/gaits.md has the search that
-found them and how each was chosen."""
+give (``measure_gait``: a 4-member ensemble, seed 0, MuJoCo 4.0.0) and its worst case over the
+default variation set (``sim.robustness``, MuJoCo 4.0.1). docs/gaits.md has the search that found
+them and how each was chosen."""
 
 
 def library_table() -> str:
     """The library as a text table: parameters and measured figures of each preset."""
     head = (
         f"{'gait':<10} {'A_p':>5} {'A_y':>5} {'nu_p':>6} {'nu_y':>6} {'delta':>6} {'f Hz':>5} | "
-        f"{'m/s':>6} {'BL/s':>6} {'disp m':>7} {'straight':>8} {'head deg':>8} {'roll':>7} {'yaw':>7} {'spread':>6}"
+        f"{'m/s':>6} {'BL/s':>6} {'disp m':>7} {'straight':>8} {'head deg':>8} {'roll':>7} {'yaw':>7} {'spread':>6} | "
+        f"{'worst m':>7} {'worst':>6}  worst variation"
     )
     rows = [head, "-" * len(head)]
     for name, p in PRESETS.items():
@@ -210,6 +231,16 @@ def library_table() -> str:
         rows.append(
             f"{name:<10} {g.a_pitch:5.2f} {g.a_yaw:5.2f} {g.nu_pitch:6.2f} {g.nu_yaw:6.2f} {g.delta:6.2f} "
             f"{g.frequency:5.2f} | {m.speed:6.3f} {m.body_lengths_per_s:6.3f} {m.displacement:7.2f} "
-            f"{m.straightness:8.2f} {m.heading_deg:8.0f} {m.net_roll:7.2f} {m.net_yaw:7.2f} {m.spread:6.3f}"
+            f"{m.straightness:8.2f} {m.heading_deg:8.0f} {m.net_roll:7.2f} {m.net_yaw:7.2f} {m.spread:6.3f} | "
+            f"{p.worst.end_error_m:7.2f} {100 * p.worst.rel:5.0f}%  {p.worst.variation}"
         )
-    return "\n".join(rows) + "\n"
+    legend = (
+        "A_p, A_y: pitch and yaw amplitudes (rad); nu_p, nu_y: spatial frequencies (rad per module); "
+        "delta: yaw wave's phase against the pitch wave (rad); f: temporal frequency.\n"
+        "m/s, BL/s: speed (BL: body lengths); disp: start-to-end distance over 100 s; straight: "
+        "distance / path length; head: direction travelled (deg, left +); roll, yaw: net turns (rad); "
+        "spread: where 0.1%-noisy replays end, over the distance.\n"
+        "worst: how far the end point moves on the default set of physics variations (friction, "
+        "masses, servos, slope, latency; `snakeloco robustness`), in m and over the distance."
+    )
+    return "\n".join(rows) + "\n\n" + legend + "\n"

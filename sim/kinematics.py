@@ -12,16 +12,17 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from snakeloco.sim.robot import BODY_SITE, LINK_GEOMS, load_model
+from snakeloco.sim.robot import BODY_SITE, Robot, resolve_robot
 
 
 class LinkPoses:
     """Forward kinematics of the snake on a private MjModel/MjData (one per caller: not thread-safe)."""
 
-    def __init__(self) -> None:
-        self.model = load_model()
+    def __init__(self, robot: Robot | None = None) -> None:
+        self.robot = resolve_robot(robot)
+        self.model = self.robot.compile()
         self.data = mujoco.MjData(self.model)
-        self._geoms = np.array([self.model.geom(name).id for name in LINK_GEOMS])
+        self._geoms = np.array([self.model.geom(name).id for name in self.robot.link_geoms])
         self._site = self.model.site(BODY_SITE).id
 
     def capsule(self) -> tuple[float, float]:
@@ -42,15 +43,15 @@ class LinkPoses:
         return self.data.site_xpos[self._site].copy(), float(np.arctan2(xmat[1, 0], xmat[0, 0]))
 
     def poses(self, qpos: np.ndarray, start: tuple[np.ndarray, float]) -> tuple[np.ndarray, np.ndarray]:
-        """Capsule centres (9, 3) m and orientations (9, 4) wxyz in the start frame ``start``
+        """Capsule centres (links, 3) m and orientations (links, 4) wxyz in the start frame ``start``
         (``start_frame``'s output), both float32, head first."""
         self.data.qpos[:] = qpos
         mujoco.mj_kinematics(self.model, self.data)
         p0, yaw0 = start
         c, s = np.cos(-yaw0), np.sin(-yaw0)
         undo = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # R_z(-yaw0)
-        pos = (self.data.geom_xpos[self._geoms] - [p0[0], p0[1], 0.0]) @ undo.T  # (9, 3)
-        mats = undo @ self.data.geom_xmat[self._geoms].reshape(-1, 3, 3)  # (9, 3, 3)
+        pos = (self.data.geom_xpos[self._geoms] - [p0[0], p0[1], 0.0]) @ undo.T  # (links, 3)
+        mats = undo @ self.data.geom_xmat[self._geoms].reshape(-1, 3, 3)  # (links, 3, 3)
         quats = np.empty((len(self._geoms), 4))
         for i, mat in enumerate(mats):
             mujoco.mju_mat2Quat(quats[i], mat.ravel())

@@ -61,6 +61,24 @@ def test_presets_reproduce_their_documented_figures():
         simulator.close()
 
 
+@pytest.mark.slow
+def test_presets_worst_cases_reproduce_over_the_default_variation_set():
+    """``gait --list``'s worst case of each library gait, replayed: the same variation, the same end
+    error within 2% (the figures were measured with MuJoCo 4.0.1)."""
+    from snakeloco.sim.robustness import robustness
+    from snakeloco.sim.variations import DEFAULT_SET
+
+    simulator = Simulator(None)
+    try:
+        for name, p in PRESETS.items():
+            got = robustness(p.gait.commands(), DEFAULT_SET, simulator)
+            assert got["worst"] == p.worst.variation, name
+            assert got["worst_end_error_m"] == pytest.approx(p.worst.end_error_m, rel=0.02), name
+            assert got["worst_rel"] == pytest.approx(p.worst.rel, rel=0.02), name
+    finally:
+        simulator.close()
+
+
 def test_gait_command_writes_and_lists_the_library(tmp_path, capsys):
     out = tmp_path / "sidewind.csv"
     main(["gait", "sidewind", "--out", str(out)])
@@ -71,6 +89,7 @@ def test_gait_command_writes_and_lists_the_library(tmp_path, capsys):
     main(["gait", "--list"])
     listed = capsys.readouterr().out
     assert all(name in listed for name in PRESETS) and "BL/s" in listed
+    assert "worst variation" in listed and PRESETS["roll"].worst.variation in listed
     for argv, says in (
         (["gait"], "name a library gait"),
         (["gait", "roll"], "--out FILE.csv is needed"),

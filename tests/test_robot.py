@@ -197,3 +197,32 @@ def test_a_broken_variation_is_reported_not_raised():
     assert rows["servo kp x1e4"]["failure"] and rows["servo kp x1e4"]["end_error_m"] is None
     assert rows["floor friction x2"]["failure"] is None and report["worst"] == "floor friction x2"
     assert report["broken"] == ["servo kp x1e4"] and "broke: servo kp x1e4" in readout_line(report)
+
+
+@pytest.mark.slow
+def test_robustness_json_matches_its_own_replays(tmp_path, capsys):
+    gait = tmp_path / "roll.csv"
+    main(["gait", "roll", "--out", str(gait)])
+    capsys.readouterr()
+    main(["robustness", str(gait), "--json"])
+    report = json.loads(capsys.readouterr().out.splitlines()[-1])
+    commands = PRESETS["roll"].gait.commands()
+    nominal = Simulator(workers=1).replay(commands).body[-1]
+    assert report["nominal"]["forward"] == nominal[1] and report["nominal"]["sideways"] == nominal[2]
+    rows = {r["name"]: r for r in report["variations"]}
+    assert list(rows) == [v.name for v in DEFAULT_SET]
+    for v in (DEFAULT_SET[0], DEFAULT_SET[9], DEFAULT_SET[11]):
+        end = Simulator(workers=1, robot=v.apply(DEFAULT_ROBOT)).replay(commands).body[-1]
+        assert (rows[v.name]["forward"], rows[v.name]["sideways"]) == (end[1], end[2])
+        err = np.hypot(end[1] - nominal[1], end[2] - nominal[2])
+        assert rows[v.name]["end_error_m"] == pytest.approx(err, rel=1e-12)
+    worst = max(report["variations"], key=lambda r: r["end_error_m"])
+    assert report["worst"] == worst["name"] and report["worst_end_error_m"] == worst["end_error_m"]
+
+
+def test_robustness_refuses_a_bad_gait_file(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time_s,joint_1\n0,0\n")
+    with pytest.raises(SystemExit) as exc:
+        main(["robustness", str(bad)])
+    assert exc.value.code == 2 and "bad.csv: line 1: header must be" in capsys.readouterr().err
