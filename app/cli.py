@@ -356,21 +356,18 @@ def run_export(cmd: Export) -> dict:
                 f"{result['seconds']:.1f} s: open it in a browser, no server needed"
             )
             return result
-        if cmd.units == "deg" and cmd.format != "csv":
-            raise OptionError(f"--units deg is for --format csv; {cmd.format} has its own units")
-        about = {"gait": str(cmd.gait), "robot": robot.name}
-        if cmd.format == "gait-equation":
-            body = export.write_gait_equation(export.gait_equation_of(text), robot)
-            clipped: list[str] = []
-        else:
-            traj = export.trajectory(table.commands, robot, cmd.rate, cmd.periods, cmd.lead_in, cmd.clip)
-            clipped = traj.clipped
-            if cmd.format == "csv":
-                body = export.write_csv(traj, cmd.units, cmd.velocities, about)
-            elif cmd.format == "ros2":
-                body = export.write_ros2(traj, robot, about)
-            else:
-                body = export.write_dynamixel(traj, robot, about)
+        body, clipped = export.export_gait(
+            text,
+            cmd.format,
+            robot,
+            cmd.rate,
+            cmd.units,
+            cmd.velocities,
+            cmd.periods,
+            cmd.lead_in,
+            cmd.clip,
+            source=str(cmd.gait),
+        )
     except (GaitCSVError, export.ExportError) as exc:
         raise OptionError(f"{cmd.gait}: {exc}") from None
     cmd.out.parent.mkdir(parents=True, exist_ok=True)

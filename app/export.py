@@ -35,6 +35,14 @@ from snakeloco.sim.excitation import RECORD
 from snakeloco.sim.robot import Robot
 
 FORMATS = ("csv", "ros2", "dynamixel", "gait-equation", "html")
+ROBOT_FORMATS: dict[str, tuple[str, str, dict]] = {
+    "ROS 2 trajectory (100 Hz)": ("ros2", "yaml", {}),
+    "CSV 100 Hz + velocities": ("csv", "csv", {"velocities": True}),
+    "Dynamixel ticks (100 Hz)": ("dynamixel", "csv", {}),
+    "Gait equation (YAML)": ("gait-equation", "yaml", {}),
+}
+"""The designer's Robot format choices: format, file extension and options (the CLI's defaults
+otherwise: 100 Hz, rad, one record after the lead-in, refused beyond the robot's limits)."""
 TICKS_PER_TURN = 4096
 CENTRE_TICK = 2048
 GAIT_EQUATION_SCHEMA = 1
@@ -325,3 +333,33 @@ def read_gait_equation(text: str) -> np.ndarray:
     if "member" in doc:
         return Member.model_validate(doc["member"]).commands()
     return GaitEquation.model_validate(doc["gait_equation"]).commands()
+
+
+def export_gait(
+    text: str,
+    fmt: str,
+    robot: Robot,
+    rate: float = 100.0,
+    units: str = "rad",
+    velocities: bool = False,
+    periods: int = 1,
+    lead_in: bool = True,
+    clip: bool = False,
+    source: str = "gait",
+) -> tuple[str, list[str]]:
+    """A gait CSV's text in format ``fmt`` (any but html): (the file's text, what was clipped).
+    GaitCSVError or ExportError say why it cannot be."""
+    table = read_gait_csv(text)
+    if units == "deg" and fmt != "csv":
+        raise ExportError(f"degrees are for the csv format; {fmt} has its own units")
+    if fmt == "gait-equation":
+        return write_gait_equation(gait_equation_of(text), robot), []
+    traj = trajectory(table.commands, robot, rate, periods, lead_in, clip)
+    about = {"gait": source, "robot": robot.name}
+    if fmt == "csv":
+        return write_csv(traj, units, velocities, about), traj.clipped
+    if fmt == "ros2":
+        return write_ros2(traj, robot, about), traj.clipped
+    if fmt == "dynamixel":
+        return write_dynamixel(traj, robot, about), traj.clipped
+    raise ExportError(f"unknown format {fmt!r}: one of {', '.join(FORMATS)}")

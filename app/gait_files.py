@@ -33,6 +33,45 @@ class GaitFiles:
             return
         self.client.send_file_download("snakeloco_gait.csv", text.encode(), save_immediately=True)
 
+    def export_for_robot(self, label: str) -> tuple[str, bytes] | None:
+        """Download the current gait in a robot format (``ROBOT_FORMATS[label]``); returns (file name,
+        bytes), or None after a notification saying why not (no gait, a limit, no parameters)."""
+        from snakeloco.app.export import ROBOT_FORMATS, ExportError, export_gait
+
+        fmt, ext, options = ROBOT_FORMATS[label]
+        try:
+            body, _ = export_gait(self.export_text(), fmt, self.session.robot, source="designer", **options)
+        except (RuntimeError, ExportError, GaitCSVError) as exc:
+            self.client.add_notification(
+                f"Export for robot: {label}", str(exc), color="yellow", auto_close_seconds=10.0
+            )
+            return None
+        name = f"snakeloco_gait_{fmt}.{ext}"
+        self.client.send_file_download(name, body.encode(), save_immediately=True)
+        return name, body.encode()
+
+    def share(self) -> tuple[str, bytes] | None:
+        """Download the current replay as a page that plays with no server (``app.share``); None with
+        a notification where there is no replay yet."""
+        from snakeloco.app.share import record_html
+
+        gait, sim = self.decoded, self.simulated
+        if gait is None or sim is None or sim.error is not None:
+            self.client.add_notification(
+                "Share",
+                "wait for the MuJoCo replay: the page plays it",
+                color="yellow",
+                auto_close_seconds=5.0,
+            )
+            return None
+        model_body = None if gait.latents is None else gait.body_ds
+        title = gait.member.describe() if getattr(gait, "member", None) is not None else gait.source
+        html, _ = record_html(
+            sim.body, sim.qpos, list(sim.ensemble_body[1:]), self.session.robot, model_body, title
+        )
+        self.client.send_file_download("snakeloco_replay.html", html.encode(), save_immediately=True)
+        return "snakeloco_replay.html", html.encode()
+
     def import_bytes(self, name: str, data: bytes) -> int | None:
         """Validate an uploaded gait and submit it for replay; returns the request version or None."""
         try:

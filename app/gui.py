@@ -9,6 +9,7 @@ import numpy as np
 import viser
 import viser.uplot as uplot
 
+from snakeloco.app.export import ROBOT_FORMATS
 from snakeloco.app.scene import GEN_COLOR, JOINT_COLORS, LAYERS, LIGHT_RENDERING, SIM_COLOR
 from snakeloco.app.viser_patches import set_plot_data
 from snakeloco.sim import BODY_TIMES, N_JOINTS, RECORD
@@ -110,6 +111,9 @@ class Controls:
     baseline: viser.GuiDropdownHandle
     design: DesignControls
     export_button: viser.GuiButtonHandle
+    robot_format: viser.GuiDropdownHandle
+    robot_export_button: viser.GuiButtonHandle
+    share_button: viser.GuiButtonHandle
     import_button: viser.GuiUploadButtonHandle
     panel: viser.GuiMarkdownHandle
     plots: dict[str, viser.GuiUplotHandle]
@@ -235,6 +239,22 @@ def build_controls(
             hint=f"Download the current gait ({RECORD.n_samples} rows, {RECORD.sample_rate:g} Hz, rad)",
         )
         import_button = gui.add_upload_button("Import CSV", mime_type=".csv,text/csv,text/plain")
+        robot_format = gui.add_dropdown(
+            "Robot format",
+            tuple(ROBOT_FORMATS),
+            initial_value=next(iter(ROBOT_FORMATS)),
+            hint="What Export for robot writes (docs/export.md): a ROS 2 JointTrajectory with velocities, "
+            "commands resampled at 100 Hz, Dynamixel goal positions in ticks, or the gait's parameters; "
+            "each starts with the simulation's 3 s lead-in from rest",
+        )
+        robot_export_button = gui.add_button(
+            "Export for robot",
+            hint="Download the current gait in the Robot format, checked against the robot's limits",
+        )
+        share_button = gui.add_button(
+            "Share",
+            hint="Download a page that plays this replay (snake, paths, fan, figures) in any browser, with no server",
+        )
     with gui.add_folder("Consistency"):
         panel = gui.add_markdown("Decoding...")
     with gui.add_folder("Plots", expand_by_default=wide):
@@ -290,6 +310,9 @@ def build_controls(
         baseline=baseline,
         design=design,
         export_button=export_button,
+        robot_format=robot_format,
+        robot_export_button=robot_export_button,
+        share_button=share_button,
         import_button=import_button,
         panel=panel,
         plots=plots,

@@ -20,6 +20,7 @@ from snakeloco.sim import BODY_DOWNSAMPLE, BODY_RATE, SimulationError, joint_sha
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, compare, perturbed_commands
 from snakeloco.sim.members import Member
 from snakeloco.sim.physics import Simulator, StreamedReplay
+from snakeloco.sim.robot import Robot
 from snakeloco.sim.scheduler import FairPhysics, OnTurns, Turn
 from snakeloco.sim.threads import resolve_workers
 
@@ -159,6 +160,11 @@ class GaitSession:
             physics = FairPhysics(resolve_workers(workers), nice=physics_nice)
             self._owned.append(physics)
         self._simulator, self.physics, self.tab = simulator, physics, tab
+
+    @property
+    def robot(self) -> Robot:
+        """The robot this session replays on (its simulator's description)."""
+        return self._simulator.robot
 
     @property
     def simulator(self) -> OnTurns:

@@ -51,26 +51,14 @@ def readout(body: np.ndarray, fan_ends: np.ndarray, model_body: np.ndarray | Non
     return "\n".join(lines)
 
 
-def share_html(
-    commands: np.ndarray,
-    out: Path,
-    robot: Robot | None = None,
-    model_body: np.ndarray | None = None,
-    title: str = "snakeloco gait",
-    ensemble: int = ENSEMBLE_SIZE,
-    fps: float = SHARE_FPS,
-    workers: int | None = None,
-) -> dict:
-    """Replay ``commands`` (T, J) rad on ``robot`` and write ``out/index.html``; returns its size
-    (bytes), frames and the seconds it took. ``model_body``: the model's path (T', 6), if any."""
-    import viser
-
-    from snakeloco.sim.kinematics import LinkPoses
+def replay_for_share(
+    commands: np.ndarray, robot: Robot, ensemble: int = ENSEMBLE_SIZE, workers: int | None = None
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """The replay's body (T, 6) and qpos (T, nq), and its fan's bodies (the perturbed replays that
+    did not break), as the designer shows them."""
     from snakeloco.sim.physics import Simulator
     from snakeloco.sim.results import SimulationError
 
-    t0 = time.perf_counter()
-    robot = resolve_robot(robot)
     simulator = Simulator(workers=workers, robot=robot)
     try:
         result = simulator.simulate(perturbed_commands(np.asarray(commands, np.float64), ensemble))
@@ -78,9 +66,26 @@ def share_html(
         simulator.close()
     if result.failures[0] is not None:
         raise SimulationError(f"the replay broke: {result.failures[0]}")
-    body, qpos = result.body[0], result.qpos[0]
     fan = [b for b, f in zip(result.body[1:], result.failures[1:], strict=True) if f is None]
-    kinematics = LinkPoses(robot)
+    return result.body[0], result.qpos[0], fan
+
+
+def record_html(
+    body: np.ndarray,
+    qpos: np.ndarray,
+    fan: list[np.ndarray],
+    robot: Robot | None = None,
+    model_body: np.ndarray | None = None,
+    title: str = "snakeloco gait",
+    fps: float = SHARE_FPS,
+) -> tuple[str, int]:
+    """The page (viser's client with the recording inside) and its frame count, for a replay's body
+    (T, 6) and qpos (T, nq) at 20 Hz, its fan's bodies, and the model's path (T', 6) if any."""
+    import viser
+
+    from snakeloco.sim.kinematics import LinkPoses
+
+    kinematics = LinkPoses(resolve_robot(robot))
     start = kinematics.start_frame(qpos[0])
     z0 = float(start[0][2])
     step = max(1, round(RECORD.sample_rate / fps))
@@ -94,11 +99,21 @@ def share_html(
         points = [path_points(body, z0)]
         scene.add_grid("/grid", width=40, height=40, cell_size=1.0, section_size=5.0, plane="xy")
         for i, b in enumerate(fan):
-            scene.add_line_segments(f"/fan/{i}", polyline(path_points(b[::4], z0)), FAN_COLOR, line_width=1.0)
-        scene.add_line_segments("/simulated", polyline(points[0][::4]), SIM_COLOR, line_width=4.0)
+            scene.add_line_segments(
+                f"/fan/{i}",
+                polyline(path_points(b[::4], z0)),
+                FAN_COLOR,
+                thickness=1.0,
+                thickness_units="screen",
+            )
+        scene.add_line_segments(
+            "/simulated", polyline(points[0][::4]), SIM_COLOR, thickness=4.0, thickness_units="screen"
+        )
         if model_body is not None:
             points.append(path_points(model_body, z0))
-            scene.add_line_segments("/generated", polyline(points[1]), GEN_COLOR, line_width=4.0)
+            scene.add_line_segments(
+                "/generated", polyline(points[1]), GEN_COLOR, thickness=4.0, thickness_units="screen"
+            )
         radius, length = kinematics.capsule()
         capsule = trimesh.creation.capsule(height=length, radius=radius, count=[12, 12])
         capsule.visual.vertex_colors = np.array(SNAKE_COLOR, dtype=np.uint8)
@@ -129,13 +144,31 @@ def share_html(
         html = serializer.as_html()
     finally:
         server.stop()
+    return html, len(frames)
+
+
+def share_html(
+    commands: np.ndarray,
+    out: Path,
+    robot: Robot | None = None,
+    model_body: np.ndarray | None = None,
+    title: str = "snakeloco gait",
+    ensemble: int = ENSEMBLE_SIZE,
+    fps: float = SHARE_FPS,
+    workers: int | None = None,
+) -> dict:
+    """Replay ``commands`` (T, J) rad on ``robot`` with its fan and write ``out/index.html``; returns
+    its path, size (bytes), frames, the seconds it took and the readout's text."""
+    t0 = time.perf_counter()
+    robot = resolve_robot(robot)
+    body, qpos, fan = replay_for_share(commands, robot, ensemble, workers)
+    html, frames = record_html(body, qpos, fan, robot, model_body, title, fps)
     out.mkdir(parents=True, exist_ok=True)
     (out / "index.html").write_text(html)
-    size = (out / "index.html").stat().st_size
     return {
         "path": str(out / "index.html"),
-        "bytes": size,
-        "frames": len(frames),
+        "bytes": (out / "index.html").stat().st_size,
+        "frames": frames,
         "seconds": time.perf_counter() - t0,
-        "readout": text,
+        "readout": readout(body, np.array([b[-1, 1:3] for b in fan]), model_body, title),
     }

@@ -184,6 +184,8 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
             layer.on_update(g(lambda _e: self._apply_layers()))
         c.light.on_update(g(lambda _e: self._on_light_changed()))
         c.export_button.on_click(g(lambda _e: self.export()))
+        c.robot_export_button.on_click(g(lambda _e: self.export_for_robot(c.robot_format.value)))
+        c.share_button.on_click(g(lambda _e: self.share()))
         c.baseline.on_update(g(lambda _e: self.load_baseline(c.baseline.value)))
         c.import_button.on_upload(g(lambda _e: self._on_upload()))
 
