@@ -7,7 +7,7 @@ and sensors, so a set of variations replays as one batch of models of one size s
 (``Simulator.simulate(..., robots=...)``). Geometry (``n_joints``, link length and radius, joint
 pattern) and the timestep are not physics in this sense: another geometry is another robot.
 
-Why each range of the default set (docs/robustness.md, "Physics variations", has the figures):
+Why each range of the default set (docs/variations.md has the figures):
 published randomisation for legged sim-to-real uses floor friction 0.5-1.0x around nominal (up to
 2x), command latency 10-50 ms and added payload; snake robots' scales give friction ratios from 2:1
 (a smooth shell) to 8:1 and more (~0.11 along, ~0.38 across measured on real snakes); hobby and

@@ -1,5 +1,5 @@
 """The robot as data (``sim.robot``) and its variations (``sim.variations``, ``sim.robustness``):
-docs/robot.md, "Your robot", and docs/robustness.md, "Physics variations"."""
+docs/robot.md, "Your robot", and docs/variations.md."""
 
 from __future__ import annotations
 
