@@ -25,6 +25,7 @@ from snakeloco.app.commands import (
     Evaluate,
     Export,
     Figures,
+    FitRobot,
     Gait,
     Generate,
     Robot,
@@ -49,6 +50,7 @@ OUTPUTS: dict[type, dict[str, str]] = {
     Figures: {"out": "dir"},
     RobotMjcf: {"out": "file"},
     Export: {"out": "file"},
+    FitRobot: {"out": "file"},
 }
 REUSED_WHEN_PRESENT = {"replays", "gaits"}
 
@@ -262,7 +264,7 @@ def run_serve(cmd: Serve) -> None:
     """Serve the designer until Ctrl-C / SIGTERM."""
     from snakeloco.app.server import serve
 
-    serve(cmd.host, cmd.port, cmd.checkpoint, cmd.ensemble)
+    serve(cmd.host, cmd.port, cmd.checkpoint, cmd.ensemble, robot=_robot(cmd.robot))
 
 
 def _robot(path: Path | None):
@@ -378,6 +380,13 @@ def run_export(cmd: Export) -> dict:
     return {"path": str(cmd.out), "bytes": len(body), "clipped": clipped}
 
 
+def run_fit_robot(cmd: FitRobot) -> dict:
+    """Fit the robot to measured runs and write the fitted description, its plot and the report."""
+    from snakeloco.app.fit_report import fit_from_files
+
+    return fit_from_files(cmd, _robot(cmd.robot))
+
+
 def run_bench(cmd: Command) -> dict:
     """Run a benchmark (``BENCH_MODULES[NAME]``), print its summary (``app/bench/report.py``) and, with
     --json, its figures as one JSON object on the last line."""
@@ -404,6 +413,7 @@ RUNNERS = {
     RobotShow: run_robot_show,
     Robustness: run_robustness,
     Export: run_export,
+    FitRobot: run_fit_robot,
     RobotMjcf: run_robot_mjcf,
     **dict.fromkeys(BENCHES.values(), run_bench),
 }

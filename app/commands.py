@@ -116,6 +116,8 @@ class Design(Command):
     config: Annotated[DesignConfig, Flat] = DesignConfig()
     workers: Workers = None
     """Simulation threads (default: all cores)."""
+    robot: Path | None = None
+    """Robot description YAML the candidates are verified on (a fitted robot: `snakeloco fit-robot`); default: the paper's robot."""
     backend: Annotated[BackendConfig, Flat] = BackendConfig()
     json: bool = False
     """Print report.json as one JSON object on the last line."""
@@ -156,6 +158,8 @@ class Serve(Command):
     checkpoint: Checkpoint = None
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
+    robot: Path | None = None
+    """Robot description YAML every replay runs on (a fitted robot: `snakeloco fit-robot`); default: the paper's robot."""
 
 
 class Robustness(Command):
@@ -164,7 +168,7 @@ class Robustness(Command):
     gait: Annotated[Path, tyro.conf.Positional]
     """The gait CSV (Export CSV's format, or `snakeloco gait NAME --out`)."""
     set: Literal["default", "sampled"] = "default"
-    """default: one change at a time, the reason for each in docs/robustness.md; sampled: 16 robots with every change at once."""
+    """default: one change at a time, the reason for each in docs/variations.md; sampled: 16 robots with every change at once."""
     robot: Path | None = None
     """Robot description YAML the gait runs on (default: the paper's robot, sim/snake.xml)."""
     workers: Workers = None
@@ -197,6 +201,27 @@ class Export(Command):
     """Robot description YAML: joint names, limits, servo ids and home offsets (default: the paper's robot)."""
     workers: Workers = None
     """html: simulation threads for the replay and its fan (default: all cores)."""
+
+
+class FitRobot(Command):
+    """Fit the robot's physics (friction, servo gains, ...) to measured runs of gaits on the real robot, so that replays match where it went; writes the fitted robot description (YAML) and a plot."""
+
+    measured: tuple[Path, ...]
+    """Measured runs, one CSV each: time_s,x,y,yaw[,joint_1..] (docs/calibration.md)."""
+    gait: tuple[Path, ...] = ()
+    """The gait CSV each run ran, in the same order (default: the '# gait:' line of each run, beside it)."""
+    out: Path
+    """Destination robot description (.yaml); the plot goes beside it (.png)."""
+    params: tuple[str, ...] = ("friction_along", "friction_across", "servo_kp")
+    """Physical fields of the robot description to fit."""
+    robot: Path | None = None
+    """The robot description to start from (default: the paper's robot)."""
+    generations: Annotated[int, Field(ge=1, le=500)] = 24
+    """CMA-ES generations (8 candidates each, every run replayed)."""
+    seed: Seed = 0
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    json: Json = False
 
 
 class RobotShow(Command):
@@ -235,5 +260,6 @@ COMMANDS: dict[str, type[Command]] = {
     "bench": Bench,  # listed here for `snakeloco --help`; `snakeloco bench ...` parses BENCHES
     "robustness": Robustness,
     "export": Export,
+    "fit-robot": FitRobot,
     "robot": Robot,  # the same: `snakeloco robot ...` parses ROBOT_COMMANDS
 }

@@ -9,13 +9,23 @@ import time
 
 def write_design(cmd) -> dict:
     """Design, write the candidates' gait CSVs and report.json, say whether the target was met."""
+    import sys
+
     from snakeloco.app.gait_csv import write_gait_csv
+    from snakeloco.app.options import OptionError
     from snakeloco.model import load_pretrained
     from snakeloco.model.design import design
+    from snakeloco.sim.robot import RobotError, resolve_robot
 
     t0 = time.perf_counter()
+    try:
+        robot = resolve_robot(cmd.robot)
+    except RobotError as exc:
+        raise OptionError(str(exc)) from None
     model = load_pretrained(cmd.checkpoint)
-    result = design(model, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers)
+    if warning := model.robot_warning(robot):
+        print(f"snakeloco: warning: {warning}", file=sys.stderr)
+    result = design(model, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers, robot=robot)
     cmd.out.mkdir(parents=True, exist_ok=True)
     candidates = []
     for rank, c in enumerate(result.candidates, start=1):

@@ -10,6 +10,7 @@ import viser
 import viser.uplot as uplot
 
 from snakeloco.app.export import ROBOT_FORMATS
+from snakeloco.app.fit_panel import FitControls, build_fit_controls
 from snakeloco.app.scene import GEN_COLOR, JOINT_COLORS, LAYERS, LIGHT_RENDERING, SIM_COLOR
 from snakeloco.app.viser_patches import set_plot_data
 from snakeloco.sim import BODY_TIMES, N_JOINTS, RECORD
@@ -115,6 +116,7 @@ class Controls:
     robot_export_button: viser.GuiButtonHandle
     share_button: viser.GuiButtonHandle
     import_button: viser.GuiUploadButtonHandle
+    fit: FitControls
     panel: viser.GuiMarkdownHandle
     plots: dict[str, viser.GuiUplotHandle]
 
@@ -255,6 +257,7 @@ def build_controls(
             "Share",
             hint="Download a page that plays this replay (snake, paths, fan, figures) in any browser, with no server",
         )
+    fit = build_fit_controls(gui)
     with gui.add_folder("Consistency"):
         panel = gui.add_markdown("Decoding...")
     with gui.add_folder("Plots", expand_by_default=wide):
@@ -314,6 +317,7 @@ def build_controls(
         robot_export_button=robot_export_button,
         share_button=share_button,
         import_button=import_button,
+        fit=fit,
         panel=panel,
         plots=plots,
     )

@@ -55,6 +55,7 @@ class Readout:
     off_data: bool = False
     ring: bool = False  # the tab's family draws a ring where the replay is likely to end
     sliders: tuple[float, ...] | None = None  # the slider values of the gait (None: a file's gait)
+    robot: str = ""  # why the model's path is another robot's than the replay's (``robot_warning``)
 
     @property
     def gap_m(self) -> float | None:
@@ -136,6 +137,8 @@ def readout_html(r: Readout, colors: dict[str, tuple[int, int, int]]) -> str:
             '<div style="color:#b45309"><b>⚠ Off the data</b>: this z_B is less likely than 99% of the '
             "training records; the model extrapolates here.</div>"
         )
+    if r.robot:
+        parts.append(f'<div style="color:#b45309"><b>⚠ Robot</b>: {html.escape(r.robot)}</div>')
     parts.append("</div>")
     return "".join(parts)
 
@@ -172,6 +175,7 @@ class TabReadout:
             off_data=gait.off_data,
             ring=self.scene.end_spread is not None,
             sliders=gait.latents.sliders if gait.latents is not None else None,
+            robot=self.model.robot_warning(self.session.robot) or "",
         )
         colors = {"model": GEN_COLOR, "mujoco": SIM_COLOR, "ensemble": FAN_COLOR, "ring": BAND_COLOR}
         self.controls.readout.content = readout_html(self.readout, colors)

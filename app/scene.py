@@ -14,8 +14,9 @@ import viser
 from snakeloco.app.session import DecodedGait, SimulatedGait
 from snakeloco.app.view import Framer, MetreGrid
 from snakeloco.app.viser_patches import set_arrays
-from snakeloco.sim import BODY_DOWNSAMPLE, N_LINKS
+from snakeloco.sim import BODY_DOWNSAMPLE
 from snakeloco.sim.kinematics import LinkPoses
+from snakeloco.sim.robot import Robot
 
 JOINT_COLORS = np.array(
     [
@@ -96,10 +97,15 @@ def shape_points(shape: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class TabScene:
     """The scene nodes of one browser tab and how each is drawn. Callers serialise the calls."""
 
-    def __init__(self, client: viser.ClientHandle, layers: dict[str, viser.GuiCheckboxHandle]) -> None:
+    def __init__(
+        self,
+        client: viser.ClientHandle,
+        layers: dict[str, viser.GuiCheckboxHandle],
+        robot: Robot | None = None,
+    ) -> None:
         self.client = client
         self.layers = layers
-        self.kinematics = LinkPoses()
+        self.kinematics = LinkPoses(robot)
         self.start = (np.zeros(3), 0.0)  # the replay's initial body position (m) and heading (rad), world
         scene = client.scene
         self.grid = scene.add_grid("/grid", 20.0, 20.0, cell_size=0.1, section_size=1.0)
@@ -110,8 +116,8 @@ class TabScene:
         self.snake = scene.add_batched_meshes_trimesh(
             "/snake",
             capsule,
-            batched_wxyzs=np.tile([1.0, 0, 0, 0], (N_LINKS, 1)),
-            batched_positions=np.zeros((N_LINKS, 3)),
+            batched_wxyzs=np.tile([1.0, 0, 0, 0], (self.kinematics.robot.n_links, 1)),
+            batched_positions=np.zeros((self.kinematics.robot.n_links, 3)),
         )
         self.gen_path = self.band = None
         self.sim_parts: list[viser.LineSegmentsHandle] = []  # the simulated path, one node per part streamed

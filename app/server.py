@@ -29,6 +29,7 @@ from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import SHIPPED, CheckpointError, resolve_checkpoint
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
 from snakeloco.sim.physics import Simulator
+from snakeloco.sim.robot import Robot
 from snakeloco.sim.scheduler import FairPhysics
 from snakeloco.sim.threads import resolve_workers
 
@@ -183,6 +184,7 @@ class DesignerServer:
         workers: int | None = None,
         verbose: bool = True,
         families: dict[str, str | Path] | None = None,
+        robot: Robot | None = None,
     ) -> None:
         check_bindable(host)
         self.models, default = load_families(checkpoint, families)
@@ -207,7 +209,9 @@ class DesignerServer:
             self._error,
         )
         """Every tab's decodes, in turns, in child processes (``app.decode_process``)."""
-        self.simulator = Simulator(1)  # the robot, its command rule and checks: rollouts go to physics
+        # The robot, its command rule and checks (rollouts go to physics): every tab replays on it.
+        self.simulator = Simulator(1, robot=robot)
+        self.robot = self.simulator.robot
         self.clients: dict[int, DesignerClient] = {}
         self.errors: list[str] = []
         """Every exception a tab's callbacks or workers raised (each also printed); bench load counts them."""
@@ -270,10 +274,12 @@ def serve(
     port: int = 8080,
     checkpoint: str | Path | None = None,
     ensemble: int = ENSEMBLE_SIZE,
+    robot: Robot | None = None,
 ) -> None:
-    """Run the designer until Ctrl-C or SIGTERM; then stop cleanly (port freed, threads joined)."""
+    """Run the designer until Ctrl-C or SIGTERM; then stop cleanly (port freed, threads joined);
+    ``robot``: the robot every replay runs on (default: the paper's)."""
     tune_process()
-    app = DesignerServer(host, port, checkpoint, ensemble)
+    app = DesignerServer(host, port, checkpoint, ensemble, robot=robot)
     freeze_started()
     stop = threading.Event()
 
@@ -282,7 +288,7 @@ def serve(
 
     signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
-    warning = app.model.robot_warning()
+    warning = app.model.robot_warning(app.robot)
     if warning:
         print(f"snakeloco: warning: {warning}", file=sys.stderr)
     print(f"snakeloco designer on http://{host}:{app.port} (no authentication: keep it on a trusted network)")

@@ -160,11 +160,30 @@ class GaitSession:
             physics = FairPhysics(resolve_workers(workers), nice=physics_nice)
             self._owned.append(physics)
         self._simulator, self.physics, self.tab = simulator, physics, tab
+        self._nominal = simulator
+        self._robot_simulators: dict[Robot, Simulator] = {}
 
     @property
     def robot(self) -> Robot:
         """The robot this session replays on (its simulator's description)."""
         return self._simulator.robot
+
+    @property
+    def nominal_robot(self) -> Robot:
+        """The robot the session started on (the server's)."""
+        return self._nominal.robot
+
+    def set_robot(self, robot: Robot) -> None:
+        """Replay from now on on ``robot`` (a fitted robot; the nominal one to go back). Its simulator
+        is the session's own, kept while the session lives (a tab offers a few)."""
+        if robot == self._nominal.robot:
+            self._simulator = self._nominal
+            return
+        simulator = self._robot_simulators.get(robot)
+        if simulator is None:
+            simulator = self._robot_simulators[robot] = Simulator(workers=1, robot=robot)
+            self._owned.append(simulator)
+        self._simulator = simulator
 
     @property
     def simulator(self) -> OnTurns:

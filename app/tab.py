@@ -24,6 +24,7 @@ import viser
 from snakeloco.app import panel
 from snakeloco.app.decode_process import DecodePool
 from snakeloco.app.design_panel import DesignPanel
+from snakeloco.app.fit_panel import FitPanel
 from snakeloco.app.gait_files import GaitFiles
 from snakeloco.app.gui import NO_BASELINE, SLIDER_RANGE, WIDE_PX, build_controls
 from snakeloco.app.latent_moves import LatentMoves
@@ -130,10 +131,11 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
             self._component_names(model),
             wide=client.camera.image_width >= WIDE_PX,
         )
-        self.scene = TabScene(client, self.controls.layers)
+        self.scene = TabScene(client, self.controls.layers, self.session.robot)
         self.scene.end_spread = END_SPREAD.get(model.family)
         self._wire()
         self.design = DesignPanel(self, self.controls.design)
+        self.fit = FitPanel(self, self.controls.fit)
         report = lambda exc: self._report(f"{type(exc).__name__}: {exc}")  # noqa: E731
         self.decoder = LatestWorker(self._decode_job, name=f"decode-{client.client_id}", on_error=report)
         self.physics = LatestWorker(self._physics_job, name=f"physics-{client.client_id}", on_error=report)
@@ -373,6 +375,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
     def close(self) -> None:
         self._closed.set()
         self.design.close()
+        self.fit.close()
         self.decoder.close()
         self.physics.close()
         self.ensembles.close()

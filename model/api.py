@@ -96,21 +96,28 @@ class GaitModel(MemberDecoding):
         out = np.stack([m.commands() for m in members])
         return out.reshape(*shape.shape[:-3], *out.shape[1:])
 
-    def robot_warning(self) -> str | None:
-        """None if the checkpoint was trained on this robot (``sim/snake.xml``), else a warning.
+    def robot_warning(self, robot=None) -> str | None:
+        """None if the checkpoint was trained on ``robot`` (a ``sim.robot.Robot``; None: the default
+        robot, ``sim/snake.xml``), else a warning.
 
-        A changed MJCF (joints, servos, integrator) changes what a decoded gait does when replayed,
-        so predictions and consistency figures then describe another robot.
+        Another robot (joints, servos, friction, a fitted robot) changes what a decoded gait does when
+        replayed, so predictions and consistency figures then describe the robot it was trained on.
         """
-        from snakeloco.sim import mjcf_sha256
+        from snakeloco.sim.robot import DEFAULT_ROBOT
 
-        here = mjcf_sha256()
+        robot = robot or DEFAULT_ROBOT
+        here = robot.mjcf_sha256
         if self.config.mjcf_sha256 == here:
             return None
+        trained = (
+            "the nominal robot (sim/snake.xml)"
+            if self.config.mjcf_sha256 == DEFAULT_ROBOT.mjcf_sha256
+            else (f"another robot model (MJCF sha256 {self.config.mjcf_sha256[:12]})")
+        )
         return (
-            f"checkpoint {self.path or ''} was trained on another robot model (MJCF sha256 "
-            f"{self.config.mjcf_sha256[:12]}, this sim/snake.xml {here[:12]}): replays follow "
-            "this robot, the decoded paths and statistics the other one"
+            f"checkpoint {self.path or ''} was trained on {trained}; replays run on {robot.name} "
+            f"(MJCF sha256 {here[:12]}): the MuJoCo path is this robot's, the model's path and "
+            "statistics the one it was trained on"
         )
 
     @property

@@ -322,11 +322,14 @@ def design(
     workers: int | None = None,
     cancelled: Callable[[], bool] | None = None,
     on_verify: Callable[[int], None] | None = None,
+    robot=None,
 ) -> DesignResult:
     """Search, verify in MuJoCo (on ``runner``, an open backend, or one opened from ``backend``), and
     refine the best verified candidates for what physics did, for up to ``cfg.rounds`` rounds.
     ``cancelled`` is polled between search generations (True: stop; the result is then not meant to
-    be used); ``on_verify(round)`` is called when a round's replays start."""
+    be used); ``on_verify(round)`` is called when a round's replays start. ``robot``: the
+    ``sim.robot.Robot`` the candidates are verified on where a backend is opened here (default: the
+    paper's robot)."""
     cfg = cfg or DesignConfig()
     search_s = physics_s = 0.0
     own = runner is None
@@ -350,7 +353,7 @@ def design(
             if on_verify is not None:
                 on_verify(rnd)
             t0 = time.perf_counter()
-            runner = runner or open_backend(backend, workers)
+            runner = runner or open_backend(backend, workers, robot=robot)
             verified = rank(verified + verify(model, proposed, target, cfg, runner, members=1), target, cfg)
             physics_s += time.perf_counter() - t0
             replays += len(proposed)

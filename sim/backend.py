@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from snakeloco.sim.command_rule import CommandRule
 from snakeloco.sim.dataset import BODY_DOWNSAMPLE
 from snakeloco.sim.excitation import RECORD, ExcitationConfig
+from snakeloco.sim.robot import Robot, resolve_robot
 
 RAY_MISSING = "--backend ray needs Ray: pip install 'snakeloco[scale]' (or pip install 'ray>=2.9')"
 CONNECT_TIMEOUT_S = 10.0
@@ -74,12 +75,14 @@ class LocalBackend:
 
     name = "local"
 
-    def __init__(self, workers: int | None, excitation: ExcitationConfig, sim: CommandRule) -> None:
+    def __init__(
+        self, workers: int | None, excitation: ExcitationConfig, sim: CommandRule, robot: Robot | None = None
+    ) -> None:
         from snakeloco.sim.physics import Simulator
         from snakeloco.sim.threads import resolve_workers
 
         self.workers = resolve_workers(workers)
-        self.simulator = Simulator(self.workers, excitation, sim)
+        self.simulator = Simulator(self.workers, excitation, sim, robot=robot)
         self._owned = True
 
     @classmethod
@@ -104,18 +107,21 @@ class LocalBackend:
 
 
 @functools.cache
-def _worker_simulator(excitation_json: str, sim_json: str):
-    """One single-threaded simulator per Ray worker process, made on its first task and kept."""
+def _worker_simulator(excitation_json: str, sim_json: str, robot_json: str):
+    """One single-threaded simulator per Ray worker process and robot, made on its first task and kept."""
     from snakeloco.sim.physics import Simulator
 
     return Simulator(
-        1, ExcitationConfig.model_validate_json(excitation_json), CommandRule.model_validate_json(sim_json)
+        1,
+        ExcitationConfig.model_validate_json(excitation_json),
+        CommandRule.model_validate_json(sim_json),
+        robot=Robot.model_validate_json(robot_json),
     )
 
 
-def _run_task(fn: Fn, excitation_json: str, sim_json: str, job: Job) -> Any:
+def _run_task(fn: Fn, excitation_json: str, sim_json: str, robot_json: str, job: Job) -> Any:
     """The body of every Ray task: ``fn`` on this worker's simulator."""
-    return fn(_worker_simulator(excitation_json, sim_json), job)
+    return fn(_worker_simulator(excitation_json, sim_json, robot_json), job)
 
 
 def _check_reachable(address: str) -> None:
@@ -164,7 +170,12 @@ class RayBackend:
     """Replays per task: ~8 s of physics on one core, so task overhead (~200 us) stays below 0.01%."""
 
     def __init__(
-        self, address: str | None, workers: int | None, excitation: ExcitationConfig, sim: CommandRule
+        self,
+        address: str | None,
+        workers: int | None,
+        excitation: ExcitationConfig,
+        sim: CommandRule,
+        robot: Robot | None = None,
     ):
         try:
             import ray
@@ -189,7 +200,11 @@ class RayBackend:
             _join(ray, address)
         self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self.max_in_flight = 2 * self.workers
-        self._specs = (excitation.model_dump_json(), sim.model_dump_json())
+        self._specs = (
+            excitation.model_dump_json(),
+            sim.model_dump_json(),
+            resolve_robot(robot).model_dump_json(),
+        )
         self._task = ray.remote(_run_task).options(
             num_cpus=1, max_retries=TASK_RETRIES, retry_exceptions=False
         )
@@ -236,13 +251,15 @@ def open_backend(
     workers: int | None = None,
     excitation: ExcitationConfig = RECORD,
     sim: CommandRule | None = None,
+    robot: Robot | None = None,
 ) -> LocalBackend | RayBackend:
     """The backend ``cfg`` names (default local); ``workers``: local threads, or the CPUs of a Ray
-    instance started here. Close it (``close``) when done."""
+    instance started here; ``robot``: what it replays on (default: the paper's robot). Close it
+    (``close``) when done."""
     cfg = cfg or BackendConfig()
     sim = sim or CommandRule()
     if cfg.backend == "local":
         if cfg.ray_address is not None:
             raise BackendError("--ray-address is for --backend ray")
-        return LocalBackend(workers, excitation, sim)
-    return RayBackend(cfg.ray_address, workers, excitation, sim)
+        return LocalBackend(workers, excitation, sim, robot)
+    return RayBackend(cfg.ray_address, workers, excitation, sim, robot)

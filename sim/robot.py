@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from functools import cache, cached_property
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
@@ -290,14 +290,14 @@ class Robot(BaseModel):
         spec.compile()  # to_xml writes a compiled spec
         return spec.to_xml()
 
-    @cached_property
+    @property
     def mjcf_sha256(self) -> str:
         """Hash of the physics this description builds: of ``sim/snake.xml`` for the default robot (the
         hash every dataset and checkpoint before robot descriptions stored), of its MJCF text
         otherwise."""
         if self == DEFAULT_ROBOT:
             return default_mjcf_sha256()
-        return hashlib.sha256(self.mjcf().encode()).hexdigest()
+        return _mjcf_hash(self.model_dump_json())
 
     def to_yaml(self) -> str:
         import yaml
@@ -372,6 +372,11 @@ COMMAND_LIMIT = DEFAULT_ROBOT.command_limit
 """Every joint command is clipped to +/- this angle (rad), inside the joint range."""
 LINK_GEOMS = DEFAULT_ROBOT.link_geoms
 """MJCF names of the link capsules, head (link 1) to tail."""
+
+
+@cache
+def _mjcf_hash(description_json: str) -> str:
+    return hashlib.sha256(Robot.model_validate_json(description_json).mjcf().encode()).hexdigest()
 
 
 @cache

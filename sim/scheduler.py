@@ -10,7 +10,8 @@ through) and the rows of an ensemble. ``FairPhysics`` runs them on ``threads`` n
    value a slider may still be passing through comes after the settled replays' chunks);
 2. inside a class, round robin between tabs: the tab served longest ago goes next, so a tab with a
    long queue (an 8-member ensemble) cannot hold up a tab with one row, and no tab starves;
-   inverse design's replays come last (a search of seconds after every tab's ensembles);
+   then physics variations, inverse design's replays (a search of seconds), and last a fit of the
+   robot to a measured run (minutes);
 3. a task whose ``wanted()`` says no when its turn comes is dropped unrun (its future cancelled):
    superseded work never takes a core. ``Future.cancel`` on a queued task does the same.
 
@@ -44,7 +45,9 @@ class Turn(IntEnum):
     SETTLED = 1  # later chunks of a gait the user has let go of
     DRAGGED = 2  # later chunks of a gait a slider is still passing through
     ENSEMBLE = 3  # the perturbed copies that score a finished replay
-    DESIGN = 4  # inverse design's candidate replays (a search of several seconds)
+    VARIATIONS = 4  # the replay on other robots (physics variations)
+    DESIGN = 5  # inverse design's candidate replays (a search of several seconds)
+    FIT = 6  # fitting the robot's physics to a measured run (minutes of replays)
 
 
 @dataclass
@@ -84,7 +87,9 @@ LANES = (
     (Turn.DRAGGED, False),
     (Turn.FIRST_MOTION, False),
     (Turn.ENSEMBLE, False),
+    (Turn.VARIATIONS, False),
     (Turn.DESIGN, False),
+    (Turn.FIT, False),
 )
 """The order ``FairPhysics`` serves in: (class, held values only). A first motion whose slider
 value is younger than its tab's hold (before ``held_at``: the slider may be passing through it) comes
@@ -283,16 +288,21 @@ class OnTurns:
         self._simulator, self._runner = simulator, runner
         self.workers = runner.pool.threads
 
-    def simulate(self, commands, wanted=None, samples=None, resume=None):
+    def simulate(self, commands, wanted=None, samples=None, resume=None, robots=None):
         """``Simulator.simulate`` on the pool's turns (None where a row was dropped as unwanted). A
-        whole batch runs in segments of ``SEGMENT_SAMPLES`` per row and task (paused and carried on:
-        the same numbers as one rollout), so no task holds a thread long."""
-        if samples is not None or resume is not None:
-            return self._simulator.simulate(commands, wanted, samples, resume, runner=self._runner)
-        total, result = self._simulator.excitation.n_samples, None
+        whole batch (or its first ``samples``) runs in segments of ``SEGMENT_SAMPLES`` per row and
+        task (paused and carried on: the same numbers as one rollout), so no task holds a thread
+        long. ``robots``: one variation of the simulator's robot per row."""
+        if resume is not None:
+            return self._simulator.simulate(
+                commands, wanted, samples, resume, runner=self._runner, robots=robots
+            )
+        total, result = samples or self._simulator.excitation.n_samples, None
         for end in range(SEGMENT_SAMPLES, total + SEGMENT_SAMPLES, SEGMENT_SAMPLES):
             paused = None if result is None else result.paused
-            result = self._simulator.simulate(commands, wanted, min(end, total), paused, runner=self._runner)
+            result = self._simulator.simulate(
+                commands, wanted, min(end, total), paused, runner=self._runner, robots=robots
+            )
             if result is None:
                 return None
         return result

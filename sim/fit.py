@@ -1,0 +1,348 @@
+"""Fit a robot's physics to measured runs: ``snakeloco fit-robot`` (docs/calibration.md).
+
+Given gaits the robot ran and where it went (``sim.measured``), the chosen physical fields of the
+robot description are searched with CMA-ES so that replays match the measured paths (and joint
+angles, where measured). Each generation's candidates x runs replay as one batch of varied models
+(``Simulator.simulate(robots=...)``).
+
+Search space: a field that scales (friction, gains, masses ...) is searched as a factor of its start
+value in [1/``bound``, ``bound``] on a log scale; ``slope_deg`` in [0, 10] deg,
+``slope_direction_deg`` in [-180, 180], ``latency`` in [0, 0.1] s.
+
+Loss of one run: RMS distance of the replayed from the measured body position at the measured times,
+over max(measured distance, 0.5 m), plus ``yaw_weight`` x RMS heading error (rad), plus RMS joint
+error (rad) where joints were measured; the loss is the mean over runs. A replay that breaks costs
+``BROKEN_LOSS``.
+
+Uncertainty: around the optimum the loss is probed at +/-15% of each field (others fixed); its
+slope gives the half-width in which the loss rises by ``tolerance`` (the larger of the optimum's own
+loss, i.e. doubling the misfit, and ``min_tolerance``): what the runs cannot tell apart. A field whose half-width is
+over 15% (or whose loss does not rise) is *not determined* by these runs; the report names the
+library gait whose end point moves most when that field doubles (the gait that would determine it).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from snakeloco.sim.excitation import RECORD
+from snakeloco.sim.measured import MeasuredRun, MeasuredRunError
+from snakeloco.sim.robot import Robot, robot_from_dict
+from snakeloco.sim.variations import PHYSICAL_FIELDS
+
+ADDITIVE = {"slope_deg": (0.0, 10.0), "slope_direction_deg": (-180.0, 180.0), "latency": (0.0, 0.1)}
+"""Fields searched on a linear range (they start at 0, where a factor means nothing)."""
+BROKEN_LOSS = 100.0
+PROBE = math.log(1.15)
+"""Log step of the uncertainty probe (15%)."""
+
+
+class FitConfig(BaseModel):
+    """The search (CMA-ES over the chosen fields)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    params: tuple[str, ...] = ("friction_along", "friction_across", "servo_kp")
+    """Physical fields of the robot description to fit."""
+    bound: float = Field(4.0, gt=1.0, le=20.0)
+    """A scaling field is searched within [start / bound, start x bound]."""
+    popsize: int = Field(8, ge=4, le=64)
+    """Candidates per CMA-ES generation (each replays every run)."""
+    generations: int = Field(24, ge=1, le=500)
+    """CMA-ES generations."""
+    horizons: tuple[float, ...] = (25.0, 50.0, 100.0)
+    """Seconds of each run the loss reads, in equal shares of the generations: short horizons first,
+    where a path depends smoothly on the physics (over 100 s small changes can grow chaotically),
+    then the whole run. The uncertainty is probed on the whole run."""
+    seed: int = Field(0, ge=0)
+    yaw_weight: float = Field(0.1, ge=0)
+    """Weight of the RMS heading error (rad) beside the relative path error."""
+    min_tolerance: float = Field(0.003, gt=0)
+    """Smallest loss rise the uncertainty is measured against (0.3% of the distance)."""
+
+
+def dominant_frequency(commands: np.ndarray) -> float:
+    """The excited frequency (Hz) with the largest command amplitude: one cycle of the gait."""
+    spectrum = np.abs(np.fft.rfft(commands, axis=0)).sum(axis=1)  # (T/2 + 1,)
+    spectrum[0] = 0.0
+    return float(np.argmax(spectrum) / RECORD.duration)
+
+
+def check_pairs(pairs: Sequence[tuple[np.ndarray, MeasuredRun]], robot: Robot) -> None:
+    """Refuse runs that cannot be fitted: MeasuredRunError naming the run and the reason."""
+    if not pairs:
+        raise MeasuredRunError("no measured runs to fit")
+    for commands, run in pairs:
+        if commands.shape[1] != robot.n_joints:
+            raise MeasuredRunError(
+                f"{run.source}: the gait has {commands.shape[1]} joints, the robot {robot.name} {robot.n_joints}"
+            )
+        if run.joints is not None and run.joints.shape[1] != commands.shape[1]:
+            raise MeasuredRunError(
+                f"{run.source}: {run.joints.shape[1]} measured joints, the gait has {commands.shape[1]}"
+            )
+        f = dominant_frequency(commands)
+        if f > 0 and run.duration < 1.0 / f:
+            raise MeasuredRunError(
+                f"{run.source}: the run lasts {run.duration:.2f} s, shorter than one cycle of its gait "
+                f"({1 / f:.2f} s at {f:.2f} Hz)"
+            )
+        if run.times[-1] > RECORD.duration:
+            raise MeasuredRunError(
+                f"{run.source}: the run goes on to {run.times[-1]:g} s; the replay covers the {RECORD.duration:g} s record"
+            )
+
+
+class FitCancelled(Exception):
+    """The fit's replays were dropped (a designer tab moved on): there is no result."""
+
+
+class RobotFit:
+    """The loss of candidate robots on measured runs, replayed in batches on one simulator."""
+
+    def __init__(self, pairs, start: Robot, cfg: FitConfig, simulator) -> None:
+        unknown = [p for p in cfg.params if p not in PHYSICAL_FIELDS]
+        if unknown:
+            raise ValueError(f"cannot fit {unknown}: fit one of {', '.join(PHYSICAL_FIELDS)}")
+        check_pairs(pairs, start)
+        self.pairs, self.start, self.cfg, self.sim = list(pairs), start, cfg, simulator
+        self.full = min(
+            RECORD.n_samples, max(math.ceil(r.times[-1] * RECORD.sample_rate) + 2 for _, r in pairs)
+        )
+        self.samples = self.full
+        self.replays = 0
+
+    def robot(self, x: np.ndarray) -> Robot:
+        """The candidate at search coordinates ``x`` (one per field, in [-1, 1])."""
+        values = self.start.model_dump()
+        for name, xi in zip(self.cfg.params, x, strict=True):
+            if name in ADDITIVE:
+                lo, hi = ADDITIVE[name]
+                values[name] = lo + (hi - lo) * (float(np.clip(xi, -1, 1)) + 1) / 2
+            else:
+                values[name] = getattr(self.start, name) * self.cfg.bound ** float(np.clip(xi, -1, 1))
+        values["name"] = f"{self.start.name} fitted"[:64]
+        return robot_from_dict(values, "fitted robot")
+
+    def x_of(self, robot: Robot) -> np.ndarray:
+        """Search coordinates of a robot (the inverse of ``robot``)."""
+        out = []
+        for name in self.cfg.params:
+            if name in ADDITIVE:
+                lo, hi = ADDITIVE[name]
+                out.append(2 * (getattr(robot, name) - lo) / (hi - lo) - 1)
+            else:
+                out.append(
+                    math.log(getattr(robot, name) / getattr(self.start, name)) / math.log(self.cfg.bound)
+                )
+        return np.array(out)
+
+    def replay(self, robots: Sequence[Robot]) -> list[list[np.ndarray | None]]:
+        """Body series (samples, 6) of every run on every robot ([robot][run]; None where it broke)."""
+        cmds = np.stack([c for _ in robots for c, _ in self.pairs])
+        rows = [r for r in robots for _ in self.pairs]
+        result = self.sim.simulate(cmds, samples=self.samples, robots=rows)
+        if result is None:  # a designer's fit whose tab moved on: its replays were dropped
+            raise FitCancelled
+        self.replays += len(rows)
+        n = len(self.pairs)
+        return [
+            [None if result.failures[i * n + j] else result.body[i * n + j] for j in range(n)]
+            for i in range(len(robots))
+        ]
+
+    def run_loss(self, body: np.ndarray | None, run: MeasuredRun, joints: np.ndarray | None = None) -> float:
+        if body is None:
+            return BROKEN_LOSS
+        t = np.arange(len(body)) / RECORD.sample_rate
+        seen = run.times <= t[-1]
+        times, measured = run.times[seen], run.xy[seen]
+        xy = np.stack([np.interp(times, t, body[:, k]) for k in (1, 2)], axis=1)
+        yaw = np.interp(times, t, body[:, 5])
+        loss = np.sqrt(np.mean(np.sum((xy - measured) ** 2, axis=1))) / max(
+            float(np.hypot(*measured[-1])), 0.5
+        )
+        loss += self.cfg.yaw_weight * np.sqrt(np.mean((yaw - run.yaw[seen]) ** 2))
+        return float(loss)
+
+    def set_horizon(self, seconds: float) -> None:
+        """Replay (and score) only the first ``seconds`` of each run from now on."""
+        self.samples = min(self.full, math.ceil(seconds * RECORD.sample_rate) + 2)
+
+    def losses(self, robots: Sequence[Robot]) -> np.ndarray:
+        """Mean loss over the runs of each robot."""
+        bodies = self.replay(robots)
+        return np.array(
+            [
+                np.mean([self.run_loss(b, r) for b, (_, r) in zip(bs, self.pairs, strict=True)])
+                for bs in bodies
+            ]
+        )
+
+    def path_errors(self, robot: Robot) -> list[dict]:
+        """Per run: RMS path error and end-point error (m) of ``robot``'s replay against the run."""
+        out = []
+        for body, (_, run) in zip(self.replay([robot])[0], self.pairs, strict=True):
+            if body is None:
+                out.append({"run": run.source, "rms_m": None, "end_m": None, "broke": True})
+                continue
+            t = np.arange(len(body)) / RECORD.sample_rate
+            xy = np.stack([np.interp(run.times, t, body[:, k]) for k in (1, 2)], axis=1)
+            err = np.hypot(*(xy - run.xy).T)
+            out.append(
+                {
+                    "run": run.source,
+                    "rms_m": float(np.sqrt(np.mean(err**2))),
+                    "end_m": float(err[-1]),
+                    "distance_m": run.distance,
+                    "end_rel": float(err[-1] / max(run.distance, 0.5)),
+                }
+            )
+        return out
+
+
+def fit_robot(
+    pairs: Sequence[tuple[np.ndarray, MeasuredRun]],
+    robot: Robot,
+    cfg: FitConfig | None = None,
+    simulator=None,
+    progress: Callable[[int], None] | None = None,
+    advise: bool = True,
+) -> dict:
+    """Fit ``cfg.params`` of ``robot`` to measured runs ((commands (T, J) rad, run) pairs).
+
+    Returns {"robot": the fitted Robot, "params": {name: {"start", "fitted", "low", "high", "rel_uncertainty",
+    "determined", "would_determine"}}, "loss_start", "loss_fitted", "before", "after" (per-run path
+    errors), "replays", "seconds", "generations"}.
+    """
+    import cma
+
+    from snakeloco.sim.physics import Simulator
+
+    cfg = cfg or FitConfig()
+    own = simulator is None
+    simulator = simulator or Simulator(workers=None, robot=robot)
+    t0 = time.perf_counter()
+    try:
+        fit = RobotFit(pairs, robot, cfg, simulator)
+        x0 = np.zeros(len(cfg.params))
+        es = cma.CMAEvolutionStrategy(
+            x0, 0.3, {"popsize": cfg.popsize, "seed": cfg.seed + 1, "bounds": [-1, 1], "verbose": -9}
+        )
+        loss_start = float(fit.losses([robot])[0])
+        stages = np.array_split(np.arange(cfg.generations), len(cfg.horizons))
+        for horizon, gens in zip(cfg.horizons, stages, strict=True):
+            fit.set_horizon(horizon)
+            for _ in gens:
+                xs = es.ask()
+                es.tell(xs, fit.losses([fit.robot(x) for x in xs]).tolist())
+                if progress is not None:
+                    progress(1)
+        fit.set_horizon(RECORD.duration)
+        # The search's mean is its estimate; the best single candidate of a noisy stage is not.
+        candidates = [np.clip(es.mean, -1, 1), np.asarray(es.best.x if es.best.x is not None else x0)]
+        losses = fit.losses([fit.robot(x) for x in candidates])
+        best_x, best_loss = candidates[int(np.argmin(losses))], float(losses.min())
+        fitted = fit.robot(best_x)
+        params = uncertainty(fit, best_x, best_loss)
+        if advise:
+            for name, p in params.items():
+                if not p["determined"]:
+                    p["would_determine"] = most_sensitive_gait(fitted, name, simulator)
+        return {
+            "robot": fitted,
+            "params": params,
+            "loss_start": loss_start,
+            "loss_fitted": best_loss,
+            "before": fit.path_errors(robot),
+            "after": fit.path_errors(fitted),
+            "replays": fit.replays,
+            "generations": cfg.generations,
+            "seconds": time.perf_counter() - t0,
+        }
+    finally:
+        if own:
+            simulator.close()
+
+
+def uncertainty(fit: RobotFit, x: np.ndarray, loss: float) -> dict[str, dict]:
+    """Each field's fitted value, the interval in which the loss rises by at most the tolerance, and
+    whether the runs determine it (module docstring)."""
+    cfg = fit.cfg
+    tolerance = max(loss, cfg.min_tolerance)
+    probes, steps = [], []
+    for i, name in enumerate(cfg.params):
+        if name in ADDITIVE:
+            lo, hi = ADDITIVE[name]
+            h = 0.15 * 2 / (hi - lo) * max(1.0, 0.1 * (hi - lo))  # 15% of a tenth of the range, in x
+        else:
+            h = PROBE / math.log(cfg.bound)
+        steps.append(h)
+        for sign in (1, -1):
+            xp = x.copy()
+            xp[i] += sign * h
+            probes.append(fit.robot(xp))
+    around = fit.losses(probes)
+    fitted = fit.robot(x)
+    out = {}
+    for i, name in enumerate(cfg.params):
+        up, down = around[2 * i], around[2 * i + 1]
+        # An RMS path error grows in proportion to a small change (a V, not a parabola): its slope
+        # over the probe's step gives the change that raises the loss by the tolerance.
+        slope = (up + down - 2 * loss) / (2 * steps[i])
+        half = tolerance / slope if slope > 0 else math.inf  # in x
+        value = float(getattr(fitted, name))
+        if name in ADDITIVE:
+            lo_r, hi_r = ADDITIVE[name]
+            width = half * (hi_r - lo_r) / 2
+            low, high = value - width, value + width
+            rel = width / max(abs(value), 1e-9) if math.isfinite(width) else math.inf
+            determined = math.isfinite(width) and width <= 0.15 * (hi_r - lo_r) / 10
+        else:
+            factor = cfg.bound**half if math.isfinite(half) else math.inf
+            low, high = value / factor, value * factor
+            rel = factor - 1
+            determined = rel <= 0.15
+        out[name] = {
+            "start": float(getattr(fit.start, name)),
+            "fitted": value,
+            "low": low,
+            "high": high,
+            "rel_uncertainty": rel,
+            "determined": bool(determined),
+            "loss_rise": [float(up - loss), float(down - loss)],
+        }
+    return out
+
+
+def most_sensitive_gait(robot: Robot, name: str, simulator) -> dict:
+    """The library gait whose 100 s end point moves most when ``name`` doubles (or, for a field that
+    starts at 0, moves to a tenth of its range) on ``robot``: the run that would determine it."""
+    from snakeloco.sim.gaits import PRESETS
+
+    values = robot.model_dump()
+    if name in ADDITIVE:
+        lo, hi = ADDITIVE[name]
+        values[name] += 0.1 * (hi - lo)
+    else:
+        values[name] *= 2
+    changed = robot_from_dict(values, f"{robot.name} with {name} changed")
+    names = list(PRESETS)
+    cmds = np.stack([PRESETS[n].gait.commands() for n in names for _ in range(2)])
+    result = simulator.simulate(cmds, robots=[r for _ in names for r in (robot, changed)])
+    if result is None:
+        raise FitCancelled
+    best = {"gait": None, "end_change_rel": 0.0}
+    for i, n in enumerate(names):
+        if result.failures[2 * i] or result.failures[2 * i + 1]:
+            continue
+        a, b = result.body[2 * i, -1, 1:3], result.body[2 * i + 1, -1, 1:3]
+        rel = float(np.hypot(*(a - b)) / max(np.hypot(*a), 0.5))
+        if rel > best["end_change_rel"]:
+            best = {"gait": n, "end_change_rel": rel}
+    return best

@@ -1,0 +1,158 @@
+"""Fitting the robot to measured runs (``sim.measured``, ``sim.fit``, ``snakeloco fit-robot``, the
+designer's "Your robot" folder): docs/calibration.md."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from snakeloco.app.cli import main
+from snakeloco.app.gait_csv import library_gait_csv
+from snakeloco.sim.fit import FitConfig, fit_robot
+from snakeloco.sim.gaits import PRESETS
+from snakeloco.sim.measured import MeasuredRunError, read_measured_run, write_measured_run
+from snakeloco.sim.physics import Simulator
+from snakeloco.sim.robot import DEFAULT_ROBOT, Robot, load_robot
+
+QUICK = FitConfig(params=("friction_across", "servo_kp"), popsize=6, generations=9, horizons=(20.0, 40.0))
+"""A fit small enough for a test: two fields, 40 s runs."""
+
+
+def measured_text(robot: Robot, gait: str, seconds: float = 40.0, seed: int = 0, noise: bool = True) -> str:
+    """A synthetic measured run: ``gait`` replayed on ``robot``, sampled at 50 Hz with 1 mm and 0.5 deg
+    noise, in a world frame of its own (shifted and turned, as a motion-capture frame is)."""
+    body = Simulator(workers=1, robot=robot).replay(PRESETS[gait].gait.commands()).body
+    rng = np.random.default_rng(seed)
+    t = np.arange(0, seconds, 0.02)
+    ts = np.arange(len(body)) / 20
+    xy = np.stack([np.interp(t, ts, body[:, k]) for k in (1, 2)], axis=1)
+    yaw = np.interp(t, ts, body[:, 5])
+    if noise:
+        xy += rng.normal(0, 0.001, xy.shape)
+        yaw += rng.normal(0, np.radians(0.5), yaw.shape)
+    turn = 0.7  # the world frame: turned and shifted
+    rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    return write_measured_run(t, xy @ rot.T + [3.0, -1.0], yaw + turn, gait=f"{gait}.csv")
+
+
+def test_a_measured_run_is_read_in_its_start_frame():
+    truth = Simulator(workers=1).replay(PRESETS["roll"].gait.commands()).body
+    run = read_measured_run(measured_text(DEFAULT_ROBOT, "roll", noise=False), "roll run", 8)
+    assert run.gait == "roll.csv" and run.joints is None
+    ts = np.arange(len(truth)) / 20
+    last = [np.interp(39.98, ts, truth[:, k]) for k in (1, 2, 5)]  # the run's last row, at 50 Hz
+    np.testing.assert_allclose(run.xy[-1], last[:2], atol=1e-6)
+    assert abs(run.yaw[-1] - last[2]) < 1e-6
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("time_s,x,y\n0,0,0\n1,0,0\n", "header must start 'time_s,x,y,yaw'"),
+        ("time_s,x,y,yaw\n0,0,0,0\n0.5,0,0,0\n0.4,0,0,0\n", "line 4: time 0.4 s does not come after 0.5 s"),
+        ("time_s,x,y,yaw\n0,0,0,0\n0.1,1200,0,0\n", "line 3: the body moves at 1.2e+04 m/s"),
+        ("time_s,x,y,yaw\n0,0,0,0\n0.02,0,0,45\n", "yaw must be radians (degrees?)"),
+        (
+            "time_s,x,y,yaw,joint_1,joint_2\n0,0,0,0,0,0\n1,0,0,0,0,0\n",
+            "2 measured joints, but the gait has 8",
+        ),
+        ("time_s,x,y,yaw\n0,0,0,0\n0.1,zero,0,0\n", "line 3: '0.1,zero,0,0' is not a row of numbers"),
+        ("time_s,x,y,yaw\n0,0,0,0\n", "1 data rows"),
+    ],
+)
+def test_a_bad_measured_run_is_refused_with_its_line_and_reason(text, reason):
+    with pytest.raises(MeasuredRunError) as exc:
+        read_measured_run(text, "run.csv", n_joints=8)
+    assert reason in str(exc.value) and str(exc.value).startswith("run.csv")
+
+
+def test_a_run_shorter_than_a_cycle_or_of_another_gait_is_refused():
+    short = read_measured_run(measured_text(DEFAULT_ROBOT, "roll", seconds=1.0), "short.csv")
+    with pytest.raises(MeasuredRunError, match=r"short.csv: the run lasts 0.98 s, shorter than one cycle"):
+        fit_robot([(PRESETS["roll"].gait.commands(), short)], DEFAULT_ROBOT, QUICK)
+    run = read_measured_run(measured_text(DEFAULT_ROBOT, "roll", seconds=5.0), "run.csv")
+    with pytest.raises(MeasuredRunError, match="the gait has 6 joints, the robot snakeloco-8 8"):
+        fit_robot([(PRESETS["roll"].gait.commands()[:, :6], run)], DEFAULT_ROBOT, QUICK)
+
+
+@pytest.mark.slow
+def test_a_perturbed_robot_is_recovered_and_noise_alone_stays_within_the_uncertainty():
+    truth = Robot(friction_across=0.6 * 1.25, servo_kp=30 * 0.75)
+    pairs = [
+        (PRESETS[g].gait.commands(), read_measured_run(measured_text(truth, g, seed=i), g))
+        for i, g in enumerate(("sidewind", "roll"))
+    ]
+    sim = Simulator(workers=2)
+    report = fit_robot(pairs, DEFAULT_ROBOT, QUICK, sim, advise=False)
+    for name in QUICK.params:
+        p = report["params"][name]
+        want = getattr(truth, name)
+        assert abs(p["fitted"] / want - 1) < 0.15, (name, p)
+    assert all(a["end_m"] < b["end_m"] for a, b in zip(report["after"], report["before"], strict=True))
+    # The nominal robot's own runs, measured with noise: the fit stays at nominal within what it reports.
+    nominal = [
+        (PRESETS[g].gait.commands(), read_measured_run(measured_text(DEFAULT_ROBOT, g, seed=7 + i), g))
+        for i, g in enumerate(("sidewind", "roll"))
+    ]
+    report = fit_robot(nominal, DEFAULT_ROBOT, QUICK, sim, advise=False)
+    for name, p in report["params"].items():
+        assert p["low"] <= getattr(DEFAULT_ROBOT, name) <= p["high"], (name, p)
+    sim.close()
+
+
+@pytest.mark.slow
+def test_fit_robot_writes_a_robot_description_that_loads_and_replays(tmp_path, capsys):
+    gait = tmp_path / "roll.csv"
+    gait.write_text(library_gait_csv("roll"))
+    run = tmp_path / "run.csv"
+    run.write_text(measured_text(Robot(servo_kp=24.0), "roll", seconds=20.0))
+    out = tmp_path / "fitted.yaml"
+    main(
+        [
+            *("fit-robot", "--measured", str(run), "--out", str(out), "--params", "servo_kp"),
+            *("--generations", "4", "--workers", "2", "--json"),
+        ]
+    )
+    report = json.loads(capsys.readouterr().out.splitlines()[-1])
+    fitted = load_robot(out)
+    assert fitted.servo_kp == pytest.approx(report["params"]["servo_kp"]["fitted"])
+    assert fitted.friction_along == DEFAULT_ROBOT.friction_along  # only what was asked for moves
+    assert (tmp_path / "fitted.png").stat().st_size > 10_000
+    Simulator(workers=1, robot=fitted).replay(PRESETS["roll"].gait.commands())  # it replays
+    with pytest.raises(SystemExit):
+        main(["fit-robot", "--measured", str(run), "--out", str(out), "--params", "colour"])
+    assert "--params colour: fit physical fields only" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_the_designer_fits_a_measured_run_and_replays_on_the_fitted_robot(checkpoint):
+    from snakeloco.app.server import DesignerServer
+
+    from helpers import connect_headless
+
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    client, d = connect_headless(srv)
+    try:
+        body = Simulator(workers=1, robot=Robot(servo_kp=24.0)).replay(d.decoded.commands).body
+        t = np.arange(0, 20, 0.02)
+        ts = np.arange(len(body)) / 20
+        text = write_measured_run(
+            t, np.stack([np.interp(t, ts, body[:, k]) for k in (1, 2)], axis=1), np.interp(t, ts, body[:, 5])
+        )
+        assert d.fit.import_bytes("bad.csv", b"time_s,x\n") is None
+        assert d.fit.import_bytes("run.csv", text.encode()) is not None
+        assert d.fit.line is not None and "Measured run" in d.fit.controls.status.content
+        d.fit.config = FitConfig(params=("servo_kp",), popsize=4, generations=2, horizons=(20.0,))
+        d.fit.request()
+        assert d.fit.worker.wait_idle(300)
+        assert d.fit.report is not None and "Fitted" in d.fit.controls.status.content
+        label = next(o for o in d.fit.controls.robot.options if o.startswith("fitted"))
+        version = d.fit.choose(label)
+        assert version is not None and d.wait_idle(120)
+        assert d.session.robot == d.fit.robots[label] != DEFAULT_ROBOT
+        assert "trained on the nominal robot" in d.controls.readout.content
+    finally:
+        client.close()
+        srv.stop()
