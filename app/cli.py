@@ -264,7 +264,9 @@ def run_serve(cmd: Serve) -> None:
     """Serve the designer until Ctrl-C / SIGTERM."""
     from snakeloco.app.server import serve
 
-    serve(cmd.host, cmd.port, cmd.checkpoint, cmd.ensemble, robot=_robot(cmd.robot))
+    serve(
+        cmd.host, cmd.port, cmd.checkpoint, cmd.ensemble, robot=_robot(cmd.robot), variations=cmd.variations
+    )
 
 
 def _robot(path: Path | None):

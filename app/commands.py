@@ -160,6 +160,8 @@ class Serve(Command):
     """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
     robot: Path | None = None
     """Robot description YAML every replay runs on (a fitted robot: `snakeloco fit-robot`); default: the paper's robot."""
+    variations: bool = True
+    """Replay each gait on the default physics variations after its ensemble (the Variations fan, at the lowest priority); --no-variations on a slow machine."""
 
 
 class Robustness(Command):
@@ -216,7 +218,7 @@ class FitRobot(Command):
     """Physical fields of the robot description to fit."""
     robot: Path | None = None
     """The robot description to start from (default: the paper's robot)."""
-    generations: Annotated[int, Field(ge=1, le=500)] = 24
+    generations: Annotated[int, Field(ge=1, le=500)] = 30
     """CMA-ES generations (8 candidates each, every run replayed)."""
     seed: Seed = 0
     workers: Workers = None

@@ -15,7 +15,7 @@ import threading
 import numpy as np
 
 from snakeloco.app.gui import NO_CANDIDATE, DesignControls
-from snakeloco.app.session import LatestWorker
+from snakeloco.app.workers import LatestWorker
 from snakeloco.model.design import Candidate, design
 from snakeloco.model.design_config import DesignConfig, Target
 from snakeloco.sim.backend import LocalBackend

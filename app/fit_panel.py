@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import viser
 
-from snakeloco.app.session import LatestWorker
+from snakeloco.app.workers import LatestWorker
 from snakeloco.sim.fit import FitCancelled, FitConfig, fit_robot
 from snakeloco.sim.measured import MeasuredRun, MeasuredRunError, read_measured_run
 from snakeloco.sim.robot import Robot

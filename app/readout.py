@@ -56,6 +56,7 @@ class Readout:
     ring: bool = False  # the tab's family draws a ring where the replay is likely to end
     sliders: tuple[float, ...] | None = None  # the slider values of the gait (None: a file's gait)
     robot: str = ""  # why the model's path is another robot's than the replay's (``robot_warning``)
+    variations: str = ""  # how far the end point moves on other robots (``sim.robustness.readout_line``)
 
     @property
     def gap_m(self) -> float | None:
@@ -137,6 +138,10 @@ def readout_html(r: Readout, colors: dict[str, tuple[int, int, int]]) -> str:
             '<div style="color:#b45309"><b>⚠ Off the data</b>: this z_B is less likely than 99% of the '
             "training records; the model extrapolates here.</div>"
         )
+    if r.variations:
+        parts.append(
+            f'<div data-key="variations">{swatch(colors["variations"], 2)}{html.escape(r.variations)}</div>'
+        )
     if r.robot:
         parts.append(f'<div style="color:#b45309"><b>⚠ Robot</b>: {html.escape(r.robot)}</div>')
     parts.append("</div>")
@@ -151,11 +156,20 @@ class TabReadout:
     """The readout of ``DesignerClient`` (mixed in: it uses the tab's controls, scene and current gait)."""
 
     readout: Readout | None = None
+    variations: tuple[int, dict] | None = None  # (request version, ``sim.robustness`` report) of the gait
+
+    def _variations_line(self) -> str:
+        """The variations' line for the current gait ('' until they are in)."""
+        from snakeloco.sim.robustness import readout_line
+
+        if self.variations is None or self.variations[0] != self.version:
+            return ""
+        return readout_line(self.variations[1])
 
     def show_readout(self, gait, state: str, body: np.ndarray | None = None, reason: str = "") -> Readout:
         """Say what ``gait`` (a ``DecodedGait``) is and where its paths went: ``state`` simulating,
         streaming, done or failed (``reason``); ``body``: MuJoCo's body series (T, 6) so far."""
-        from snakeloco.app.scene import BAND_COLOR, FAN_COLOR, GEN_COLOR, SIM_COLOR
+        from snakeloco.app.scene import BAND_COLOR, FAN_COLOR, GEN_COLOR, SIM_COLOR, VARIATION_COLOR
         from snakeloco.sim import RECORD
 
         if gait.member is not None:
@@ -176,7 +190,14 @@ class TabReadout:
             ring=self.scene.end_spread is not None,
             sliders=gait.latents.sliders if gait.latents is not None else None,
             robot=self.model.robot_warning(self.session.robot) or "",
+            variations=self._variations_line(),
         )
-        colors = {"model": GEN_COLOR, "mujoco": SIM_COLOR, "ensemble": FAN_COLOR, "ring": BAND_COLOR}
+        colors = {
+            "model": GEN_COLOR,
+            "mujoco": SIM_COLOR,
+            "ensemble": FAN_COLOR,
+            "ring": BAND_COLOR,
+            "variations": VARIATION_COLOR,
+        }
         self.controls.readout.content = readout_html(self.readout, colors)
         return self.readout

@@ -35,12 +35,23 @@ JOINT_COLORS = np.array(
 GEN_COLOR = (255, 140, 0)
 SIM_COLOR = (30, 100, 220)
 FAN_COLOR = (150, 150, 150)
+VARIATION_COLOR = (150, 90, 210)
+"""The variations fan (violet): the replay on other robots (``sim.variations.DEFAULT_SET``)."""
 SNAKE_COLOR = (217, 140, 51, 255)
 SHAPE_SCALE = 1.5
 """Point-cloud metres per radian of FFT coefficient."""
 JOINT_SPACING = 0.12
 """Point-cloud height step between joints (m)."""
-LAYERS = ("Snake", "Generated path", "Simulated path", "Ensemble fan", "Joint shapes", "Metre grid", "Grid")
+LAYERS = (
+    "Snake",
+    "Generated path",
+    "Simulated path",
+    "Ensemble fan",
+    "Variations fan",
+    "Joint shapes",
+    "Metre grid",
+    "Grid",
+)
 """The Layers checkboxes, in the order they are shown."""
 LIGHT_RENDERING = "Light rendering"
 """The Layers checkbox that draws the scene without its costly passes (``TabScene.set_light``)."""
@@ -124,6 +135,7 @@ class TabScene:
         self.fan: list[viser.LineSegmentsHandle] = []  # one node per batch of ensemble members
         self._fan_segments: list[np.ndarray] = []  # what those nodes draw (to merge them into one)
         self._fan_drawn = 0  # ensemble members the fan shows
+        self.variation_fan: list[viser.LineSegmentsHandle] = []  # one node per batch of variations
         self._sim_drawn = 0  # replay samples the simulated path shows
         self._measured: np.ndarray | None = None  # the re-measured shape drawn
         self.end_spread: float | None = None  # END_SPREAD of the tab's family
@@ -165,6 +177,8 @@ class TabScene:
             node.visible = on["Simulated path"] and simulated
         for node in self.fan:
             node.visible = on["Ensemble fan"] and simulated
+        for node in self.variation_fan:
+            node.visible = on["Variations fan"] and simulated
         for frame in self.shape_frames.values():
             frame.visible = on["Joint shapes"]
 
@@ -212,9 +226,10 @@ class TabScene:
                 if node is not None:
                     node.visible = False
         self._sim_points = None
-        for node in self.sim_parts + self.fan:
+        for node in self.sim_parts + self.fan + self.variation_fan:
             node.remove()
         self.sim_parts, self.fan, self._fan_segments, self._fan_drawn = [], [], [], 0
+        self.variation_fan = []
         self._sim_drawn = 0
         self._measured = None
         self._cloud("decoded", gait.shape)
@@ -319,6 +334,15 @@ class TabScene:
             )
             self._fan_segments.append(segments)
             self._fan_drawn += len(members)
+
+    def draw_variations(self, bodies: list[np.ndarray]) -> None:
+        """A batch of the replay's variations (each (T, 6)) as one node of the Variations fan."""
+        if not bodies:
+            return
+        segments = np.concatenate([polyline(path_points(b[::FAN_STEP], 0.0)) for b in bodies])
+        z0 = float(self.start[0][2])
+        name = f"variations/{len(self.variation_fan)}"
+        self.variation_fan.append(self._line(name, segments, VARIATION_COLOR, 1.0, "Variations fan", z0))
 
     def draw_snake(self, qpos: np.ndarray, follow: bool = False) -> None:
         """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame; with

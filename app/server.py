@@ -120,12 +120,13 @@ def freeze_started() -> None:
     gc.freeze()
 
 
-def check_bindable(host: str) -> None:
-    """An OSError naming ``host`` unless a TCP server can bind to it on this machine.
+def check_bindable(host: str, port: int = 0) -> None:
+    """An OSError naming ``host`` (or ``port``) unless a TCP server can bind to it on this machine.
 
     Why: viser (1.1) binds in a background thread and, on any OSError, tries the next port, forever
     when the host itself is wrong (a typo, another machine's address), while its constructor waits
-    for that thread: ``serve --host 999.1.1.1`` hung without a word.
+    for that thread: ``serve --host 999.1.1.1`` hung without a word, and ``serve --port 18123`` on a
+    busy port silently served on 18124 (a user's bookmark then opens somebody else's server).
     """
     try:
         family, kind, proto, _, address = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
@@ -136,6 +137,16 @@ def check_bindable(host: str) -> None:
             probe.bind(address)
     except OSError as exc:
         raise OSError(f"--host {host}: cannot serve on it here ({exc.strerror})") from None
+    if port:
+        try:
+            with socket.socket(family, kind, proto) as probe:
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a server binds: a
+                probe.bind((address[0], port, *address[2:]))  # closed server's lingering port is free
+        except OSError as exc:
+            raise OSError(
+                f"--port {port}: {exc.strerror.lower()} on {host} (another server?); choose another "
+                "port, or --port 0 for any free one"
+            ) from None
 
 
 def _refuse_upload(client: viser.ClientHandle, filename: str, size: int) -> None:
@@ -185,8 +196,10 @@ class DesignerServer:
         verbose: bool = True,
         families: dict[str, str | Path] | None = None,
         robot: Robot | None = None,
+        variations: bool = True,
     ) -> None:
-        check_bindable(host)
+        check_bindable(host, port)
+        self.variations = variations
         self.models, default = load_families(checkpoint, families)
         self.model = self.models[default]
         """The model a new tab starts with (``checkpoint``'s); ``models``: all its Gait family dropdown offers."""
@@ -243,6 +256,7 @@ class DesignerServer:
                 models=self.models,
                 physics=self.physics,
                 decoding=self.decoding,
+                variations=self.variations,
             )
         except Exception as exc:  # a tab that could not be set up must not take the server down
             traceback.print_exc()
@@ -275,11 +289,13 @@ def serve(
     checkpoint: str | Path | None = None,
     ensemble: int = ENSEMBLE_SIZE,
     robot: Robot | None = None,
+    variations: bool = True,
 ) -> None:
     """Run the designer until Ctrl-C or SIGTERM; then stop cleanly (port freed, threads joined);
-    ``robot``: the robot every replay runs on (default: the paper's)."""
+    ``robot``: the robot every replay runs on (default: the paper's); ``variations``: replay each
+    gait on the default physics variations (the Variations fan)."""
     tune_process()
-    app = DesignerServer(host, port, checkpoint, ensemble, robot=robot)
+    app = DesignerServer(host, port, checkpoint, ensemble, robot=robot, variations=variations)
     freeze_started()
     stop = threading.Event()
 

@@ -31,9 +31,10 @@ from snakeloco.app.latent_moves import LatentMoves
 from snakeloco.app.playback import PAUSE_WHEN_HIDDEN_JS, SOFTWARE_RENDERING_JS, Playback
 from snakeloco.app.readout import TabReadout
 from snakeloco.app.scene import END_SPREAD, TabScene
-from snakeloco.app.session import DecodedGait, GaitSession, Latents, LatestWorker, SimulatedGait, Timing
+from snakeloco.app.session import DecodedGait, GaitSession, Latents, SimulatedGait, Timing
 from snakeloco.app.tab_jobs import TabJobs
 from snakeloco.app.viser_patches import connection_closed, run_javascript
+from snakeloco.app.workers import LatestWorker
 from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
@@ -81,8 +82,11 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         models: dict[str, GaitModel] | None = None,
         physics: FairPhysics | None = None,
         decoding: DecodePool | None = None,
+        variations: bool = True,
     ):
         self.client = client
+        self.show_variations = variations
+        """Replay each gait on the default physics variations after its ensemble (the Variations fan)."""
         self._decoding = decoding or DecodePool([], 0, processes=0)
         """The server's decode stage, shared by its tabs (``app.decode_process``): each decode takes a
         turn, in the order the tabs' values came, each tab's newest value when its turn comes, and

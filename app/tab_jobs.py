@@ -1,4 +1,5 @@
-"""A tab's jobs, as a mixin of ``DesignerClient``: decode -> draw | replay -> draw -> ensemble -> draw.
+"""A tab's jobs, as a mixin of ``DesignerClient``: decode -> draw | replay -> draw -> ensemble -> draw ->
+variations -> draw.
 
 Each job runs on its own ``LatestWorker`` thread with the version of the request it serves, and
 draws only while that version is still the tab's newest (``is_current``), under the tab's draw lock.
@@ -14,6 +15,9 @@ from snakeloco.app import panel
 from snakeloco.app.readout import STREAM_READOUT_PERIOD_S
 from snakeloco.app.session import DecodedGait, SimulatedGait, Timing
 from snakeloco.sim import SimulationError
+from snakeloco.sim.robustness import summarise
+from snakeloco.sim.scheduler import Turn
+from snakeloco.sim.variations import DEFAULT_SET
 
 SETTLED_S = 0.5
 """A slider value the tab has held this long (no newer one) is one the user has let go of."""
@@ -141,9 +145,45 @@ class TabJobs:
             return  # superseded between batches, or while a batch waited for other tabs' batches
         timing.ensemble_ms = sim.ensemble_ms
         with self._draw_lock:
-            if is_current():
-                self._draw_simulated(decoded, sim, ensemble=True)
-                timing.ensembled = time.perf_counter()
+            if not is_current():
+                return
+            self._draw_simulated(decoded, sim, ensemble=True)
+            timing.ensembled = time.perf_counter()
+        if self.show_variations:
+            self._variations(version, decoded, sim, is_current)
+
+    def _variations(self, version: int, decoded: DecodedGait, sim: SimulatedGait, is_current) -> dict | None:
+        """Replay the gait on the default variation set (``sim.variations``), a batch a physics thread
+        at a time on the pool's variations turn (after every tab's replays and ensembles), drawing
+        each batch as it comes (the Variations fan) and, at the end, the readout's line. Dropped
+        unrun once the gait changes."""
+        t0 = time.perf_counter()
+        robot = self.session.robot
+        robots = [v.apply(robot) for v in DEFAULT_SET]
+        simulator = self.session.simulator_for(Turn.VARIATIONS, is_current)
+        bodies, failures = [], []
+        for i in range(0, len(robots), simulator.workers):
+            part = robots[i : i + simulator.workers]
+            result = simulator.simulate(np.repeat(decoded.commands[None], len(part), axis=0), robots=part)
+            if result is None:
+                return None
+            bodies += list(result.body)
+            failures += result.failures
+            with self._draw_lock:
+                if not is_current():
+                    return None
+                with self.client.atomic():
+                    self.scene.draw_variations(
+                        [b for b, f in zip(result.body, result.failures, strict=True) if f is None]
+                    )
+        report = summarise(sim.body, DEFAULT_SET, bodies, failures)
+        report["seconds"] = time.perf_counter() - t0
+        with self._draw_lock:
+            if not is_current():
+                return None
+            self.variations = (version, report)
+            self.show_readout(decoded, "done", sim.body)
+        return report
 
     def _draw_members(self, bodies: np.ndarray, is_current) -> bool:
         """Draw the ensemble members in so far; whether the ensemble is still wanted."""

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -53,15 +54,21 @@ class FitConfig(BaseModel):
     """A scaling field is searched within [start / bound, start x bound]."""
     popsize: int = Field(8, ge=4, le=64)
     """Candidates per CMA-ES generation (each replays every run)."""
-    generations: int = Field(24, ge=1, le=500)
+    generations: int = Field(30, ge=1, le=500)
     """CMA-ES generations."""
-    horizons: tuple[float, ...] = (25.0, 50.0, 100.0)
+    horizons: tuple[float, ...] = (20.0, 50.0)
     """Seconds of each run the loss reads, in equal shares of the generations: short horizons first,
     where a path depends smoothly on the physics (over 100 s small changes can grow chaotically),
     then the whole run. The uncertainty is probed on the whole run."""
     seed: int = Field(0, ge=0)
     yaw_weight: float = Field(0.1, ge=0)
     """Weight of the RMS heading error (rad) beside the relative path error."""
+    loss: Literal["path", "increments"] = "increments"
+    """path: the replayed path against the measured one; increments: each window's displacement in
+    the body's own heading and its heading change (odometry increments: smooth in the physics where
+    a path's heading errors pile up)."""
+    window_s: float = Field(5.0, gt=0)
+    """Window of the increments (s)."""
     min_tolerance: float = Field(0.003, gt=0)
     """Smallest loss rise the uncertainty is measured against (0.3% of the distance)."""
 
@@ -159,6 +166,8 @@ class RobotFit:
     def run_loss(self, body: np.ndarray | None, run: MeasuredRun, joints: np.ndarray | None = None) -> float:
         if body is None:
             return BROKEN_LOSS
+        if self.cfg.loss == "increments":
+            return self.increment_loss(body, run)
         t = np.arange(len(body)) / RECORD.sample_rate
         seen = run.times <= t[-1]
         times, measured = run.times[seen], run.xy[seen]
@@ -169,6 +178,27 @@ class RobotFit:
         )
         loss += self.cfg.yaw_weight * np.sqrt(np.mean((yaw - run.yaw[seen]) ** 2))
         return float(loss)
+
+    def increment_loss(self, body: np.ndarray, run: MeasuredRun) -> float:
+        """How each window's displacement, in the body's own heading at the window's start, and its
+        heading change differ between replay and run: odometry increments, which do not carry one
+        window's heading error into every later position as the path itself does."""
+        t = np.arange(len(body)) / RECORD.sample_rate
+        edges = np.arange(0.0, min(t[-1], run.times[-1]) + 1e-9, self.cfg.window_s)
+        if len(edges) < 2:
+            edges = np.array([0.0, min(t[-1], run.times[-1])])
+
+        def increments(times, x, y, yaw):
+            px, py, th = (np.interp(edges, times, v) for v in (x, y, yaw))
+            dx, dy = np.diff(px), np.diff(py)
+            c, s = np.cos(th[:-1]), np.sin(th[:-1])
+            return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1), np.diff(th)
+
+        sim_d, sim_turn = increments(t, body[:, 1], body[:, 2], body[:, 5])
+        run_d, run_turn = increments(run.times, run.xy[:, 0], run.xy[:, 1], run.yaw)
+        scale = max(float(np.mean(np.hypot(*run_d.T))), 0.05 * self.cfg.window_s)
+        loss = np.sqrt(np.mean(np.sum((sim_d - run_d) ** 2, axis=1))) / scale
+        return float(loss + self.cfg.yaw_weight * np.sqrt(np.mean((sim_turn - run_turn) ** 2)))
 
     def set_horizon(self, seconds: float) -> None:
         """Replay (and score) only the first ``seconds`` of each run from now on."""
@@ -234,7 +264,6 @@ def fit_robot(
         es = cma.CMAEvolutionStrategy(
             x0, 0.3, {"popsize": cfg.popsize, "seed": cfg.seed + 1, "bounds": [-1, 1], "verbose": -9}
         )
-        loss_start = float(fit.losses([robot])[0])
         stages = np.array_split(np.arange(cfg.generations), len(cfg.horizons))
         for horizon, gens in zip(cfg.horizons, stages, strict=True):
             fit.set_horizon(horizon)
@@ -243,13 +272,15 @@ def fit_robot(
                 es.tell(xs, fit.losses([fit.robot(x) for x in xs]).tolist())
                 if progress is not None:
                     progress(1)
-        fit.set_horizon(RECORD.duration)
-        # The search's mean is its estimate; the best single candidate of a noisy stage is not.
-        candidates = [np.clip(es.mean, -1, 1), np.asarray(es.best.x if es.best.x is not None else x0)]
-        losses = fit.losses([fit.robot(x) for x in candidates])
-        best_x, best_loss = candidates[int(np.argmin(losses))], float(losses.min())
+        # The search's mean is its estimate: near the truth the loss is rough (a replay's contacts and
+        # rolls flip with small changes), and the best single candidate is the luckiest, not the
+        # likeliest. Its spread is part of the uncertainty.
+        best_x = np.clip(es.mean, -1, 1)
+        spread = es.sigma * np.sqrt(np.diag(es.C))
         fitted = fit.robot(best_x)
-        params = uncertainty(fit, best_x, best_loss)
+        loss_start, best_loss = (float(v) for v in fit.losses([robot, fitted]))
+        params = uncertainty(fit, best_x, best_loss, spread)
+        fit.set_horizon(RECORD.duration)
         if advise:
             for name, p in params.items():
                 if not p["determined"]:
@@ -270,9 +301,12 @@ def fit_robot(
             simulator.close()
 
 
-def uncertainty(fit: RobotFit, x: np.ndarray, loss: float) -> dict[str, dict]:
-    """Each field's fitted value, the interval in which the loss rises by at most the tolerance, and
-    whether the runs determine it (module docstring)."""
+def uncertainty(
+    fit: RobotFit, x: np.ndarray, loss: float, spread: np.ndarray | None = None
+) -> dict[str, dict]:
+    """Each field's fitted value, the interval in which the loss rises by at most the tolerance (at
+    least twice the search's final spread ``spread``, in search coordinates), and whether the runs
+    determine it (module docstring)."""
     cfg = fit.cfg
     tolerance = max(loss, cfg.min_tolerance)
     probes, steps = [], []
@@ -296,6 +330,8 @@ def uncertainty(fit: RobotFit, x: np.ndarray, loss: float) -> dict[str, dict]:
         # over the probe's step gives the change that raises the loss by the tolerance.
         slope = (up + down - 2 * loss) / (2 * steps[i])
         half = tolerance / slope if slope > 0 else math.inf  # in x
+        if spread is not None:
+            half = max(half, 2 * float(spread[i]))
         value = float(getattr(fitted, name))
         if name in ADDITIVE:
             lo_r, hi_r = ADDITIVE[name]

@@ -53,21 +53,28 @@ def robustness(
 
         simulator = Simulator(workers=None, robot=robot)
     nominal = simulator.robot
-    robots = [nominal]
-    failures: list[str | None] = [None]
-    for v in variations:
-        robots.append(v.apply(nominal))
+    robots = [nominal, *(v.apply(nominal) for v in variations)]
     commands = np.asarray(commands, np.float64)
     batch = np.broadcast_to(commands, (len(robots), *commands.shape))
     result = simulator.simulate(batch, robots=robots)
     if result.failures[0] is not None:
         raise SimulationError(f"the nominal replay broke: {result.failures[0]}")
-    failures = result.failures
-    home = end_point(result.body[0])
+    return summarise(result.body[0], variations, result.body[1:], result.failures[1:])
+
+
+def summarise(
+    nominal: np.ndarray,
+    variations: Sequence[Variation],
+    bodies: Sequence[np.ndarray],
+    failures: Sequence[str | None],
+) -> dict:
+    """The report of ``robustness`` from the nominal replay's body (T, 6) and each variation's body
+    and failure (None: it ran cleanly), in the order of ``variations``."""
+    home = end_point(nominal)
     home_xy = np.array([home["forward"], home["sideways"]])
     base = max(float(np.hypot(*home_xy)), MIN_DISTANCE)
     rows = []
-    for v, body, failure in zip(variations, result.body[1:], failures[1:], strict=True):
+    for v, body, failure in zip(variations, bodies, failures, strict=True):
         row: dict = {"name": v.name, "params": v.params()}
         if failure is not None:
             row.update(forward=None, sideways=None, heading_deg=None, end_error_m=None, rel=None)
@@ -79,8 +86,8 @@ def robustness(
         rows.append(row)
     scored = [r for r in rows if r["failure"] is None]
     worst = max(scored, key=lambda r: r["end_error_m"], default=None)
-    bodies = result.body.copy()
-    for i, failure in enumerate(failures):
+    bodies = np.array([nominal, *bodies])
+    for i, failure in enumerate(failures, start=1):
         if failure is not None:
             bodies[i] = np.nan
     return {

@@ -105,7 +105,9 @@ def designer_page(checkpoint, viewport: dict | None = None, **page_options):
     from snakeloco.app.server import DesignerServer
 
     sync_api = pytest.importorskip("playwright.sync_api")
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+    )
     try:
         with sync_api.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)

@@ -24,7 +24,9 @@ from helpers import apply, connect_headless
 
 @pytest.fixture
 def server(checkpoint):
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False, variations=False
+    )
     yield srv
     srv.stop()
 
@@ -304,7 +306,9 @@ def test_server_stop_leaves_no_threads(checkpoint):
             if t.name.startswith(("decode-", "physics-", "animate-", "headless-viser-client"))
         ]
 
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=1, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=1, verbose=False, variations=False
+    )
     client, _designer = connect_headless(srv)
     assert ours()
     srv.stop()

@@ -13,7 +13,7 @@ import pytest
 
 from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
 from snakeloco.app.panel import spread_text
-from snakeloco.app.session import LatestWorker
+from snakeloco.app.workers import LatestWorker
 
 
 def bad_gait_files() -> dict[str, tuple[bytes, str]]:

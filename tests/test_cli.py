@@ -93,6 +93,18 @@ def test_out_of_range_options_are_refused_before_any_work(argv, says, capsys, tm
     assert not any(tmp_path.iterdir())
 
 
+def test_serve_refuses_a_busy_port_instead_of_serving_on_the_next(capsys):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        _refused(
+            capsys, ["serve", "--port", str(port)], f"--port {port}: address already in use on 127.0.0.1"
+        )
+
+
 def test_bench_load_without_chromium_says_what_to_install(capsys, monkeypatch, tmp_path):
     import snakeloco.app.bench.load_browser
 

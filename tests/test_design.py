@@ -195,7 +195,9 @@ def test_designer_panel_designs_on_its_own_worker_and_a_picked_candidate_becomes
 
     from helpers import apply, connect_headless
 
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False, variations=False
+    )
     client = None
     try:
         client, d = connect_headless(srv)

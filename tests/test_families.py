@@ -33,7 +33,9 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
 ):
     assert load_pretrained(structured_checkpoint).family == "structured"  # recorded from its data
     families = {"paper": checkpoint, "structured": structured_checkpoint}
-    srv = DesignerServer(port=0, checkpoint="paper", families=families, ensemble=3, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint="paper", families=families, ensemble=3, workers=2, verbose=False, variations=False
+    )
     clients = []
     try:
         c1, d1 = connect_headless(srv)

@@ -106,7 +106,9 @@ def test_gait_command_writes_and_lists_the_library(tmp_path, capsys):
 def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
     from snakeloco.app.server import DesignerServer
 
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+    )
     client, d = connect_headless(srv)
     try:
         assert apply(d, d.controls.baseline, "undulate", 120)

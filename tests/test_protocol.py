@@ -33,7 +33,9 @@ def test_the_readout_says_which_sliders_and_state_it_is_for():
 
 
 def test_a_protocol_client_joins_drags_and_reads_the_decoded_view_and_replay(checkpoint):
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+    )
 
     async def run() -> dict:
         c = ProtocolClient(f"http://127.0.0.1:{srv.port}", seed=1)
@@ -73,7 +75,9 @@ def test_a_protocol_client_joins_drags_and_reads_the_decoded_view_and_replay(che
 def test_each_view_is_sent_once_drawn_not_at_the_end_of_a_window(checkpoint):
     """viser holds a client's messages up to 1/60 s for more to come unless flushed: the decoded
     view, the replay's first motion and the finished replay each flush once drawn."""
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+    )
     client, d = connect_headless(srv)
     try:
         flushed, flush = [], d.client.flush
@@ -95,7 +99,9 @@ def test_a_client_that_stops_reading_does_not_stall_the_others_and_is_closed(che
     """The server's send to a client that stops reading waits on that client's socket alone; its
     pings go unanswered and the websocket library closes it (websockets' 20 s ping interval and
     20 s timeout)."""
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+    )
 
     async def run() -> tuple[ProtocolClient, float]:
         stuck, live = (ProtocolClient(f"http://127.0.0.1:{srv.port}", seed=s) for s in (1, 2))
@@ -128,7 +134,9 @@ def test_a_tab_whose_page_has_left_draws_nothing_more(checkpoint):
 
     from snakeloco.app.viser_patches import connection_closed
 
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+    )
     try:
         c, d = connect_headless(srv)
         assert d.simulated is not None

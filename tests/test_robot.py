@@ -226,3 +226,31 @@ def test_robustness_refuses_a_bad_gait_file(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["robustness", str(bad)])
     assert exc.value.code == 2 and "bad.csv: line 1: header must be" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_the_designer_streams_the_variations_fan_and_says_how_far_the_end_moves(checkpoint):
+    from snakeloco.app.server import DesignerServer
+
+    from helpers import apply, connect_headless
+
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    client, d = connect_headless(srv)
+    try:
+        version, report = d.variations
+        assert version == d.version and len(report["variations"]) == len(DEFAULT_SET)
+        drawn = sum(1 for r in report["variations"] if r["failure"] is None)
+        assert drawn and len(d.scene.variation_fan) >= 1
+        assert 'data-key="variations"' in d.controls.readout.content
+        assert readout_line(report) in d.controls.readout.content.replace("&#x27;", "'")
+        # The same numbers as the command line's batch (a variation's replay is its replay anywhere).
+        alone = robustness(d.decoded.commands, DEFAULT_SET[:2], Simulator(workers=1))
+        for a, b in zip(alone["variations"], report["variations"][:2], strict=True):
+            assert a["forward"] == b["forward"] and a["sideways"] == b["sideways"]
+        # A new gait drops the old one's variations: its fan is gone until its own come in.
+        d.controls.layers["Variations fan"].value = False
+        assert apply(d, d.sliders[0], 0.7, 120)
+        assert d.variations[0] == d.version and all(not n.visible for n in d.scene.variation_fan)
+    finally:
+        client.close()
+        srv.stop()

@@ -293,7 +293,7 @@ def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_
     from helpers import connect_headless
 
     path, _ = member_checkpoint
-    srv = DesignerServer(port=0, checkpoint=path, ensemble=2, workers=2, verbose=False)
+    srv = DesignerServer(port=0, checkpoint=path, ensemble=2, workers=2, verbose=False, variations=False)
     client = None
     try:
         client, d = connect_headless(srv)

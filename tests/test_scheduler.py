@@ -234,7 +234,9 @@ def test_tabs_decode_in_turns_each_its_newest_value(checkpoint):
 
     from helpers import connect_headless
 
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+    )
     try:
         tabs = [connect_headless(srv) for _ in range(2)]
         assert all(d._decoding is srv.decoding for _, d in tabs)

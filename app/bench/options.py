@@ -152,8 +152,21 @@ class BenchScreen(Command):
     json: Json = False
 
 
+class BenchFit(Command):
+    """Benchmark fit-robot: robots of known physics fitted from synthetic measured runs (3 library gaits, 1 mm / 0.5 deg noise at 50 Hz): recovered fields against the truth, held-out gaits' end error on the fitted and the nominal robot, time per fit."""
+
+    robots: Annotated[int, Field(ge=1)] = 6
+    """Perturbed robots (friction along, across and servo kp within x0.6-1.6)."""
+    seed: Seed = 0
+    generations: Annotated[int, Field(ge=1)] = 30
+    """CMA-ES generations per fit."""
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    json: Json = False
+
+
 class Bench(Command):
-    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design,screen} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design,screen,fit} --help`."""
 
 
 BENCHES: dict[str, type[Command]] = {
@@ -165,10 +178,12 @@ BENCHES: dict[str, type[Command]] = {
     "scale": BenchScale,
     "design": BenchDesign,
     "screen": BenchScreen,
+    "fit": BenchFit,
 }
 BENCH_MODULES: dict[str, str] = {name: f"snakeloco.app.bench.{name}" for name in BENCHES} | {
     "sim": "snakeloco.sim.bench",
     "model": "snakeloco.model.bench",
+    "fit": "snakeloco.sim.bench_fit",
 }
 """Where ``bench_NAME`` lives: the simulator's and the model's benchmarks in their own layers (they
 import nothing of ``app``), the designer's, load, design and data-engine ones in ``app/bench/``.

@@ -244,3 +244,22 @@ def screen(r: dict) -> None:
             f"{a['cheap_rejects_full_keeps']} only by the full one); rejected at "
             f"{a['early_seconds']:g} s: {a['early_rejects']}, of which the full screen kept {a['early_rejects_full_keeps']}"
         )
+
+
+def fit(r: dict) -> None:
+    """Robots of known physics fitted from synthetic runs (``sim/bench_fit.py``)."""
+    for row in r["robots"]:
+        fields = ", ".join(
+            f"{name} {100 * p['error_rel']:+.0f}% ({'determined' if p['determined'] else 'not determined'})"
+            for name, p in row["params"].items()
+        )
+        held = ", ".join(
+            f"{name} {100 * h['fitted_rel']:.1f}% (nominal {100 * h['nominal_rel']:.0f}%)"
+            for name, h in row["held_out"].items()
+        )
+        print(f"{row['robot']}: {fields}; held out: {held}; {row['seconds']:.0f} s")
+    print(
+        f"determined fields within 15% of the truth: {r['determined_within_15pct']} of {r['determined']}; held-out end "
+        f"error median {100 * r['held_out_fitted_rel_median']:.1f}% fitted vs {100 * r['held_out_nominal_rel_median']:.0f}% "
+        f"nominal; fit time median {r['seconds_median']:.0f} s ({r['workers']} threads)"
+    )
