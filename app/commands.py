@@ -118,6 +118,10 @@ class Design(Command):
     """Simulation threads (default: all cores)."""
     robot: Path | None = None
     """Robot description YAML the candidates are verified on (a fitted robot: `snakeloco fit-robot`); default: the paper's robot."""
+    robust: bool = False
+    """Rank the verified candidates by their error over the default physics variations (each one replayed on every variation: docs/variations.md), not on the nominal robot alone."""
+    robust_score: Literal["worst", "p90"] = "worst"
+    """With --robust: rank by the worst or the 90th-percentile error over the variations."""
     backend: Annotated[BackendConfig, Flat] = BackendConfig()
     json: bool = False
     """Print report.json as one JSON object on the last line."""

@@ -25,7 +25,21 @@ def write_design(cmd) -> dict:
     model = load_pretrained(cmd.checkpoint)
     if warning := model.robot_warning(robot):
         print(f"snakeloco: warning: {warning}", file=sys.stderr)
-    result = design(model, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers, robot=robot)
+    if cmd.robust:
+        from snakeloco.model.robust_design import robust_design
+
+        result = robust_design(
+            model,
+            cmd.target,
+            cmd.config,
+            backend=cmd.backend,
+            workers=cmd.workers,
+            robot=robot,
+            score=cmd.robust_score,
+        )
+    else:
+        result = design(model, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers, robot=robot)
+    robust = result.extra.get("robust")
     cmd.out.mkdir(parents=True, exist_ok=True)
     candidates = []
     for rank, c in enumerate(result.candidates, start=1):
@@ -42,8 +56,14 @@ def write_design(cmd) -> dict:
             f"{c.simulated[1]:.3f} m, heading {c.simulated[2]:.1f} deg, error {c.error_m:.3f} m, ensemble "
             f"spread {c.spread_m:.3f} m",
         }
+        if robust is not None:
+            r = robust[rank - 1]
+            comments["on other robots"] = (
+                f"worst {r['worst_m']:.3f} m from the target ({r['worst_variation']}), p90 {r['p90_m']:.3f} m "
+                f"over {r['replayed']} physics variations"
+            )
         csv.write_text(write_gait_csv(model.commands(c.shape), comments))
-        candidates.append({"csv": str(csv), **c.report()})
+        candidates.append({"csv": str(csv), **c.report(), **({"robust": robust[rank - 1]} if robust else {})})
     report = {
         "target": cmd.target.model_dump(),
         "tolerance_m": result.tolerance_m,
@@ -55,6 +75,8 @@ def write_design(cmd) -> dict:
         "replays": result.replays,
         "rounds": result.rounds,
         "seconds": time.perf_counter() - t0,
+        "robot": robot.name,
+        "robust": None if robust is None else result.extra["score"],
     }
     (cmd.out / "report.json").write_text(jsonlib.dumps(report, indent=1))
     best = result.candidates[0] if result.candidates else None
@@ -69,6 +91,12 @@ def write_design(cmd) -> dict:
             f"({result.rounds} rounds; search {result.search_s:.1f} s, physics {result.physics_s:.1f} s for "
             f"{result.replays} replays)"
         )
+        if robust:
+            r = robust[0]
+            print(
+                f"on other robots candidate 1 ends at most {r['worst_m']:.2f} m from the target "
+                f"({r['worst_variation']}; p90 {r['p90_m']:.2f} m over {r['replayed']} variations)"
+            )
     if cmd.json:
         print(jsonlib.dumps(report))
     return report

@@ -120,7 +120,10 @@ Seed = Annotated[int, Field(ge=0)]  # numpy's generators take no negative seed
 Ensemble = Annotated[int, Field(ge=2)]  # the replay and at least one perturbed copy: a spread needs two
 Checkpoint = Annotated[
     Path | None,
-    tyro.conf.arg(help="A checkpoint directory, or a shipped one by gait family: paper (the default)."),
+    tyro.conf.arg(
+        help="A checkpoint directory, or a shipped one by gait family: structured (the default) or paper.",
+        metavar="structured|paper|DIR",
+    ),
 ]
 Json = Annotated[bool, tyro.conf.arg(help="Print the figures as one JSON object on the last line.")]
 

@@ -84,6 +84,22 @@ def swatch(color: tuple[int, int, int], height: int = 4) -> str:
     )
 
 
+GAP_BASE_M = 0.5
+"""A path shorter than this is no base for a percentage: the gap is then said in metres alone (a
+0.48 m gap read "196% of the distance" for a gait that went 0.25 m)."""
+
+
+def heading_text(change_deg: float) -> str:
+    """A heading change as a person reads it: the heading in (-180, 180] degrees, and where the body
+    turned round more than half a turn, the net turn said apart ('+42° (1.1 turns left)')."""
+    wrapped = (change_deg + 180.0) % 360.0 - 180.0
+    wrapped = 180.0 if wrapped == -180.0 else wrapped
+    text = f"{wrapped:+.0f}°"
+    if abs(change_deg) > 180.0:
+        text += f" ({abs(change_deg) / 360.0:.1f} turns {'left' if change_deg > 0 else 'right'})"
+    return text
+
+
 def _cells(end: PathEnd | None, who: str) -> str:
     if end is None:
         return f"<td>{who}</td><td colspan=3>—</td>"
@@ -91,7 +107,7 @@ def _cells(end: PathEnd | None, who: str) -> str:
         f"<td>{who}</td>"
         f'<td data-key="{who.lower()}-distance">{end.distance_m:.2f} m</td>'
         f'<td data-key="{who.lower()}-direction">{end.direction_deg:+.0f}°</td>'
-        f'<td data-key="{who.lower()}-heading">{end.heading_change_deg:+.0f}°</td>'
+        f'<td data-key="{who.lower()}-heading">{heading_text(end.heading_change_deg)}</td>'
     )
 
 
@@ -105,6 +121,10 @@ def readout_html(r: Readout, colors: dict[str, tuple[int, int, int]]) -> str:
     ]
     if r.ring:
         legend.append(swatch(colors["ring"], 2) + "ring: where replays likely end")
+        legend.append(
+            "<br><i>paper family: random multisines are chaotic on this robot, so its paths are a spread "
+            "(the orange path is their mean), not a line; the structured family's are</i>"
+        )
     if r.state == "done":
         state = "replay done"
     elif r.state == "streaming":
@@ -114,12 +134,18 @@ def readout_html(r: Readout, colors: dict[str, tuple[int, int, int]]) -> str:
     else:
         state = "simulating..."
     gap = r.gap_m
-    gap_text = (
-        f'<b>End-point gap</b> <span data-key="gap">{gap:.2f} m</span> '
-        f'(<span data-key="gap-share">{100 * r.gap_share:.0f}%</span> of the distance)'
-        if gap is not None
-        else "<b>End-point gap</b> after the replay"
-    )
+    if gap is None:
+        gap_text = "<b>End-point gap</b> after the replay"
+    elif r.mujoco.distance_m >= GAP_BASE_M:
+        gap_text = (
+            f'<b>End-point gap</b> <span data-key="gap">{gap:.2f} m</span> '
+            f'(<span data-key="gap-share">{100 * r.gap_share:.0f}%</span> of the distance)'
+        )
+    else:
+        gap_text = (
+            f'<b>End-point gap</b> <span data-key="gap">{gap:.2f} m</span> '
+            f"(MuJoCo's snake went {r.mujoco.distance_m:.2f} m: too short a base for a percentage)"
+        )
     # Which slider values this readout is for: a protocol client (``bench load``) matches its views
     # to its drags by it, and a stale readout says so.
     sliders = f' data-sliders="{",".join(f"{v:.4f}" for v in r.sliders)}"' if r.sliders is not None else ""

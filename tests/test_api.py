@@ -184,8 +184,9 @@ def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
     from snakeloco.model.checkpoint import PRETRAINED_DIR, SHIPPED, STRUCTURED_DIR
 
     assert SHIPPED == {"paper": PRETRAINED_DIR, "structured": STRUCTURED_DIR}
-    by_name, default = load_pretrained("paper"), load_pretrained()
-    assert by_name.path == default.path == PRETRAINED_DIR and by_name.config == default.config
+    by_name, default = load_pretrained("structured"), load_pretrained()
+    assert by_name.path == default.path == STRUCTURED_DIR and by_name.config == default.config
+    assert load_pretrained("paper").path == PRETRAINED_DIR
     structured = load_pretrained("structured")
     assert structured.family == "structured" and structured.robot_warning() is None
     # The library family: the pitch joints' waves at 0.29 and 0.52 Hz (rolling, turning, sidewinding),

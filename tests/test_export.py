@@ -129,19 +129,18 @@ def test_gait_equation_refuses_a_gait_that_has_no_parameters(tmp_path, capsys):
 def test_a_command_beyond_the_range_or_speed_is_refused_with_joint_and_time(sidewind_csv, tmp_path, capsys):
     narrow = tmp_path / "narrow.yaml"
     narrow.write_text("joint_range: 0.6\ncommand_limit: 0.5\n")
+    argv = [
+        "export",
+        str(sidewind_csv),
+        "--format",
+        "ros2",
+        "--robot",
+        str(narrow),
+        "--out",
+        str(tmp_path / "a"),
+    ]
     with pytest.raises(SystemExit) as exc:
-        main(
-            [
-                "export",
-                str(sidewind_csv),
-                "--format",
-                "ros2",
-                "--robot",
-                str(narrow),
-                "--out",
-                str(tmp_path / "a"),
-            ]
-        )
+        main(argv)
     err = capsys.readouterr().err
     assert (
         exc.value.code == 2
@@ -149,19 +148,7 @@ def test_a_command_beyond_the_range_or_speed_is_refused_with_joint_and_time(side
         and "beyond the robot's command limit +/-0.5 rad" in err
     )
     assert not (tmp_path / "a").exists()
-    main(
-        [
-            "export",
-            str(sidewind_csv),
-            "--format",
-            "ros2",
-            "--robot",
-            str(narrow),
-            "--clip",
-            "--out",
-            str(tmp_path / "a"),
-        ]
-    )
+    main([*argv, "--clip"])
     said = capsys.readouterr().out
     assert "clipped joint_2:" in said and "joint_1:" not in said  # pitch joints stay inside 0.4 rad
     _, positions, _ = export.read_ros2((tmp_path / "a").read_text())

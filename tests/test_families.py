@@ -50,6 +50,7 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
         assert not d1.scene.band.visible  # drawn as the line it is
         assert d1.simulated is not None and d1.simulated.ensemble_body.shape[0] == 3
         assert d2.model is srv.models["paper"] and len(d2.sliders) == 3  # the other tab keeps its family
+        assert "paper family: random multisines are chaotic" in d2.controls.readout.content  # said why
 
         # Sliders, export/import and design all work for the new family's z_B.
         assert apply(d1, d1.sliders[1], 0.5)
@@ -77,4 +78,20 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
     finally:
         for c in clients:
             c.close()
+        srv.stop()
+
+
+def test_a_newcomers_designer_opens_on_the_structured_family(tmp_path):
+    """`snakeloco serve` with no --checkpoint: the family whose promise holds, the paper one a click away."""
+    from snakeloco.app.server import load_families
+
+    models, default = load_families(None)
+    assert default == "structured" and list(models) == ["structured", "paper"]
+    srv = DesignerServer(port=0, ensemble=2, workers=2, verbose=False, variations=False)
+    client, d = connect_headless(srv)
+    try:
+        assert d.model.family == "structured" and d.controls.family.value == "structured"
+        assert "paper family: random multisines are chaotic" not in d.controls.readout.content
+    finally:
+        client.close()
         srv.stop()

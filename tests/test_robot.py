@@ -4,6 +4,7 @@ docs/robot.md, "Your robot", and docs/variations.md."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -254,3 +255,29 @@ def test_the_designer_streams_the_variations_fan_and_says_how_far_the_end_moves(
     finally:
         client.close()
         srv.stop()
+
+
+@pytest.mark.slow
+def test_robust_design_returns_only_candidates_whose_worst_case_it_replayed(checkpoint, tmp_path, capsys):
+    from snakeloco.app.gait_csv import read_gait_csv
+
+    quick = "--screen 64 --starts 2 --generations 8 --population 8 --candidates 2 --rounds 1".split()
+    out = tmp_path / "robust"
+    target = ["--forward", "0.5", "--sideways", "0.2", "--checkpoint", str(checkpoint)]
+    main(["design", *target, *quick, "--robust", "--out", str(out), "--workers", "2", "--json"])
+    report = json.loads(capsys.readouterr().out.splitlines()[-1])
+    assert report["robust"] == "worst" and 1 <= len(report["candidates"]) <= 2
+    worst = [c["robust"]["worst_m"] for c in report["candidates"]]
+    assert worst == sorted(worst)  # ranked by the replayed worst case
+    for c in report["candidates"][:1]:
+        r = c["robust"]
+        assert r["replayed"] == len(DEFAULT_SET) and r["worst_m"] >= c["error_m"]
+        # The worst case is what the variations' replays of the written gait did.
+        commands = read_gait_csv((out / Path(c["csv"]).name).read_bytes()).commands
+        varied = robustness(commands, DEFAULT_SET, Simulator(workers=2))
+        ends = [
+            np.hypot(v["forward"] - 0.5, v["sideways"] - 0.2)
+            for v in varied["variations"]
+            if v["forward"] is not None
+        ]
+        assert max([c["error_m"], *ends]) == pytest.approx(r["worst_m"], abs=2e-3)
