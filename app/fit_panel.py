@@ -180,6 +180,8 @@ class FitPanel:
             return None
         self.tab.session.set_robot(robot)
         gait = self.tab.decoded
+        if gait.latents is not None:  # the model's gait: decoded again, its path kept, replayed here
+            return self.tab.request_decode()
         return self.tab._submit(self.tab.physics, ("load", gait.source, f"Robot: {label}", gait.commands))
 
     def close(self) -> None:

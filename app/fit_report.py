@@ -102,7 +102,8 @@ def format_fit(report: dict) -> str:
 
 def fit_from_files(cmd, robot: Robot) -> dict:
     """Run ``snakeloco fit-robot`` (``app.commands.FitRobot``)."""
-    from snakeloco.app.cli import Progress
+    from tqdm import tqdm
+
     from snakeloco.sim.fit import FitConfig, fit_robot
     from snakeloco.sim.physics import Simulator
     from snakeloco.sim.variations import PHYSICAL_FIELDS
@@ -114,9 +115,9 @@ def fit_from_files(cmd, robot: Robot) -> dict:
     cfg = FitConfig(params=tuple(cmd.params), generations=cmd.generations, seed=cmd.seed)
     simulator = Simulator(workers=cmd.workers, robot=robot)
     try:
-        with Progress(cfg.generations, "fit", unit="generation") as progress:
+        with tqdm(total=cfg.generations, desc="fit", unit="generation") as bar:
             try:
-                report = fit_robot(pairs, robot, cfg, simulator, progress)
+                report = fit_robot(pairs, robot, cfg, simulator, bar.update)
             except MeasuredRunError as exc:
                 raise OptionError(str(exc)) from None
         fitted: Robot = report.pop("robot")

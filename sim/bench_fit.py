@@ -55,9 +55,51 @@ def synthetic_run(body: np.ndarray, rng: np.random.Generator, source: str) -> Me
     return MeasuredRun(t, xy - xy[0], yaw - yaw[0], None, None, source)
 
 
-def bench_fit(robots: int = 6, seed: int = 0, generations: int = 30, workers: int | None = None) -> dict:
+def single_runs(truth: Robot, simulator, generations: int, seed: int = 0) -> dict:
+    """What one run determines: each library gait's run alone, fitted; per gait, each field's error
+    and whether the fit calls it determined."""
+    rng = np.random.default_rng(seed + 99)
+    names = list(PRESETS)
+    result = simulator.simulate(
+        np.stack([PRESETS[g].gait.commands() for g in names]), robots=[truth] * len(names)
+    )
+    table = {}
+    for g, body in zip(names, result.body, strict=True):
+        run = synthetic_run(body, rng, g)
+        report = fit_robot(
+            [(PRESETS[g].gait.commands(), run)],
+            DEFAULT_ROBOT,
+            FitConfig(generations=generations, seed=seed),
+            simulator,
+            advise=False,
+        )
+        table[g] = {
+            p: {
+                "error_rel": v["fitted"] / getattr(truth, p) - 1,
+                "determined": v["determined"],
+                "rel_uncertainty": v["rel_uncertainty"],
+            }
+            for p, v in report["params"].items()
+        }
+        print(f"single run {g}: {report['seconds']:.0f} s", flush=True)
+    return table
+
+
+def bench_fit(
+    robots: int = 6, seed: int = 0, generations: int = 30, workers: int | None = None, single: bool = False
+) -> dict:
     simulator = Simulator(workers)
     rows = []
+    if single:
+        try:
+            truth = perturbed_robots(1, seed)[0]
+            return {
+                "single_runs": single_runs(truth, simulator, generations, seed),
+                "truth": {p: getattr(truth, p) for p in PARAMS},
+                "workers": simulator.workers,
+            }
+        finally:
+            simulator.close()
     try:
         for k, truth in enumerate(perturbed_robots(robots, seed)):
             rng = np.random.default_rng(seed * 1000 + k)

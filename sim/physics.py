@@ -8,6 +8,7 @@ as broken (``CommandRule`` holds the limits) and is named, never returned as dat
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import wait as wait_futures
 
@@ -33,6 +34,8 @@ from snakeloco.sim.scheduler import FairRunner
 from snakeloco.sim.threads import FifoLock, RolloutThreads, resolve_workers
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
+VARIATION_MODELS_KEPT = 64
+"""Compiled variation models a simulator keeps (the default set is 12; a fit's candidates come and go)."""
 
 
 class Simulator:
@@ -59,7 +62,7 @@ class Simulator:
         self.config = config or CommandRule()
         self.robot = resolve_robot(robot)
         self.model = self.robot.compile()
-        self._variation_models: dict[Robot, mujoco.MjModel] = {}
+        self._variation_models: OrderedDict[Robot, mujoco.MjModel] = OrderedDict()
         self.workers = resolve_workers(workers)
         # Records rolled out per call: a rollout keeps every physics step (~16 MB per record), so a
         # larger batch runs as consecutive calls of this many (2 per thread keeps both balanced).
@@ -168,6 +171,9 @@ class Simulator:
             if changed:
                 raise ValueError(f"a variation changes physics, not {', '.join(changed)}")
             model = self._variation_models[robot] = robot.compile()
+            while len(self._variation_models) > VARIATION_MODELS_KEPT:  # a fit's candidates: each new
+                self._variation_models.popitem(last=False)
+        self._variation_models.move_to_end(robot)
         return model
 
     def close(self) -> None:

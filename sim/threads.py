@@ -191,13 +191,16 @@ def rollout_row(
         local.runner = mj_rollout.Rollout(nthread=0)  # no pool: runs on this thread
         local.data = {}
     if data is None:
-        data = local.data.get(id(model))
+        # One MjData per size signature, not per model: a fit or a variation set rolls out many
+        # models of one signature (rollout sets the whole state, as mujoco.rollout does with one
+        # MjData for a sequence of models), and a dict keyed by model grew with every candidate.
+        data = local.data.get(model.signature)
         if data is None:
-            data = local.data[id(model)] = mujoco.MjData(model)
+            data = local.data[model.signature] = mujoco.MjData(model)
     local.runner.rollout(model, data, **arrays)
     if warm_out is not None:
         warm_out[:] = data.qacc_warmstart
 
 
 _THREAD = threading.local()
-"""Each rollout thread's pool-less rollout and its MjData per model (MjData is never shared)."""
+"""Each rollout thread's pool-less rollout and its MjData per model size signature (never shared)."""

@@ -162,6 +162,8 @@ class BenchFit(Command):
     """CMA-ES generations per fit."""
     workers: Workers = None
     """Simulation threads (default: all cores)."""
+    single: bool = False
+    """Instead: what one run determines (each library gait's run fitted alone, on the first robot)."""
     json: Json = False
 
 

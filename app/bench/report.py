@@ -248,6 +248,14 @@ def screen(r: dict) -> None:
 
 def fit(r: dict) -> None:
     """Robots of known physics fitted from synthetic runs (``sim/bench_fit.py``)."""
+    if "single_runs" in r:
+        for gait, fields in r["single_runs"].items():
+            said = ", ".join(
+                f"{p} {100 * v['error_rel']:+.0f}% ({'determined' if v['determined'] else 'not'})"
+                for p, v in fields.items()
+            )
+            print(f"{gait} alone: {said}")
+        return
     for row in r["robots"]:
         fields = ", ".join(
             f"{name} {100 * p['error_rel']:+.0f}% ({'determined' if p['determined'] else 'not determined'})"
