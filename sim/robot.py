@@ -28,6 +28,8 @@ if TYPE_CHECKING:
     import mujoco
 
 MJCF_PATH = Path(__file__).with_name("snake.xml")
+ROBOTS_DIR = Path(__file__).with_name("robots")
+"""Example robot descriptions shipped with the package (``twelve.yaml``, ``planar6.yaml``)."""
 COMMAND_RATE = 20.0
 """Command samples per second (Hz); the timestep must divide the command period."""
 BODY_SITE = "body_frame"

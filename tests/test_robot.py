@@ -281,3 +281,19 @@ def test_robust_design_returns_only_candidates_whose_worst_case_it_replayed(chec
             if v["forward"] is not None
         ]
         assert max([c["error_m"], *ends]) == pytest.approx(r["worst_m"], abs=2e-3)
+
+
+def test_the_shipped_example_robots_load_build_and_replay():
+    from snakeloco.sim.robot import ROBOTS_DIR
+
+    twelve, planar = load_robot(ROBOTS_DIR / "twelve.yaml"), load_robot(ROBOTS_DIR / "planar6.yaml")
+    assert twelve.n_joints == 12 and twelve.compile().nu == 12 and twelve.body_length == pytest.approx(0.95)
+    assert planar.joint_axes == ("yaw",) * 6
+    t = np.arange(2000) / 20.0
+    for robot in (twelve, planar):
+        k = np.arange(robot.n_joints)
+        wave = 0.8 * np.sin(2 * np.pi * 0.52 * t[:, None] - 1.0 * k[None])
+        if robot.joint_pattern == "alternate":
+            wave[:, 0::2] *= 0.2  # a small pitch wave beside the yaw wave
+        body = Simulator(workers=1, robot=robot).replay(wave).body
+        assert np.isfinite(body).all() and np.hypot(*body[-1, 1:3]) > 0.3
