@@ -87,6 +87,8 @@ def outputs_problem(cmd: Command) -> str | None:
         path = getattr(cmd, name)
         if path is None or (name in REUSED_WHEN_PRESENT and Path(path).is_file()):
             continue
+        if isinstance(cmd, Export) and cmd.format == "html":
+            kind = "dir"  # the html export writes a folder
         problem = output_problem(path, kind)
         if problem is not None:
             return f"{flag(name)} {problem}"

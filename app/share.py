@@ -10,6 +10,8 @@ host, with no server, and plays the replay with viser's playback bar.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import time
 from pathlib import Path
 
@@ -91,7 +93,8 @@ def record_html(
     step = max(1, round(RECORD.sample_rate / fps))
     frames = range(0, len(qpos), step)
 
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    with contextlib.redirect_stdout(io.StringIO()):  # viser's banner names a server nobody should open
+        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:
         scene = server.scene
         serializer = server.get_scene_serializer()
@@ -143,7 +146,8 @@ def record_html(
             serializer.insert_sleep(step / RECORD.sample_rate)
         html = serializer.as_html()
     finally:
-        server.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            server.stop()
     return html, len(frames)
 
 
