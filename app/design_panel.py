@@ -49,6 +49,7 @@ class DesignPanel:
         self.candidates: list[Candidate] = []
         self.result = None
         self._version = 0
+        self._shown: str | None = None  # the candidate the search's end made the gait (not re-picked)
         self._lock = threading.Lock()
         client = tab.client
         self.marker = client.scene.add_icosphere(
@@ -150,13 +151,19 @@ class DesignPanel:
                 "Spread: where physics itself scatters the end."
             )
             self.controls.candidate.options = (NO_CANDIDATE, *labels)
-            self.controls.candidate.value = NO_CANDIDATE
+        # The best candidate becomes the current gait at once (the others stay in the dropdown): a
+        # finished design left the scene on the old gait and the dropdown at "none yet".
+        if self._current(version) and best.simulated is not None:
+            self.pick(labels[0], shown=True)
+            self.controls.candidate.value = labels[0]  # its callback finds it picked already
 
-    def pick(self, label: str) -> int | None:
-        """Make the candidate named by ``label`` (the dropdown's) the current gait; its request version."""
+    def pick(self, label: str, shown: bool = False) -> int | None:
+        """Make the candidate named by ``label`` (the dropdown's) the current gait; its request version
+        (None where it is no candidate, or the one the search's end has just shown: ``shown``)."""
         labels = [candidate_label(i + 1, c) for i, c in enumerate(self.candidates)]
-        if label not in labels:
+        if label not in labels or (not shown and label == self._shown):
             return None
+        self._shown = label if shown else None
         return self.tab.show_latents(self.candidates[labels.index(label)].z_b)
 
     def forget(self) -> None:
