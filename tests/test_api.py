@@ -184,10 +184,10 @@ def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
     from snakeloco.model.checkpoint import PRETRAINED_DIR, SHIPPED, STRUCTURED_DIR
 
     assert SHIPPED == {"paper": PRETRAINED_DIR, "structured": STRUCTURED_DIR}
-    by_name, default = load_pretrained("structured"), load_pretrained()
-    assert by_name.path == default.path == STRUCTURED_DIR and by_name.config == default.config
-    assert load_pretrained("paper").path == PRETRAINED_DIR
-    structured = load_pretrained("structured")
+    structured, default = load_pretrained("structured"), load_pretrained()
+    assert structured.path == default.path == STRUCTURED_DIR and structured.config == default.config
+    by_name = load_pretrained("paper")
+    assert by_name.path == PRETRAINED_DIR
     assert structured.family == "structured" and structured.robot_warning() is None
     # The library family: the pitch joints' waves at 0.29 and 0.52 Hz (rolling, turning, sidewinding),
     # the yaw joints' also at 0.93 Hz (undulation); no steering bin.
@@ -213,7 +213,7 @@ def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
         load_pretrained("paper")
     with pytest.raises(
         CheckpointError,
-        match=r"missing config.json \(no such directory; shipped checkpoints: paper, structured\)",
+        match=r"missing config.json \(no such directory; shipped checkpoints: structured, paper\)",
     ):
         load_pretrained("undulate")
 
