@@ -125,7 +125,9 @@ def bench_load(
     if split:
         pin_process(split[0])  # before the server starts: its threads inherit the server half
     tune_process()  # as `snakeloco serve` runs it
-    server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
+    # Without the Variations fan: the figures stay comparable with docs/load.md (the fan runs after
+    # the ensemble at the pool's lowest turn but design; docs/variations.md has its own timing).
+    server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False, variations=False)
     freeze_started()  # as `snakeloco serve` does
     rss = RssSampler()
     browser_idle = driver == "protocol"  # the page stands for a browser on another machine

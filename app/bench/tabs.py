@@ -79,7 +79,9 @@ def bench_tabs(
     from playwright.sync_api import sync_playwright
 
     tune_process()
-    server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False)
+    # Without the Variations fan: the figures stay comparable with docs/load.md (the fan runs after
+    # the ensemble at the pool's lowest turn but design; docs/variations.md has its own timing).
+    server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False, variations=False)
     freeze_started()  # as `snakeloco serve` does
     rss = RssSampler()
     nice = BrowserNice(browser_nice)
