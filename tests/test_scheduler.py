@@ -29,11 +29,13 @@ def test_replays_go_before_any_ensemble_and_tabs_take_turns_within_a_kind():
         futures = [
             pool.submit(tab, turn, lambda name=name: ran.append(name))
             for tab, turn, name in [
+                ("a", Turn.FIT, "a-fit"),
                 ("a", Turn.ENSEMBLE, "a-ens-1"),
                 ("a", Turn.ENSEMBLE, "a-ens-2"),
                 ("a", Turn.ENSEMBLE, "a-ens-3"),
                 ("b", Turn.ENSEMBLE, "b-ens-1"),
                 ("c", Turn.DESIGN, "c-design"),
+                ("b", Turn.VARIATIONS, "b-variations"),
                 ("b", Turn.DRAGGED, "b-dragged"),
                 ("c", Turn.SETTLED, "c-settled"),
                 ("a", Turn.FIRST_MOTION, "a-first"),
@@ -44,7 +46,9 @@ def test_replays_go_before_any_ensemble_and_tabs_take_turns_within_a_kind():
             Turn.SETTLED: 1,
             Turn.DRAGGED: 1,
             Turn.ENSEMBLE: 4,
+            Turn.VARIATIONS: 1,
             Turn.DESIGN: 1,
+            Turn.FIT: 1,
         }
         gate.set()
         for f in futures:
@@ -60,7 +64,9 @@ def test_replays_go_before_any_ensemble_and_tabs_take_turns_within_a_kind():
         "b-ens-1",
         "a-ens-2",
         "a-ens-3",
+        "b-variations",
         "c-design",
+        "a-fit",
     ]
 
 
