@@ -20,6 +20,7 @@ from snakeloco.app.bench.options import BENCH_HELP, BENCH_MODULES, BENCHES
 from snakeloco.app.commands import (
     COMMANDS,
     ROBOT_COMMANDS,
+    Build,
     Calibrate,
     Design,
     Evaluate,
@@ -38,6 +39,7 @@ from snakeloco.app.commands import (
 from snakeloco.app.options import Command, OptionError, flag, parse, parse_one
 from snakeloco.app.robot_commands import (
     _robot,
+    run_build,
     run_export,
     run_fit_robot,
     run_robot_mjcf,
@@ -147,6 +149,13 @@ def run_generate(cmd: Generate) -> Path:
         cfg = cfg.model_copy(
             update={"structured": STRUCTURED_PRESETS[cmd.structured_preset or DEFAULT_PRESET]}
         )
+    if cmd.robot is not None:
+        from snakeloco.sim.robot import RobotError, load_robot
+
+        try:
+            cfg = cfg.model_copy(update={"robot": load_robot(cmd.robot)})
+        except RobotError as exc:
+            raise OptionError(str(exc)) from None
     t0 = time.perf_counter()
     progress = Progress(cfg.num_samples, "generate", unit="sample")
     try:
@@ -307,6 +316,7 @@ RUNNERS = {
     Export: run_export,
     FitRobot: run_fit_robot,
     RobotMjcf: run_robot_mjcf,
+    Build: run_build,
     **dict.fromkeys(BENCHES.values(), run_bench),
 }
 

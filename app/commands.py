@@ -43,6 +43,9 @@ class Generate(Command):
     screened: Path | None = None
     """progress.json of an earlier run of the same options (or the shipped copy, data/screening/): its
     records are rebuilt with one replay each instead of being screened again. Does not change the result."""
+    robot: Path | None = None
+    """A robot description (YAML, `snakeloco robot show`) to simulate on (default: the paper's 8-joint
+    snake, sim/snake.xml); its joint count sets the dataset's joint axis."""
     structured_preset: Literal[tuple(STRUCTURED_PRESETS)] | None = None  # type: ignore[valid-type]
     """With --family structured: which structured family (snakeloco.sim.STRUCTURED_PRESETS). Default
     arcs: the gait library's four kinds (undulation either way at 0.29-0.93 Hz, sidewinding,
@@ -251,6 +254,24 @@ class Robot(Command):
     """A robot as data: `snakeloco robot show ROBOT.yaml` (check it, print its figures), `snakeloco robot mjcf ROBOT.yaml --out X.xml` (its MuJoCo model)."""
 
 
+class Build(Command):
+    """From a robot description to a servable model: the structured family generated and screened on the robot, the VAE trained, the slider density and member path head calibrated, a short evaluation; each stage resumable (docs/robot.md, "Your robot")."""
+
+    robot: Path
+    """Robot description YAML (`snakeloco robot show ROBOT.yaml` checks it)."""
+    out: Path
+    """Build folder (runs/NAME): data, checkpoints, build.json; serve it with `snakeloco serve --checkpoint OUT/model`."""
+    records: Annotated[int, Field(ge=8)] = 2048
+    """Training records of the structured family."""
+    epochs: Annotated[int, Field(ge=1)] = 100
+    """Training epochs."""
+    quick: bool = False
+    """Tiny sizes (24 records, 3 epochs, 6 sampler positions): every stage in a few minutes, for CI and a first try; --records and --epochs are then ignored."""
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    backend: Annotated[BackendConfig, Flat] = BackendConfig()
+
+
 ROBOT_COMMANDS: dict[str, type[Command]] = {"show": RobotShow, "mjcf": RobotMjcf}
 
 
@@ -268,4 +289,5 @@ COMMANDS: dict[str, type[Command]] = {
     "export": Export,
     "fit-robot": FitRobot,
     "robot": Robot,  # the same: `snakeloco robot ...` parses ROBOT_COMMANDS
+    "build": Build,
 }

@@ -18,11 +18,16 @@ def write_design(cmd) -> dict:
     from snakeloco.sim.robot import RobotError, resolve_robot
 
     t0 = time.perf_counter()
+    model = load_pretrained(cmd.checkpoint)
     try:
-        robot = resolve_robot(cmd.robot)
+        robot = resolve_robot(cmd.robot) if cmd.robot is not None else model.robot
     except RobotError as exc:
         raise OptionError(str(exc)) from None
-    model = load_pretrained(cmd.checkpoint)
+    if robot.n_joints != model.robot.n_joints:
+        raise OptionError(
+            f"--robot {robot.name} has {robot.n_joints} joints; the checkpoint was trained on "
+            f"{model.robot.name} of {model.robot.n_joints}"
+        )
     if warning := model.robot_warning(robot):
         print(f"snakeloco: warning: {warning}", file=sys.stderr)
     if cmd.robust:
@@ -62,7 +67,7 @@ def write_design(cmd) -> dict:
                 f"worst {r['worst_m']:.3f} m from the target ({r['worst_variation']}), p90 {r['p90_m']:.3f} m "
                 f"over {r['replayed']} physics variations"
             )
-        csv.write_text(write_gait_csv(model.commands(c.shape), comments))
+        csv.write_text(write_gait_csv(model.commands(c.shape), comments, model.robot))
         candidates.append({"csv": str(csv), **c.report(), **({"robust": robust[rank - 1]} if robust else {})})
     report = {
         "target": cmd.target.model_dump(),

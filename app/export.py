@@ -32,7 +32,7 @@ import yaml
 from snakeloco.app.gait_csv import MEMBER_KEY, GaitCSVError, read_gait_csv
 from snakeloco.sim.command_rule import CommandRule, lead_in_window
 from snakeloco.sim.excitation import RECORD
-from snakeloco.sim.robot import Robot
+from snakeloco.sim.robot import DEFAULT_ROBOT, Robot
 
 FORMATS = ("csv", "ros2", "dynamixel", "gait-equation", "html")
 ROBOT_FORMATS: dict[str, tuple[str, str, dict]] = {
@@ -272,17 +272,17 @@ def read_dynamixel(text: str) -> tuple[np.ndarray, np.ndarray, list[int]]:
     return values[:, 0], values[:, 1:].astype(int), ids
 
 
-def gait_equation_of(text: str) -> dict:
+def gait_equation_of(text: str, robot: Robot = DEFAULT_ROBOT) -> dict:
     """The named parameters behind a gait CSV: ``{"member": ...}`` (a structured-family member) or
     ``{"library": NAME, "gait_equation": ...}``; ExportError for a gait that is neither (or whose
     commands are not its parameters' to the bit: an edited file)."""
     from snakeloco.app.gait_csv import read_member
     from snakeloco.sim.gaits import PRESETS, GaitEquation
 
-    commands = read_gait_csv(text).commands
+    commands = read_gait_csv(text, robot, limit=np.inf).commands
     member = read_member(text)
     if member is not None:
-        params, synthesised = {"member": member.params()}, member.commands()
+        params, synthesised = {"member": member.params()}, member.commands(robot)
     else:
         library = next((n for n in PRESETS if f"# snakeloco gait: library gait {n}:" in text), None)
         if library is None:
@@ -291,8 +291,8 @@ def gait_equation_of(text: str) -> dict:
                 f"has no '# {MEMBER_KEY}:' line): its commands have no gait-equation parameters; export "
                 "it as csv, ros2 or dynamixel"
             )
-        gait = PRESETS[library].gait
-        params, synthesised = {"library": library, "gait_equation": gait.model_dump()}, gait.commands()
+        gait = PRESETS[library].gait.on_robot(robot)
+        params, synthesised = {"library": library, "gait_equation": gait.model_dump()}, gait.commands(robot)
         GaitEquation.model_validate(params["gait_equation"])
     if not np.array_equal(synthesised, commands):
         raise ExportError(
@@ -322,8 +322,8 @@ def write_gait_equation(params: dict, robot: Robot) -> str:
     return yaml.safe_dump(doc, sort_keys=False, width=100)
 
 
-def read_gait_equation(text: str) -> np.ndarray:
-    """A gait-equation YAML back to its commands (T, J) rad, to the bit."""
+def read_gait_equation(text: str, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+    """A gait-equation YAML back to its commands (T, J) rad on ``robot``, to the bit."""
     from snakeloco.sim.gaits import GaitEquation
     from snakeloco.sim.members import Member
 
@@ -331,8 +331,8 @@ def read_gait_equation(text: str) -> np.ndarray:
     if not isinstance(doc, dict) or doc.get("snakeloco_gait_equation") != GAIT_EQUATION_SCHEMA:
         raise GaitCSVError("not a snakeloco gait-equation file (no 'snakeloco_gait_equation: 1')")
     if "member" in doc:
-        return Member.model_validate(doc["member"]).commands()
-    return GaitEquation.model_validate(doc["gait_equation"]).commands()
+        return Member.model_validate(doc["member"]).commands(robot)
+    return GaitEquation.model_validate(doc["gait_equation"]).commands(robot)
 
 
 def export_gait(
@@ -349,11 +349,11 @@ def export_gait(
 ) -> tuple[str, list[str]]:
     """A gait CSV's text in format ``fmt`` (any but html): (the file's text, what was clipped).
     GaitCSVError or ExportError say why it cannot be."""
-    table = read_gait_csv(text)
+    table = read_gait_csv(text, robot, limit=np.inf)  # ``trajectory`` checks the limits, saying where
     if units == "deg" and fmt != "csv":
         raise ExportError(f"degrees are for the csv format; {fmt} has its own units")
     if fmt == "gait-equation":
-        return write_gait_equation(gait_equation_of(text), robot), []
+        return write_gait_equation(gait_equation_of(text, robot), robot), []
     traj = trajectory(table.commands, robot, rate, periods, lead_in, clip)
     about = {"gait": source, "robot": robot.name}
     if fmt == "csv":

@@ -184,5 +184,21 @@ class FitPanel:
             return self.tab.request_decode()
         return self.tab._submit(self.tab.physics, ("load", gait.source, f"Robot: {label}", gait.commands))
 
+    def robot_changed(self) -> None:
+        """The tab now designs for another robot (a family trained on it): the Robot dropdown offers
+        its nominal robot and the fitted robots of its joints only; a measured run of the old robot's
+        gait is dropped."""
+        nominal = self.tab.session.nominal_robot
+        keep = {
+            label: r
+            for label, r in self.robots.items()
+            if label != NOMINAL and (r.n_joints, r.joint_pattern) == (nominal.n_joints, nominal.joint_pattern)
+        }
+        self.robots = {NOMINAL: nominal, **keep}
+        self.controls.robot.options = tuple(self.robots)
+        self.controls.robot.value = NOMINAL
+        if self.commands is not None and self.commands.shape[1] != nominal.n_joints:
+            self.run = self.commands = None
+
     def close(self) -> None:
         self.worker.close()

@@ -33,7 +33,7 @@ def read_pairs(measured: tuple[Path, ...], gaits: tuple[Path, ...], robot: Robot
                 raise OptionError(f"{path}: no '# gait:' line names the gait it ran; give --gait")
             gait = (Path(path).parent / run.gait).resolve()
         try:
-            commands = read_gait_csv(Path(gait).read_bytes()).commands
+            commands = read_gait_csv(Path(gait).read_bytes(), robot).commands
         except GaitCSVError as exc:
             raise OptionError(f"{gait}: {exc}") from None
         except OSError as exc:

@@ -4,8 +4,9 @@ Format: optional ``#`` comment lines (export writes z_B, the z_k mode and seed, 
 along a cluster's axes, the structured family member as JSON (``# member:``, whose parameters give the
 commands to the bit: ``read_member``), the checkpoint hash and the consistency figures there; import
 ignores them), then the header
-``time_s,joint_1,...,joint_8`` and exactly 2000 rows at a 0.05 s step starting at 0: time (s) and
-the 8 joint commands (rad) within +/-2.2 rad. No other columns. Numbers are written in Python's
+``time_s,joint_1,...,joint_N`` and exactly 2000 rows at a 0.05 s step starting at 0: time (s) and
+the robot's N joint commands (rad) within its command limit (the default robot: 8 joints, +/-2.2
+rad). No other columns; a file of another joint count than the robot's is refused saying so. Numbers are written in Python's
 shortest round-trip form, so an exported gait re-imports to the very same float64 commands, and
 is replayed exactly as written under the command rule of ``sim.physics``.
 """
@@ -18,14 +19,23 @@ import json
 import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
 
-from snakeloco.sim import COMMAND_LIMIT, N_JOINTS, RECORD
+from snakeloco.sim import RECORD
 from snakeloco.sim.consistency import PREDICTABLE
+from snakeloco.sim.robot import DEFAULT_ROBOT, Robot
 
 N_ROWS = RECORD.n_samples
 """One record: 2000 rows."""
 TIME_STEP = 1.0 / RECORD.sample_rate
 """0.05 s between rows (20 Hz)."""
-HEADER = ["time_s", *[f"joint_{k}" for k in range(1, N_JOINTS + 1)]]
+
+
+def header(n_joints: int) -> list[str]:
+    """The CSV columns of a robot of ``n_joints`` joints: time_s, joint_1, ..., joint_N."""
+    return ["time_s", *[f"joint_{k}" for k in range(1, n_joints + 1)]]
+
+
+HEADER = header(DEFAULT_ROBOT.n_joints)
+"""The default robot's columns."""
 MAX_BYTES = 2 * 2**20
 """Largest accepted upload: a 2000-row gait written at full precision is ~0.4 MB."""
 
@@ -44,7 +54,8 @@ class GaitCSVError(ValueError):
 
 
 class GaitTable(BaseModel):
-    """A parsed gait: validated commands (2000, 8) rad at 20 Hz."""
+    """A parsed gait: validated commands (2000, N) rad at 20 Hz (their range is checked against a
+    robot by ``check_range``)."""
 
     model_config = ConfigDict(arbitrary_types_allowed=True, frozen=True)
 
@@ -67,40 +78,56 @@ class GaitTable(BaseModel):
 
     @field_validator("commands")
     @classmethod
-    def _range(cls, u: np.ndarray) -> np.ndarray:
-        if u.shape != (N_ROWS, N_JOINTS):
-            raise ValueError(f"expected ({N_ROWS}, {N_JOINTS}) joint commands, got {u.shape}")
-        out = np.flatnonzero(np.abs(u).max(axis=1) > COMMAND_LIMIT + 1e-9)
-        if out.size:
-            i = int(out[0])
-            k = int(np.argmax(np.abs(u[i])))
-            raise ValueError(
-                f"joint_{k + 1} = {u[i, k]:.4g} rad in row {i + 1} is outside the +/-{COMMAND_LIMIT} rad "
-                f"command range ({out.size} rows out of range)"
-            )
+    def _shape(cls, u: np.ndarray) -> np.ndarray:
+        if u.ndim != 2 or u.shape[0] != N_ROWS or u.shape[1] < 1:
+            raise ValueError(f"expected ({N_ROWS}, N) joint commands, got {u.shape}")
         return u
+
+
+def check_range(u: np.ndarray, robot: Robot = DEFAULT_ROBOT, limit: float | None = None) -> None:
+    """A ValueError unless commands (2000, N) are ``robot``'s: N joints, within its command limit
+    (or ``limit``)."""
+    if u.shape[1] != robot.n_joints:
+        raise ValueError(
+            f"a gait of {u.shape[1]} joints for robot {robot.name} of {robot.n_joints}: export it for this "
+            "robot (its checkpoint), or pick the robot it was made for"
+        )
+    limit = robot.command_limit if limit is None else limit
+    out = np.flatnonzero(np.abs(u).max(axis=1) > limit + 1e-9)
+    if out.size:
+        i = int(out[0])
+        k = int(np.argmax(np.abs(u[i])))
+        raise ValueError(
+            f"joint_{k + 1} = {u[i, k]:.4g} rad in row {i + 1} is outside the +/-{limit} rad "
+            f"command range ({out.size} rows out of range)"
+        )
 
 
 def _fmt(x: float) -> str:
     return repr(float(x))
 
 
-def write_gait_csv(commands: np.ndarray, comments: dict[str, str] | None = None) -> str:
-    """CSV text of commands (2000, 8) rad, with ``# key: value`` comment lines first."""
+def write_gait_csv(
+    commands: np.ndarray, comments: dict[str, str] | None = None, robot: Robot = DEFAULT_ROBOT
+) -> str:
+    """CSV text of ``robot``'s commands (2000, N) rad, with ``# key: value`` comment lines first."""
     commands = np.asarray(commands, dtype=np.float64)
     GaitTable(time_s=np.arange(N_ROWS) * TIME_STEP, commands=commands)  # validate before writing
+    check_range(commands, robot)
     out = io.StringIO()
     for key, value in (comments or {}).items():
         for line in str(value).splitlines() or [""]:
             out.write(f"# {key}: {line}\n")
-    out.write(",".join(HEADER) + "\n")
+    out.write(",".join(header(robot.n_joints)) + "\n")
     for n in range(N_ROWS):
         out.write(_fmt(round(n * TIME_STEP, 10)) + "," + ",".join(_fmt(v) for v in commands[n]) + "\n")
     return out.getvalue()
 
 
-def read_gait_csv(data: bytes | str) -> GaitTable:
-    """Parse and validate a gait CSV; raise GaitCSVError naming the problem."""
+def read_gait_csv(data: bytes | str, robot: Robot = DEFAULT_ROBOT, limit: float | None = None) -> GaitTable:
+    """Parse and validate a gait CSV of ``robot`` (its joint count and command limit, or ``limit``:
+    ``np.inf`` for a caller that checks the range itself, saying where); raise GaitCSVError naming
+    the problem."""
     if isinstance(data, bytes):
         if len(data) > MAX_BYTES:
             raise GaitCSVError(
@@ -117,18 +144,29 @@ def read_gait_csv(data: bytes | str) -> GaitTable:
     lines = [(i + 1, line.strip()) for i, line in enumerate(text.splitlines())]
     lines = [(i, line) for i, line in lines if line and not line.startswith("#")]
     if not lines:
-        raise GaitCSVError("file is empty: expected a header 'time_s,joint_1,...,joint_8' and 2000 rows")
-    header_line, header = lines[0]
-    columns = [c.strip() for c in header.split(",")]
-    if columns != HEADER:
-        if len(columns) == 1 and any(d in header for d in (";", "\t", "|")):
-            raise GaitCSVError(
-                f"line {header_line}: columns must be separated by commas, got '{header[:60]}'"
-            )
-        missing = [c for c in HEADER if c not in columns]
-        extra = [c for c in columns if c not in HEADER]
         raise GaitCSVError(
-            f"line {header_line}: header must be '{','.join(HEADER)}'"
+            f"file is empty: expected a header 'time_s,joint_1,...,joint_{robot.n_joints}' and 2000 rows"
+        )
+    header_line, text_header = lines[0]
+    columns = [c.strip() for c in text_header.split(",")]
+    want = header(robot.n_joints)
+    if columns != want:
+        if len(columns) == 1 and any(d in text_header for d in (";", "\t", "|")):
+            raise GaitCSVError(
+                f"line {header_line}: columns must be separated by commas, got '{text_header[:60]}'"
+            )
+        n = len(columns) - 1
+        missing = [c for c in want if c not in columns]
+        if n >= 4 and columns == header(n):  # a robot of 4-32 joints
+            raise GaitCSVError(
+                f"line {header_line}: a gait of {n} joints"
+                + (f" (missing {missing})" if missing else "")
+                + f"; robot {robot.name} has {robot.n_joints} (a gait exported for another robot: "
+                "open it with that robot's checkpoint)"
+            )
+        extra = [c for c in columns if c not in want]
+        raise GaitCSVError(
+            f"line {header_line}: header must be '{','.join(want)}'"
             + (f"; missing {missing}" if missing else "")
             + (f"; unexpected {extra}" if extra else "")
             + ("; columns out of order" if not missing and not extra else "")
@@ -142,28 +180,30 @@ def read_gait_csv(data: bytes | str) -> GaitTable:
         values = np.loadtxt(io.StringIO("\n".join(line for _, line in rows)), delimiter=",", ndmin=2)
     except ValueError:
         values = None
-    if values is None or values.shape[1] != len(HEADER):
-        raise GaitCSVError(_first_bad_cell(rows))
+    if values is None or values.shape[1] != len(want):
+        raise GaitCSVError(_first_bad_cell(rows, want))
     bad = np.argwhere(~np.isfinite(values))
     if len(bad):
         r, c = bad[0]
         cell = rows[r][1].split(",")[c].strip()
-        raise GaitCSVError(f"line {rows[r][0]}, column {HEADER[c]}: {cell} is not a finite number")
+        raise GaitCSVError(f"line {rows[r][0]}, column {want[c]}: {cell} is not a finite number")
     try:
-        return GaitTable(time_s=values[:, 0], commands=values[:, 1:])
+        table = GaitTable(time_s=values[:, 0], commands=values[:, 1:])
+        check_range(table.commands, robot, limit)
+        return table
     except ValueError as exc:  # pydantic's ValidationError is a ValueError
         errors = getattr(exc, "errors", None)
         msg = "; ".join(e["msg"].removeprefix("Value error, ") for e in errors()) if errors else str(exc)
         raise GaitCSVError(msg) from None
 
 
-def _first_bad_cell(rows: list[tuple[int, str]]) -> str:
+def _first_bad_cell(rows: list[tuple[int, str]], columns: list[str]) -> str:
     """What is wrong with the first row or cell that is not a number (``rows``: line number, text)."""
     for line_no, line in rows:
         cells = line.split(",")
-        if len(cells) != len(HEADER):
-            return f"line {line_no}: expected {len(HEADER)} values, got {len(cells)}"
-        for column, cell in zip(HEADER, cells, strict=True):
+        if len(cells) != len(columns):
+            return f"line {line_no}: expected {len(columns)} values, got {len(cells)}"
+        for column, cell in zip(columns, cells, strict=True):
             try:
                 float(cell)
             except ValueError:
@@ -204,21 +244,29 @@ def gait_comments(
     return comments
 
 
-def library_gait_csv(name: str) -> str:
-    """The library gait ``name`` (``sim.gaits.PRESETS``) as gait CSV text, its equation and measured
-    figures in the comments."""
+def library_gait_csv(name: str, robot: Robot = DEFAULT_ROBOT) -> str:
+    """The library gait ``name`` (``sim.gaits.PRESETS``) on ``robot`` as gait CSV text, its equation
+    and measured figures in the comments. On another robot than the paper's the gait is carried
+    there by the serpenoid rule (``GaitEquation.on_robot``), and the comments say its figures were
+    measured on the paper's robot."""
     from snakeloco.sim.gaits import PRESETS
 
     preset = PRESETS[name]
-    m = preset.measured
+    gait, m = preset.gait.on_robot(robot), preset.measured
+    measured = (
+        f"{m.displacement:.2f} m in 100 s ({m.body_lengths_per_s:.3f} body lengths/s), "
+        f"straightness {m.straightness:.2f}, heading {m.heading_deg:.0f} deg, net roll {m.net_roll:.2f} rad, "
+        f"net yaw {m.net_yaw:.2f} rad, ensemble spread {m.spread:.3f}"
+    )
     comments = {
         "snakeloco gait": f"library gait {name}: {preset.about}",
-        "gait equation": ", ".join(f"{k} {v:g}" for k, v in preset.gait.model_dump().items()),
-        "measured": f"{m.displacement:.2f} m in 100 s ({m.body_lengths_per_s:.3f} body lengths/s), "
-        f"straightness {m.straightness:.2f}, heading {m.heading_deg:.0f} deg, net roll {m.net_roll:.2f} rad, "
-        f"net yaw {m.net_yaw:.2f} rad, ensemble spread {m.spread:.3f}",
+        "gait equation": ", ".join(f"{k} {v:g}" for k, v in gait.model_dump().items()),
+        "measured": measured
+        if gait is preset.gait
+        else f"on the paper's 8-joint robot: {measured}; "
+        f"carried to {robot.name} by the serpenoid rule (docs/robot.md), not measured there",
     }
-    return write_gait_csv(preset.gait.commands(), comments)
+    return write_gait_csv(gait.commands(robot), comments, robot)
 
 
 def read_member(text: str):

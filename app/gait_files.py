@@ -23,7 +23,7 @@ class GaitFiles:
             raise RuntimeError("no gait yet")
         encoded = self._shown_z if self._programmatic_z is not None else None
         comments = gait_comments(self.decoded, self.simulated, self.model.hash, encoded)
-        return write_gait_csv(self.decoded.commands, comments)
+        return write_gait_csv(self.decoded.commands, comments, self.session.robot)
 
     def export(self) -> None:
         try:
@@ -75,7 +75,7 @@ class GaitFiles:
     def import_bytes(self, name: str, data: bytes) -> int | None:
         """Validate an uploaded gait and submit it for replay; returns the request version or None."""
         try:
-            table = read_gait_csv(data)
+            table = read_gait_csv(data, self.session.robot)
         except GaitCSVError as exc:
             self.client.add_notification(
                 f"Import CSV: {name} rejected",
@@ -92,7 +92,8 @@ class GaitFiles:
         exportable, the sliders where it encodes. Returns the request version (None for "none")."""
         if name not in GAIT_PRESETS:
             return None
-        commands = GAIT_PRESETS[name].gait.commands()
+        robot = self.session.robot
+        commands = GAIT_PRESETS[name].gait.on_robot(robot).commands(robot)
         return self._submit(self.physics, ("load", f"library: {name}", f"Baseline: {name}", commands))
 
     def _on_upload(self) -> None:

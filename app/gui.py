@@ -11,7 +11,7 @@ import viser.uplot as uplot
 
 from snakeloco.app.export import ROBOT_FORMATS
 from snakeloco.app.fit_panel import FitControls, build_fit_controls
-from snakeloco.app.scene import GEN_COLOR, JOINT_COLORS, LAYERS, LIGHT_RENDERING, SIM_COLOR
+from snakeloco.app.scene import GEN_COLOR, LAYERS, LIGHT_RENDERING, SIM_COLOR, joint_colors
 from snakeloco.app.viser_patches import set_plot_data
 from snakeloco.sim import BODY_TIMES, N_JOINTS, RECORD
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
@@ -119,6 +119,7 @@ class Controls:
     fit: FitControls
     panel: viser.GuiMarkdownHandle
     plots: dict[str, viser.GuiUplotHandle]
+    plots_folder: viser.GuiFolderHandle
 
     def show_paths(self, generated: np.ndarray | None, simulated: np.ndarray | None) -> None:
         """Generated vs simulated body series (500, 6) in the plots; a missing one is drawn as NaN."""
@@ -128,9 +129,21 @@ class Controls:
             sim = path_plot_values(simulated[:, ch]) if simulated is not None else missing
             set_plot_data(self.plots[name], plot_series(PATH_PLOT_TIMES, gen, sim))
 
+    def set_joint_count(self, gui: viser.GuiApi, n_joints: int) -> None:
+        """A commands plot of ``n_joints`` series (a family of another robot chosen), in its place."""
+        old = self.plots["commands"]
+        if len(old.series) == n_joints + 1:
+            return
+        with self.plots_folder:
+            self.plots["commands"] = add_commands_plot(gui, n_joints, order=old.order)
+        old.remove()
+
     def show_commands(self, commands: np.ndarray) -> None:
-        """Joint commands (2000, 8) rad in the commands plot: the first ``COMMAND_PLOT_SECONDS``, every
+        """Joint commands (2000, N) rad in the commands plot: the first ``COMMAND_PLOT_SECONDS``, every
         ``COMMAND_PLOT_STEP``-th sample."""
+        self_n = len(self.plots["commands"].series) - 1
+        if commands.shape[1] != self_n:
+            return  # a gait of the robot the tab just left: the next one is drawn
         shown = commands[: COMMAND_PLOT_STEP * len(COMMAND_PLOT_TIMES) : COMMAND_PLOT_STEP]
         set_plot_data(self.plots["commands"], plot_series(COMMAND_PLOT_TIMES, *shown.T))
 
@@ -180,6 +193,25 @@ def build_sliders(gui: viser.GuiApi, folder, z_b_dim: int, components: list[str]
     return component, sliders, reset_button, random_button
 
 
+def add_commands_plot(gui: viser.GuiApi, n_joints: int, order: float | None = None) -> viser.GuiUplotHandle:
+    """The joint commands plot: one series per joint of the robot, the first seconds of the gait."""
+    colors = joint_colors(n_joints)
+    return gui.add_uplot(
+        data=(COMMAND_PLOT_TIMES, *[np.zeros(len(COMMAND_PLOT_TIMES))] * n_joints),
+        series=(
+            uplot.Series(label="t (s)"),
+            *[
+                uplot.Series(label=f"joint {k + 1}", stroke=hex_color(colors[k]), width=1)
+                for k in range(n_joints)
+            ],
+        ),
+        scales={"x": {"time": False}},  # uPlot would read x as dates
+        title=f"joint commands, first {COMMAND_PLOT_SECONDS:.0f} s (rad)",
+        aspect=1.5,
+        order=order,
+    )
+
+
 def build_controls(
     gui: viser.GuiApi,
     z_b_dim: int,
@@ -187,6 +219,7 @@ def build_controls(
     family: str,
     components: list[str] | None = None,
     wide: bool = False,
+    n_joints: int = N_JOINTS,
 ) -> Controls:
     """Add every folder and control of a tab to ``gui``: the readout first, in view without
     scrolling; ``wide`` (a window of at least ``WIDE_PX``): the plots open too."""
@@ -260,7 +293,7 @@ def build_controls(
     fit = build_fit_controls(gui)
     with gui.add_folder("Consistency"):
         panel = gui.add_markdown("Decoding...")
-    with gui.add_folder("Plots", expand_by_default=wide):
+    with gui.add_folder("Plots", expand_by_default=wide) as plots_folder:
         no_time = {"x": {"time": False}}  # uPlot would read x as dates
         nan = np.full(len(PATH_PLOT_TIMES), np.nan)
         plots = {}
@@ -276,19 +309,7 @@ def build_controls(
                 title=name,
                 aspect=2.0,
             )
-        plots["commands"] = gui.add_uplot(
-            data=(COMMAND_PLOT_TIMES, *[np.zeros(len(COMMAND_PLOT_TIMES))] * N_JOINTS),
-            series=(
-                uplot.Series(label="t (s)"),
-                *[
-                    uplot.Series(label=f"joint {k + 1}", stroke=hex_color(JOINT_COLORS[k]), width=1)
-                    for k in range(N_JOINTS)
-                ],
-            ),
-            scales=no_time,
-            title=f"joint commands, first {COMMAND_PLOT_SECONDS:.0f} s (rad)",
-            aspect=1.5,
-        )
+        plots["commands"] = add_commands_plot(gui, n_joints)
     with gui.add_folder("Help", expand_by_default=False):
         gui.add_markdown(help_text())
     return Controls(
@@ -320,4 +341,5 @@ def build_controls(
         fit=fit,
         panel=panel,
         plots=plots,
+        plots_folder=plots_folder,
     )

@@ -22,7 +22,11 @@ class LatentMoves:
             return None
         c = self.controls
         with self._draw_lock, self._z_lock:
-            self.model = self.session.model = model
+            self.model = model
+            if self.session.use_model(model):  # a family of another robot: its snake, its joints
+                self.scene.set_robot(self.session.robot)
+                c.set_joint_count(self.client.gui, self.session.robot.n_joints)
+                self.fit.robot_changed()
             self.scene.end_spread = END_SPREAD.get(model.family)
             for handle in (*c.sliders, c.reset_button, c.random_button, c.component):
                 if handle is not None:

@@ -1,4 +1,4 @@
-"""The robot's subcommands: ``robot show|mjcf``, ``robustness``, ``export`` and ``fit-robot`` (each
+"""The robot's subcommands: ``robot show|mjcf``, ``build``, ``robustness``, ``export`` and ``fit-robot`` (each
 parses in ``app.cli``, then runs here)."""
 
 from __future__ import annotations
@@ -7,7 +7,9 @@ import json as jsonlib
 import time
 from pathlib import Path
 
-from snakeloco.app.commands import Export, FitRobot, RobotMjcf, RobotShow, Robustness
+import numpy as np
+
+from snakeloco.app.commands import Build, Export, FitRobot, RobotMjcf, RobotShow, Robustness
 from snakeloco.app.options import OptionError
 
 
@@ -51,7 +53,7 @@ def run_robustness(cmd: Robustness) -> dict:
 
     robot = _robot(cmd.robot)
     try:
-        table = read_gait_csv(cmd.gait.read_bytes())
+        table = read_gait_csv(cmd.gait.read_bytes(), robot)
     except GaitCSVError as exc:
         raise OptionError(f"{cmd.gait}: {exc}") from None
     variations = variation_set(cmd.set)
@@ -90,7 +92,7 @@ def run_export(cmd: Export) -> dict:
     robot = _robot(cmd.robot)
     try:
         text = cmd.gait.read_text()
-        table = read_gait_csv(text)
+        table = read_gait_csv(text, robot, limit=np.inf)  # the export checks the limits, saying where
         if cmd.format == "html":
             from snakeloco.app.share import share_html
 
@@ -129,3 +131,30 @@ def run_fit_robot(cmd: FitRobot) -> dict:
     from snakeloco.app.fit_report import fit_from_files
 
     return fit_from_files(cmd, _robot(cmd.robot))
+
+
+def run_build(cmd: Build) -> dict:
+    """Build a robot's model (``app.build``); print each stage's wall time and the line to serve it."""
+    from snakeloco.app.build import QUICK, Build, BuildConfig, BuildError
+
+    robot = _robot(cmd.robot)
+    cfg = QUICK if cmd.quick else BuildConfig(records=cmd.records, epochs=cmd.epochs)
+    try:
+        state = Build(robot, cmd.out, cfg, cmd.workers, cmd.backend).run()
+    except BuildError as exc:
+        raise OptionError(str(exc)) from None
+    f = state["evaluate"]["figures"]
+    print(
+        f"{robot.name}: held-out joint shape R² {f['shape_r2']:.3f}, body R² {f['body_r2']:.3f}; "
+        f"{f['positions']} sampler positions replayed: xy-path R² median {f['xy_r2_median']:.3f}, "
+        f"final-position error median {100 * f['final_error_median']:.1f}% of the distance; end points "
+        + ", ".join(f"{k} {v}" for k, v in f["sectors"].items())
+    )
+    print(
+        "stages: "
+        + ", ".join(
+            f"{k} {state[k]['seconds']:.0f} s" for k in ("generate", "train", "calibrate", "evaluate")
+        )
+    )
+    print(f"serve it: snakeloco serve --checkpoint {Build(robot, cmd.out, cfg).checkpoint}")
+    return state

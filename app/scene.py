@@ -31,7 +31,19 @@ JOINT_COLORS = np.array(
     ],
     dtype=np.uint8,
 )
-"""One colour per joint (point clouds, command plot)."""
+"""One colour per joint of the paper's 8-joint robot (point clouds, command plot)."""
+
+
+def joint_colors(n: int) -> np.ndarray:
+    """(n, 3) uint8 colours of n joints: ``JOINT_COLORS`` for up to 8, else n hues around the wheel."""
+    if n <= len(JOINT_COLORS):
+        return JOINT_COLORS[:n]
+    import colorsys
+
+    rgb = [colorsys.hsv_to_rgb(k / n, 0.75, 0.85) for k in range(n)]
+    return (np.array(rgb) * 255).round().astype(np.uint8)
+
+
 GEN_COLOR = (255, 140, 0)
 SIM_COLOR = (30, 100, 220)
 FAN_COLOR = (150, 150, 150)
@@ -96,13 +108,16 @@ def path_points(body: np.ndarray, z0: float) -> np.ndarray:
 
 
 def shape_points(shape: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Joint shape (8, L, 2) -> points (8 L, 3) = (real, imag, joint height) and per-joint colours."""
-    k = np.repeat(np.arange(shape.shape[0]), shape.shape[1])
+    """Joint shape (N, L, 2) -> points (N L, 3) = (real, imag, joint height) and per-joint colours;
+    the joints span the same height whatever their count (the paper robot's 8 at ``JOINT_SPACING``)."""
+    n = shape.shape[0]
+    k = np.repeat(np.arange(n), shape.shape[1])
+    spacing = JOINT_SPACING * len(JOINT_COLORS) / n
     pts = np.stack(
-        [SHAPE_SCALE * shape[..., 0].ravel(), SHAPE_SCALE * shape[..., 1].ravel(), JOINT_SPACING * (k + 1)],
+        [SHAPE_SCALE * shape[..., 0].ravel(), SHAPE_SCALE * shape[..., 1].ravel(), spacing * (k + 1)],
         -1,
     )
-    return pts.astype(np.float32), JOINT_COLORS[k]
+    return pts.astype(np.float32), joint_colors(n)[k]
 
 
 class TabScene:
@@ -116,20 +131,11 @@ class TabScene:
     ) -> None:
         self.client = client
         self.layers = layers
-        self.kinematics = LinkPoses(robot)
         self.start = (np.zeros(3), 0.0)  # the replay's initial body position (m) and heading (rad), world
         scene = client.scene
         self.grid = scene.add_grid("/grid", 20.0, 20.0, cell_size=0.1, section_size=1.0)
-        radius, length = self.kinematics.capsule()  # from the MJCF, as the physics has them
-        self.link_radius = radius  # a path drawn before its replay sits at the lying snake's height
-        capsule = trimesh.creation.capsule(height=length, radius=radius, count=[12, 12])
-        capsule.visual.vertex_colors = np.array(SNAKE_COLOR, dtype=np.uint8)
-        self.snake = scene.add_batched_meshes_trimesh(
-            "/snake",
-            capsule,
-            batched_wxyzs=np.tile([1.0, 0, 0, 0], (self.kinematics.robot.n_links, 1)),
-            batched_positions=np.zeros((self.kinematics.robot.n_links, 3)),
-        )
+        self.snake = None
+        self.set_robot(robot)
         self.gen_path = self.band = None
         self.sim_parts: list[viser.LineSegmentsHandle] = []  # the simulated path, one node per part streamed
         self.fan: list[viser.LineSegmentsHandle] = []  # one node per batch of ensemble members
@@ -152,6 +158,24 @@ class TabScene:
         client.camera.position = (-2.5, -3.5, 2.5)
         client.camera.look_at = (0.5, 0.0, 0.0)
         self.framer = Framer(client, self.metres)
+
+    def set_robot(self, robot: Robot | None) -> None:
+        """Draw ``robot``'s snake from now on (its links as its MJCF has them: count, radius, length);
+        the tab calls it when a family of another robot is chosen."""
+        self.kinematics = LinkPoses(robot)
+        radius, length = self.kinematics.capsule()  # from the MJCF, as the physics has them
+        self.link_radius = radius  # a path drawn before its replay sits at the lying snake's height
+        capsule = trimesh.creation.capsule(height=length, radius=radius, count=[12, 12])
+        capsule.visual.vertex_colors = np.array(SNAKE_COLOR, dtype=np.uint8)
+        visible = True if self.snake is None else self.snake.visible
+        n = self.kinematics.robot.n_links
+        self.snake = self.client.scene.add_batched_meshes_trimesh(  # replaces the node of that name
+            "/snake",
+            capsule,
+            batched_wxyzs=np.tile([1.0, 0, 0, 0], (n, 1)),
+            batched_positions=np.zeros((n, 3)),
+        )
+        self.snake.visible = visible
 
     def set_light(self, light: bool) -> None:
         """Full rendering (cascaded shadows, environment lighting) or light: neither. In a browser

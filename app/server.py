@@ -222,8 +222,15 @@ class DesignerServer:
             self._error,
         )
         """Every tab's decodes, in turns, in child processes (``app.decode_process``)."""
-        # The robot, its command rule and checks (rollouts go to physics): every tab replays on it.
-        self.simulator = Simulator(1, robot=robot)
+        # The robot, its command rule and checks (rollouts go to physics): every tab replays on it
+        # (default: the robot the first checkpoint was trained on; a family of another robot's
+        # replays on its own, ``GaitSession.use_model``).
+        if robot is not None and robot.n_joints != self.model.robot.n_joints:
+            raise CheckpointError(
+                f"--robot {robot.name} has {robot.n_joints} joints, the checkpoint's robot "
+                f"{self.model.robot.name} {self.model.robot.n_joints}: give a description of that robot"
+            )
+        self.simulator = Simulator(1, robot=robot or self.model.robot)
         self.robot = self.simulator.robot
         self.clients: dict[int, DesignerClient] = {}
         self.errors: list[str] = []

@@ -113,7 +113,7 @@ def decode_latents(model: GaitModel, latents: Latents) -> DecodedGait:
         # predicting them here was a quarter of the decode every slider move waits for.
         members, residuals, shape, body, _ = model.decode_members(z_b, z_j, with_stats=False)
         member, residual = members[0], float(residuals[0])
-        commands = member.commands()  # exactly the member: replayed, drawn and exported
+        commands = member.commands(model.robot)  # exactly the member: replayed, drawn and exported
     else:
         shape, body, predicted = model.decode_with_stats(z_b, z_j)
         stats = {k: float(v[0]) for k, v in predicted.items()}
@@ -159,7 +159,7 @@ class GaitSession:
             physics = FairPhysics(resolve_workers(workers), nice=physics_nice)
             self._owned.append(physics)
         self._simulator, self.physics, self.tab = simulator, physics, tab
-        self._nominal = simulator
+        self._nominal = self._server = simulator
         self._robot_simulators: dict[Robot, Simulator] = {}
 
     @property
@@ -175,14 +175,36 @@ class GaitSession:
     def set_robot(self, robot: Robot) -> None:
         """Replay from now on on ``robot`` (a fitted robot; the nominal one to go back). Its simulator
         is the session's own, kept while the session lives (a tab offers a few)."""
+        self._simulator = self._simulator_of(robot)
+
+    def _simulator_of(self, robot: Robot) -> Simulator:
         if robot == self._nominal.robot:
-            self._simulator = self._nominal
-            return
+            return self._nominal
         simulator = self._robot_simulators.get(robot)
         if simulator is None:
             simulator = self._robot_simulators[robot] = Simulator(workers=1, robot=robot)
             self._owned.append(simulator)
-        self._simulator = simulator
+        return simulator
+
+    def use_model(self, model: GaitModel) -> bool:
+        """Design with ``model`` from now on, replaying on the server's robot (``serve --robot``, or
+        the first checkpoint's) where it has the model's joints, else on the robot the model was
+        trained on, which becomes the session's nominal robot. Returns whether the robot changed."""
+        self.model = model
+        server_robot = self._server.robot
+        same_joints = (server_robot.n_joints, server_robot.joint_pattern) == (
+            model.robot.n_joints,
+            model.robot.joint_pattern,
+        )
+        robot = server_robot if same_joints else model.robot
+        if robot == self._nominal.robot:
+            return False
+        if robot == self._server.robot:
+            self._nominal = self._server
+        else:
+            self._nominal = self._simulator_of(robot)
+        self._simulator = self._nominal
+        return True
 
     @property
     def simulator(self) -> OnTurns:

@@ -134,6 +134,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
             family,
             self._component_names(model),
             wide=client.camera.image_width >= WIDE_PX,
+            n_joints=self.session.robot.n_joints,
         )
         self.scene = TabScene(client, self.controls.layers, self.session.robot)
         self.scene.end_spread = END_SPREAD.get(model.family)

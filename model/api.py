@@ -26,6 +26,7 @@ from snakeloco.model.member_path import MemberPathHead
 from snakeloco.model.network import HierarchicalVAE
 from snakeloco.model.stats import stats_dict
 from snakeloco.model.tracing import Graphs
+from snakeloco.sim.robot import DEFAULT_ROBOT
 
 
 class GaitModel(MemberDecoding):
@@ -48,6 +49,8 @@ class GaitModel(MemberDecoding):
         self._shape_mean, self._shape_std = norm["shape_mean"], norm["shape_std"]  # (L, 2)
         self._body_mean, self._body_std = norm["body_mean"], norm["body_std"]  # (6,)
         self._stats_mean, self._stats_std = norm["stats_mean"], norm["stats_std"]  # (4,)
+        self.robot = config.robot or DEFAULT_ROBOT
+        """The robot the checkpoint was trained on (``sim.robot.Robot``): its joints, its members."""
         g = config.servo_response
         self._servo_response = None if g is None else np.asarray(g, dtype=np.float64)  # (8, L, 2)
         support = config.shape_support
@@ -90,29 +93,29 @@ class GaitModel(MemberDecoding):
         from snakeloco.sim import shape_to_commands
 
         if not self.projects:
-            return shape_to_commands(shape, self.freqs, response=self._servo_response)
+            return shape_to_commands(
+                shape, self.freqs, response=self._servo_response, limit=self.robot.command_limit
+            )
         shape = np.asarray(shape, np.float64)
         members, _ = self.project(shape.reshape(-1, *shape.shape[-3:]))
-        out = np.stack([m.commands() for m in members])
+        out = np.stack([m.commands(self.robot) for m in members])
         return out.reshape(*shape.shape[:-3], *out.shape[1:])
 
     def robot_warning(self, robot=None) -> str | None:
-        """None if the checkpoint was trained on ``robot`` (a ``sim.robot.Robot``; None: the default
-        robot, ``sim/snake.xml``), else a warning.
+        """None if the checkpoint was trained on ``robot`` (a ``sim.robot.Robot``; None: the robot it
+        was trained on), else a warning.
 
         Another robot (joints, servos, friction, a fitted robot) changes what a decoded gait does when
         replayed, so predictions and consistency figures then describe the robot it was trained on.
         """
-        from snakeloco.sim.robot import DEFAULT_ROBOT
-
-        robot = robot or DEFAULT_ROBOT
+        robot = robot or self.robot
         here = robot.mjcf_sha256
         if self.config.mjcf_sha256 == here:
             return None
         trained = (
             "the nominal robot (sim/snake.xml)"
             if self.config.mjcf_sha256 == DEFAULT_ROBOT.mjcf_sha256
-            else (f"another robot model (MJCF sha256 {self.config.mjcf_sha256[:12]})")
+            else f"robot {self.robot.name} (MJCF sha256 {self.config.mjcf_sha256[:12]})"
         )
         return (
             f"checkpoint {self.path or ''} was trained on {trained}; replays run on {robot.name} "

@@ -122,7 +122,7 @@ def replay_prior_gaits(model: GaitModel, cfg: CalibrateConfig, fit: Fit) -> dict
     first_sampled = n + cfg.zero_count
     draws += [(m, z_sampled, first_sampled, seed + SAMPLED_SEED_OFFSET + 1 + m) for m in SAMPLED_MODES]
     temperatures = list(MODES.values())
-    runner = fit.open_backend()
+    runner = fit.open_backend(model.robot)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in GAIT_KEYS if k != "broken"}
     broken = np.zeros(len(MODES), dtype=np.int64)
     try:
@@ -158,17 +158,18 @@ def _drawn(cfg: CalibrateConfig) -> dict:
     }
 
 
-def save_gaits(path: str | Path, gaits: dict[str, np.ndarray], cfg: CalibrateConfig) -> None:
-    """Write ``replay_prior_gaits``' output to an .npz side file (``model.replays``), so a calibration
-    can be rerun (other epochs, learning rate) without replaying."""
-    save_side_file(path, _drawn(cfg), **{k: gaits[k] for k in GAIT_KEYS})
+def save_gaits(path: str | Path, gaits: dict[str, np.ndarray], cfg: CalibrateConfig, robot=None) -> None:
+    """Write ``replay_prior_gaits``' output (replayed on ``robot``, None: the default) to an .npz side
+    file (``model.replays``), so a calibration can be rerun (other epochs, learning rate) without
+    replaying."""
+    save_side_file(path, _drawn(cfg), robot, **{k: gaits[k] for k in GAIT_KEYS})
 
 
 def load_gaits(path: str | Path, model: GaitModel, cfg: CalibrateConfig) -> dict[str, np.ndarray]:
     """Read gaits written by ``save_gaits``; refuse ones of another draw (counts, seed, modes), robot
     or checkpoint (their first and last 32 latents are decoded again and must give the stored
     shapes)."""
-    stored = load_side_file(path, GAITS, _drawn(cfg), list(GAIT_KEYS))
+    stored = load_side_file(path, GAITS, _drawn(cfg), list(GAIT_KEYS), model.robot)
     if len(stored["z_b"]):
         check = np.unique(np.r_[np.arange(min(32, len(stored["z_b"]))), np.arange(len(stored["z_b"]))[-32:]])
         shape, _ = model.decode(stored["z_b"][check], stored["z_j"][check])
@@ -204,7 +205,7 @@ def calibrate(
             f"(broken: {dict(zip(MODES, gaits['broken'].tolist(), strict=True))})"
         )
         if fit.gaits_path is not None:
-            save_gaits(fit.gaits_path, gaits, cfg)
+            save_gaits(fit.gaits_path, gaits, cfg, model.robot)
 
     # The dataset's training split, as ``train`` drew it, and the held-out z_B draws (all modes of one
     # z_B together).

@@ -21,6 +21,7 @@ from snakeloco.model.config import ModelConfig
 from snakeloco.model.density import LatentDensity
 from snakeloco.model.member_path import MEMBER_HEAD_WEIGHTS, MemberHeadConfig, MemberPathHead
 from snakeloco.model.network import HierarchicalVAE
+from snakeloco.sim.robot import Robot
 from snakeloco.sim.structured import StructuredConfig
 
 SCHEMA_VERSION = 4
@@ -161,7 +162,12 @@ class CheckpointConfig(BaseModel):
         description="The member path head (``model.member_path``): the decoded path is its prediction "
         "for the projected member. Needs ``members``.",
     )
-    mjcf_sha256: str
+    robot: Robot | None = Field(
+        None,
+        description="The robot description the training data was simulated on (``sim.robot``); None "
+        "(checkpoints of the paper's robot before robots were data): the default robot, sim/snake.xml.",
+    )
+    mjcf_sha256: str = Field(description="Hash of that robot's MJCF (``Robot.mjcf_sha256``).")
     train: dict = Field(default_factory=dict, description="The resolved training config.")
     summary: TrainSummary = TrainSummary()
 
@@ -180,6 +186,10 @@ class CheckpointConfig(BaseModel):
                 raise ValueError(
                     f"shape_support must be ({self.model.n_joints}, {n_l}) with a coefficient in it"
                 )
+        if self.robot is not None and self.robot.n_joints != self.model.n_joints:
+            raise ValueError(
+                f"a model of {self.model.n_joints} joints for a robot of {self.robot.n_joints} ({self.robot.name})"
+            )
         if self.member_head is not None and self.members is None:
             raise ValueError("member_head needs the family it predicts members of (members)")
         if self.density is not None and self.density.dim != self.model.z_b_dim:

@@ -329,7 +329,7 @@ def design(
     ``cancelled`` is polled between search generations (True: stop; the result is then not meant to
     be used); ``on_verify(round)`` is called when a round's replays start. ``robot``: the
     ``sim.robot.Robot`` the candidates are verified on where a backend is opened here (default: the
-    paper's robot)."""
+    checkpoint's robot)."""
     cfg = cfg or DesignConfig()
     search_s = physics_s = 0.0
     own = runner is None
@@ -353,7 +353,7 @@ def design(
             if on_verify is not None:
                 on_verify(rnd)
             t0 = time.perf_counter()
-            runner = runner or open_backend(backend, workers, robot=robot)
+            runner = runner or open_backend(backend, workers, robot=robot or model.robot)
             verified = rank(verified + verify(model, proposed, target, cfg, runner, members=1), target, cfg)
             physics_s += time.perf_counter() - t0
             replays += len(proposed)

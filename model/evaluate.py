@@ -206,7 +206,7 @@ def consistency(
     }
     if replays is not None and Path(replays).exists():
         need = [f"{name}/{k}" for name in modes for k in ("shapes", "bodies", "ok")]
-        file = load_side_file(replays, REPLAYS, drawn, need)
+        file = load_side_file(replays, REPLAYS, drawn, need, model.robot)
         stored = {}
         for name, (shapes, _, _) in decoded.items():
             stored[name] = {k: file[f"{name}/{k}"] for k in ("shapes", "bodies", "ok")}
@@ -214,7 +214,7 @@ def consistency(
         if progress is not None:
             progress(len(modes) * n_prior)
     else:
-        runner = open_backend(backend, workers)
+        runner = open_backend(backend, workers, robot=model.robot)
         stored = {}
         try:
             for name, (shapes, _, _) in decoded.items():
@@ -224,7 +224,7 @@ def consistency(
             runner.close()
         if replays is not None:
             arrays = {f"{name}/{k}": v for name, r in stored.items() for k, v in r.items()}
-            save_side_file(replays, drawn, **arrays)
+            save_side_file(replays, drawn, model.robot, **arrays)
     report = {}
     for name, (_, bodies, stats) in decoded.items():
         sim_bodies, sim_ok = stored[name]["bodies"], stored[name]["ok"]
@@ -360,7 +360,7 @@ def evaluate(
     out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=cfg.seed))
     if floor_records > 0:
         n = min(floor_records, len(ds))
-        runner = open_backend(backend, workers)
+        runner = open_backend(backend, workers, robot=model.robot)
         try:
             out.update(physics_floor(ds.commands[:n].astype(np.float64), body_ds[:n], runner, cfg.seed))
         finally:

@@ -63,11 +63,11 @@ class MemberDecoding:
         c = shape[..., 0] + 1j * shape[..., 1]
         if (g := self._gain()) is not None:
             c = c / g
-        return project_many(np.stack([c.real, c.imag], axis=-1), self.config.members)
+        return project_many(np.stack([c.real, c.imag], axis=-1), self.config.members, self.robot)
 
     def member_shapes(self, members: list[Member]) -> np.ndarray:
         """The joint shapes (B, 8, L, 2) the servos measure for members (commanded x servo gain)."""
-        c = np.stack([m.shape() for m in members])
+        c = np.stack([m.shape(self.robot) for m in members])
         c = c[..., 0] + 1j * c[..., 1]
         if (g := self._gain()) is not None:
             c = c * g
@@ -85,7 +85,11 @@ class MemberDecoding:
                 f"({len(members)}, {head_cfg.z_b_dim})"
             )
         x = member_inputs(
-            members, np.asarray(head_cfg.support), z_b if head_cfg.z_b_dim else None, head_cfg.inputs
+            members,
+            np.asarray(head_cfg.support),
+            z_b if head_cfg.z_b_dim else None,
+            head_cfg.inputs,
+            self.robot,
         )
         x = torch.as_tensor(_finite("z_b", x), dtype=torch.float32)
         head = self._graphs.one_input("member_head", self.member_head, "forward", x) if len(x) == 1 else None

@@ -39,6 +39,7 @@ from torch import nn
 from snakeloco.model.fitting import fit_best
 from snakeloco.sim.body import mirror_body
 from snakeloco.sim.members import Member
+from snakeloco.sim.robot import DEFAULT_ROBOT, Robot
 from snakeloco.sim.structured import KINDS, StructuredConfig
 
 MEMBER_HEAD_WEIGHTS = "member_head.safetensors"
@@ -163,14 +164,17 @@ def member_inputs(
     support: np.ndarray,
     z_b: np.ndarray | None = None,
     inputs: HeadInputs = "coefficients",
+    robot: Robot = DEFAULT_ROBOT,
 ) -> np.ndarray:
     """Members (and their slider positions z_b (B, Db)) -> the head's inputs: their commanded
-    coefficients on the support (8, L), real and imaginary parts (B, 2 S), or their named parameters
-    (``named_inputs``), then z_B."""
+    coefficients on ``robot`` on the support (N, L), real and imaginary parts (B, 2 S), or their
+    named parameters (``named_inputs``), then z_B."""
     if inputs in ("named", "named_curve"):
         x = named_inputs(members, curve=inputs == "named_curve")
     else:
-        shapes = np.stack([m.shape() for m in members]) if members else np.zeros((0, *np.shape(support), 2))
+        shapes = (
+            np.stack([m.shape(robot) for m in members]) if members else np.zeros((0, *np.shape(support), 2))
+        )
         x = shapes[:, np.asarray(support, bool)].reshape(len(members), -1)
     if z_b is None:
         return x

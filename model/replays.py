@@ -52,9 +52,10 @@ class Fit:
             self.say(f"warning: {warning}")
         return model, load_dataset(self.data)
 
-    def open_backend(self):
-        """The backend the replays run on (close it when done)."""
-        return open_backend(self.backend, self.workers)
+    def open_backend(self, robot=None):
+        """The backend the replays run on, on ``robot`` (a checkpoint's ``GaitModel.robot``; None: the
+        default robot); close it when done."""
+        return open_backend(self.backend, self.workers, robot=robot)
 
     def say(self, line: str) -> None:
         """Log ``line`` where the fit has a log."""
@@ -119,19 +120,22 @@ def replay_shapes(
     return bodies, ok
 
 
-def save_side_file(path: str | Path, drawn: dict, **arrays: np.ndarray) -> None:
+def save_side_file(path: str | Path, drawn: dict, robot=None, **arrays: np.ndarray) -> None:
     """Write replays (``arrays``) with what they were drawn from (``drawn``: scalars), the ensemble
-    noise and the robot's MJCF hash, atomically (``sim.write_npz``: no pickle)."""
+    noise and the MJCF hash of the robot they ran on (None: the default), atomically
+    (``sim.write_npz``: no pickle)."""
     write_npz(
         path,
         noise=np.float64(ENSEMBLE_NOISE),
-        mjcf_sha256=np.array(mjcf_sha256()),
+        mjcf_sha256=np.array(mjcf_sha256(robot)),
         **{k: np.asarray(v) for k, v in drawn.items()},
         **arrays,
     )
 
 
-def load_side_file(path: str | Path, what: str, drawn: dict, need: list[str]) -> dict[str, np.ndarray]:
+def load_side_file(
+    path: str | Path, what: str, drawn: dict, need: list[str], robot=None
+) -> dict[str, np.ndarray]:
     """Read a side file written by ``save_side_file`` for the same draw on the same robot.
 
     ``what`` names the kind of file in messages. Raises ``DatasetError`` naming the difference: a
@@ -143,9 +147,10 @@ def load_side_file(path: str | Path, what: str, drawn: dict, need: list[str]) ->
     held = {k: _scalar(stored[k]) for k in asked}
     if held != {k: _scalar(np.asarray(v)) for k, v in asked.items()}:
         raise DatasetError(f"{path}: {what} of {held}; this run asks for {asked}")
-    if str(stored["mjcf_sha256"]) != mjcf_sha256():
+    if str(stored["mjcf_sha256"]) != mjcf_sha256(robot):
         raise DatasetError(
-            f"{path}: replayed on another robot model (sim/snake.xml changed since); replay again"
+            f"{path}: replayed on another robot model than {(robot.name if robot else 'sim/snake.xml')} "
+            "(its MJCF hash differs); replay again"
         )
     return stored
 

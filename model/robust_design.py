@@ -81,7 +81,7 @@ def robust_design(
     one's nominal and worst-case errors both within the tolerance."""
     cfg = cfg or DesignConfig()
     wide = cfg.model_copy(update={"candidates": min(2 * cfg.candidates, 32)})
-    runner = open_backend(backend, workers, robot=robot)
+    runner = open_backend(backend, workers, robot=robot or model.robot)
     try:
         result = design(model, target, wide, runner=runner)
         verified = [c for c in result.candidates if c.simulated is not None]

@@ -140,7 +140,7 @@ def replay_sampler_gaits(model: GaitModel, cfg: SamplerConfig, fit: Fit) -> dict
     Returns, broken replays dropped: z_b (M, Db), mode (M,), z_index (M,) which draw, shape
     (M, 8, L, 2) the members' commanded shapes, body (M, 500, 6) their replays at 5 Hz."""
     z = model.sample_z_b(cfg.samples, cfg.seed)
-    runner = fit.open_backend()
+    runner = fit.open_backend(model.robot)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in GAIT_KEYS}
     try:
         for mode, temperature in enumerate((None, ZK_TEMPERATURE)):
@@ -151,7 +151,7 @@ def replay_sampler_gaits(model: GaitModel, cfg: SamplerConfig, fit: Fit) -> dict
             parts["z_b"].append(z[ok])
             parts["mode"].append(np.full(int(ok.sum()), mode))
             parts["z_index"].append(np.flatnonzero(ok))
-            parts["shape"].append(np.stack([m.shape() for m in members])[ok])
+            parts["shape"].append(np.stack([m.shape(model.robot) for m in members])[ok])
             parts["body"].append(bodies[ok, 0])
     finally:
         runner.close()
@@ -162,7 +162,7 @@ def record_members(ds, index: np.ndarray, family) -> list[Member]:
     """The members of dataset records: each record's commands transformed (``sim.joint_shape``: exact
     for its periodic commands) and projected onto its family."""
     commanded = joint_shape(ds.commands[index].astype(np.float64), ds.config.excitation)
-    members, residuals = project_many(commanded, family)
+    members, residuals = project_many(commanded, family, ds.config.robot)
     if residuals.max() > 1e-4:
         raise DatasetError(
             f"record {int(index[residuals.argmax()])} is not a member of its family (residual "
@@ -236,7 +236,7 @@ def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
         )
         gaits = None
         if fit.gaits_path is not None and Path(fit.gaits_path).exists():
-            gaits = load_side_file(fit.gaits_path, SAMPLER_GAITS, _drawn(cfg), list(GAIT_KEYS))
+            gaits = load_side_file(fit.gaits_path, SAMPLER_GAITS, _drawn(cfg), list(GAIT_KEYS), model.robot)
             # The draws are this checkpoint's density's (a retrained model draws other z_B).
             drawn_z = model.sample_z_b(cfg.samples, cfg.seed)[gaits["z_index"]]
             gap = np.abs(gaits["z_b"] - drawn_z).max() if gaits["z_b"].shape == drawn_z.shape else np.inf
@@ -251,9 +251,9 @@ def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
             gaits = replay_sampler_gaits(model, cfg, fit)
             summary["replay_s"] = time.perf_counter() - t0
             if fit.gaits_path is not None:
-                save_side_file(fit.gaits_path, _drawn(cfg), **gaits)
+                save_side_file(fit.gaits_path, _drawn(cfg), model.robot, **gaits)
         summary["broken"] = 2 * cfg.samples - len(gaits["z_b"])
-        support = np.asarray(config.shape_support or np.ones((8, len(config.freqs)), bool))
+        support = np.asarray(config.shape_support or np.ones((model.robot.n_joints, len(config.freqs)), bool))
         held = np.random.default_rng(cfg.seed).permutation(cfg.samples)[
             : max(1, round(cfg.samples * cfg.val_fraction))
         ]
@@ -268,15 +268,15 @@ def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
             z_va, z_g_val = model.encode(ds.shape[va_idx], ds.body_ds[va_idx])[0], gaits["z_b"][g_val]
             z_tr_all = np.concatenate([z_post, gaits["z_b"][~g_val]])
             z_va_all = np.concatenate([z_va, z_g_val])
-        g_members = project_many(gaits["shape"], members)[0]  # exact: each projects onto itself
+        g_members = project_many(gaits["shape"], members, model.robot)[0]  # exact: each projects onto itself
         g_va_members = [m for m, v in zip(g_members, g_val, strict=True) if v]
         tr_members = rec_tr + [m for m, v in zip(g_members, g_val, strict=True) if not v]
         va_members = rec_va + g_va_members
         y = np.concatenate([ds.body_ds[tr_idx], gaits["body"][~g_val]])
         if cfg.mirror:
             tr_members, y = with_mirror_images(tr_members, y, members)
-        x = member_inputs(tr_members, support, z_tr_all, cfg.head_inputs)
-        vx = member_inputs(va_members, support, z_va_all, cfg.head_inputs)
+        x = member_inputs(tr_members, support, z_tr_all, cfg.head_inputs, model.robot)
+        vx = member_inputs(va_members, support, z_va_all, cfg.head_inputs, model.robot)
         vy = np.concatenate([ds.body_ds[va_idx], gaits["body"][g_val]])
         scales = None if cfg.xy_floor is None else (path_scales(y), path_scales(vy))
         balance = (

@@ -34,6 +34,7 @@ from snakeloco.model.metrics import r2_overall, r2_per_channel
 from snakeloco.model.network import HierarchicalVAE
 from snakeloco.model.stats import stats_vector
 from snakeloco.sim import BODY_DOWNSAMPLE, load_dataset, mjcf_sha256, servo_response, synthesis_phase
+from snakeloco.sim.robot import DEFAULT_ROBOT
 
 
 class TrainingError(RuntimeError):
@@ -198,6 +199,8 @@ def train(
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     ds = load_dataset(data)
+    robot = ds.config.robot
+    model_cfg = model_cfg.model_copy(update={"n_joints": robot.n_joints})  # the data's robot, not a flag
     shape_np = ds.shape.astype(np.float64)  # (N, K, L, 2) rad
     body_np = ds.body_ds.astype(np.float64)  # (N, 500, 6)
     train_idx, val_idx = split_records(len(ds), cfg.val_fraction, cfg.seed)
@@ -231,7 +234,8 @@ def train(
             ds.rows("commands", train_idx), ds.rows("joint_angles", train_idx)
         ).tolist(),
         shape_support=shape_support(shape_np[train_idx]).tolist(),
-        mjcf_sha256=mjcf_sha256(),
+        robot=None if robot == DEFAULT_ROBOT else robot,
+        mjcf_sha256=ds.meta.get("mjcf_sha256") or mjcf_sha256(),  # what the records were simulated on
         train=cfg.model_dump(mode="json")
         | {"data": str(data), "n_train": len(train_idx), "n_val": len(val_idx)},
     )

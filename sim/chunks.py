@@ -22,7 +22,6 @@ from snakeloco.sim.excitation import RECORD, multisine, random_phases
 from snakeloco.sim.generate_config import GenerateConfig
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.results import SimulationError
-from snakeloco.sim.robot import N_JOINTS
 from snakeloco.sim.spectra import shape_to_commands
 from snakeloco.sim.structured import draw_structured
 
@@ -40,12 +39,12 @@ class _Chunk:
 
     @classmethod
     def empty(cls, cfg: GenerateConfig, b: int) -> _Chunk:
-        t, n_l = cfg.excitation.n_samples, cfg.excitation.n_components
+        t, n_l, n_joints = cfg.excitation.n_samples, cfg.excitation.n_components, cfg.robot.n_joints
         return cls(
-            commands=np.empty((b, t, N_JOINTS), np.float32),
-            joint_angles=np.empty((b, t, N_JOINTS), np.float32),
+            commands=np.empty((b, t, n_joints), np.float32),
+            joint_angles=np.empty((b, t, n_joints), np.float32),
             body=np.empty((b, t, N_BODY), np.float32),
-            phases=np.empty((b, N_JOINTS, n_l)),
+            phases=np.empty((b, n_joints, n_l)),
             amplitude=np.empty(b, np.float32),
             attempts=np.zeros(b, np.int32),
         )
@@ -54,7 +53,7 @@ class _Chunk:
 def draw_sample(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Phases (8, L) rad, float32 commands (T, 8) rad and amplitude U of sample ``index``'s attempt."""
     rng = np.random.default_rng([cfg.seed, index, attempt])
-    phases = random_phases(rng, cfg.excitation)
+    phases = random_phases(rng, cfg.excitation, cfg.robot.n_joints)
     commands, amplitude = multisine(phases, cfg.excitation)
     # The float32 commands are stored; simulate exactly those, so a replay of the file matches.
     return phases, commands.astype(np.float32), amplitude
@@ -63,9 +62,11 @@ def draw_sample(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarr
 def draw_record(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarray, np.ndarray, dict]:
     """Structured record ``index``'s gait at ``attempt``: float32 commands (T, 8) rad, phases (8, L) of
     its joint shape and what was drawn (``draw_structured``)."""
-    shape, drawn = draw_structured(cfg.structured, cfg.seed, index, attempt)
+    shape, drawn = draw_structured(cfg.structured, cfg.seed, index, attempt, cfg.robot)
     # The float32 commands are stored; replay exactly those, so a replay of the file matches.
-    commands = shape_to_commands(shape, cfg.excitation.freqs).astype(np.float32)
+    commands = shape_to_commands(shape, cfg.excitation.freqs, limit=cfg.robot.command_limit).astype(
+        np.float32
+    )
     return commands, np.arctan2(shape[..., 1], shape[..., 0]), drawn
 
 
@@ -116,11 +117,13 @@ def _ensemble(cfg: GenerateConfig, index: int, attempt: int, commands: np.ndarra
     sc, seed = cfg.structured, _noise_seed(cfg.seed, index, attempt)
     ensemble = perturbed_commands(commands.astype(np.float64), sc.members, seed=seed)
     if sc.coefficient_noise > 0:
-        shape, _ = draw_structured(sc, cfg.seed, index, attempt)
+        shape, _ = draw_structured(sc, cfg.seed, index, attempt, cfg.robot)
         shapes = perturbed_shapes(shape, sc.members, sc.coefficient_noise, np.random.default_rng([seed, 1]))
         factors = perturbed_commands(np.ones_like(ensemble[0]), sc.members, seed=seed)  # 1 + noise, once
         for m, noisy in enumerate(shapes[1:], start=1):  # the same command noise on the noisy shape
-            ensemble[m] = shape_to_commands(noisy, cfg.excitation.freqs) * factors[m]
+            ensemble[m] = (
+                shape_to_commands(noisy, cfg.excitation.freqs, limit=cfg.robot.command_limit) * factors[m]
+            )
     return ensemble
 
 

@@ -45,7 +45,6 @@ from pydantic import ValidationError
 from snakeloco.sim.body import BODY_CHANNELS
 from snakeloco.sim.excitation import RECORD
 from snakeloco.sim.generate_config import GenerateConfig
-from snakeloco.sim.robot import N_JOINTS
 
 SCHEMA_VERSION = 1
 BODY_DOWNSAMPLE = 4
@@ -103,17 +102,17 @@ class _Member:
 
 def dataset_members(cfg: GenerateConfig) -> dict[str, _Member]:
     t, n_l = cfg.excitation.n_samples, cfg.excitation.n_components
-    n = cfg.num_samples
+    n, n_joints = cfg.num_samples, cfg.robot.n_joints
     return {
-        "commands": _Member((n, t, N_JOINTS), "float32"),
-        "joint_angles": _Member((n, t, N_JOINTS), "float32"),
+        "commands": _Member((n, t, n_joints), "float32"),
+        "joint_angles": _Member((n, t, n_joints), "float32"),
         "body": _Member((n, t, N_BODY), "float32"),
         "body_ds": _Member((n, -(-t // BODY_DOWNSAMPLE), N_BODY), "float32"),
         "freqs": _Member((n_l,), "float64"),
-        "phases": _Member((n, N_JOINTS, n_l), "float64"),
+        "phases": _Member((n, n_joints, n_l), "float64"),
         "amplitude": _Member((n,), "float32"),
         "attempts": _Member((n,), "int32"),
-        "shape": _Member((n, N_JOINTS, n_l, 2), "float32"),
+        "shape": _Member((n, n_joints, n_l, 2), "float32"),
     }
 
 

@@ -80,20 +80,20 @@ RECORD = ExcitationConfig()
 gait CSVs, the model's time axes and the designer all use it."""
 
 
-def random_phases(rng: np.random.Generator, cfg: ExcitationConfig) -> np.ndarray:
-    """Phases phi_kl uniform in [0, 2 pi), shape (8, L), rad."""
-    return rng.uniform(0.0, 2.0 * np.pi, size=(N_JOINTS, cfg.n_components))
+def random_phases(rng: np.random.Generator, cfg: ExcitationConfig, n_joints: int = N_JOINTS) -> np.ndarray:
+    """Phases phi_kl uniform in [0, 2 pi), shape (N, L), rad."""
+    return rng.uniform(0.0, 2.0 * np.pi, size=(n_joints, cfg.n_components))
 
 
 def multisine(phases: np.ndarray, cfg: ExcitationConfig) -> tuple[np.ndarray, float]:
     """Joint commands of one record from its phases.
 
     Args:
-        phases: (8, L) rad.
+        phases: (N, L) rad.
         cfg: excitation config.
 
     Returns:
-        commands (T, 8) rad, float64, and the shared per-component amplitude U (rad).
+        commands (T, N) rad, float64, and the shared per-component amplitude U (rad).
     """
     t = cfg.times  # (T,)
     arg = 2.0 * np.pi * cfg.freqs[None, :, None] * t + phases[:, :, None]  # (8, L, T)

@@ -19,18 +19,33 @@ this robot (docs/gaits.md says how, with the figures each preset reproduces).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from snakeloco.sim.excitation import RECORD
 from snakeloco.sim.results import SimulationError
-from snakeloco.sim.robot import BODY_LENGTH, COMMAND_LIMIT, N_JOINTS
+from snakeloco.sim.robot import BODY_LENGTH, COMMAND_LIMIT, DEFAULT_ROBOT, Robot
 from snakeloco.sim.spectra import shape_to_commands
 
-MODULES = np.arange(1, N_JOINTS + 1)
-"""Module index k of each joint (1-based, as the MJCF names them)."""
-PITCH = MODULES % 2 == 1
-"""Which joints pitch (odd k); the others yaw."""
+
+@functools.cache
+def _layout(n_joints: int, pattern: str) -> tuple[np.ndarray, np.ndarray]:
+    modules = np.arange(1, n_joints + 1)
+    pitch = modules % 2 == 1 if pattern == "alternate" else np.zeros(n_joints, bool)
+    modules.flags.writeable = pitch.flags.writeable = False
+    return modules, pitch
+
+
+def layout(robot: Robot = DEFAULT_ROBOT) -> tuple[np.ndarray, np.ndarray]:
+    """A robot's joints for the gait equation: module index k of each joint (1-based, as the MJCF names
+    them) and which joints pitch (odd k on an alternating snake, none on a planar one), read-only."""
+    return _layout(robot.n_joints, robot.joint_pattern)
+
+
+MODULES, PITCH = layout()
+"""The default robot's modules (1..8) and pitch joints (odd k)."""
 
 
 class GaitEquation(BaseModel):
@@ -59,22 +74,50 @@ class GaitEquation(BaseModel):
         """Index l of the excited frequency the gait runs at."""
         return int(np.argmin(np.abs(RECORD.freqs - self.frequency)))
 
-    def shape(self) -> np.ndarray:
-        """The gait's joint shape (8, L, 2): c_kl = A_k e^{i(phi_k - pi/2)} at its bin, zero elsewhere.
+    def shape(self, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+        """The gait's joint shape (N, L, 2) on ``robot``: c_kl = A_k e^{i(phi_k - pi/2)} at its bin,
+        zero elsewhere (a planar robot's joints all take the yaw wave).
 
         A sin(x) = Re(A e^{i(x - pi/2)}), so with x = phi_k + 2 pi f t the coefficient is
         A e^{i(phi_k - pi/2)}, in ``sim.spectra``'s convention u(t) = Re(c e^{i 2 pi f t}).
         """
-        amplitude = np.where(PITCH, self.a_pitch, self.a_yaw)  # (8,)
-        phase = np.where(PITCH, self.nu_pitch * MODULES, self.nu_yaw * MODULES + self.delta) - np.pi / 2
-        shape = np.zeros((N_JOINTS, RECORD.n_components, 2))
+        modules, pitch = layout(robot)
+        amplitude = np.where(pitch, self.a_pitch, self.a_yaw)  # (N,)
+        phase = np.where(pitch, self.nu_pitch * modules, self.nu_yaw * modules + self.delta) - np.pi / 2
+        shape = np.zeros((robot.n_joints, RECORD.n_components, 2))
         shape[:, self.bin_index, 0] = amplitude * np.cos(phase)
         shape[:, self.bin_index, 1] = amplitude * np.sin(phase)
         return shape
 
-    def commands(self) -> np.ndarray:
-        """Joint commands (2000, 8) rad at 20 Hz over the record."""
-        return shape_to_commands(self.shape())
+    def commands(self, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+        """Joint commands (2000, N) rad at 20 Hz over the record on ``robot``."""
+        return shape_to_commands(self.shape(robot), limit=robot.command_limit)
+
+    def on_robot(self, robot: Robot) -> GaitEquation:
+        """This gait (tuned on the default robot) carried to ``robot`` by the serpenoid rule: the same
+        number of waves along the body and the same winding angle in each plane, sampled at the
+        robot's own joints (Hirose's serpenoid curve: a joint Delta modules from the next joint of its
+        plane bends 2 alpha sin(beta / 2) for a phase step beta = nu Delta). So nu scales by
+        8 / N and each amplitude by sin(nu' Delta' / 2) / sin(nu Delta / 2), Delta the spacing of
+        the plane's joints (2 on an alternating snake, 1 for a planar snake's yaw joints); offset and
+        frequency are kept. The default robot gets the gait back unchanged."""
+        if (robot.n_joints, robot.joint_pattern) == (DEFAULT_ROBOT.n_joints, DEFAULT_ROBOT.joint_pattern):
+            return self
+        ratio = DEFAULT_ROBOT.n_joints / robot.n_joints
+        spacing = 2 if robot.joint_pattern == "alternate" else 1
+
+        def carried(a: float, nu: float) -> tuple[float, float]:
+            new = nu * ratio
+            if abs(nu) < 1e-9:  # no wave along the body: the same bend at every joint
+                return a, new
+            gain = np.sin(new * spacing / 2) / np.sin(nu * 2 / 2)
+            return float(min(a * abs(gain), robot.command_limit)), new
+
+        a_p, nu_p = carried(self.a_pitch, self.nu_pitch)
+        a_y, nu_y = carried(self.a_yaw, self.nu_yaw)
+        if robot.joint_pattern == "planar":
+            a_p = 0.0
+        return self.model_copy(update={"a_pitch": a_p, "a_yaw": a_y, "nu_pitch": nu_p, "nu_yaw": nu_y})
 
     def scaled(self, s: float) -> GaitEquation:
         """The same wave with both amplitudes times ``s``."""

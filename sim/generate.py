@@ -31,7 +31,7 @@ MEMORY_BUDGET = 512 * 2**20
 def default_chunk_size(workers: int, cfg: GenerateConfig) -> int:
     """Paper-family records per chunk: all ``workers`` threads busy, the rollout buffers of a chunk
     within the memory budget (the same on every backend, so the file is too)."""
-    m = load_model()
+    m = load_model(cfg.robot)
     per_step = 8 * (mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS) + m.nsensordata + 4 * m.nu)
     rate = cfg.excitation.sample_rate
     steps = (cfg.sim.lead_in + cfg.excitation.n_samples) * round(1 / (rate * m.opt.timestep))
@@ -105,11 +105,11 @@ def generate_dataset(
     chunk_size = chunk_size or (
         STRUCTURED_CHUNK if structured else default_chunk_size(resolve_workers(workers), cfg)
     )
-    physics = {"mujoco_version": mujoco.__version__, "mjcf_sha256": mjcf_sha256()}
+    physics = {"mujoco_version": mujoco.__version__, "mjcf_sha256": mjcf_sha256(cfg.robot)}
     known: dict[int, dict] = {}
     if screened is not None:
         chunk_size, known = read_progress(screened, cfg, physics)
-    runner = open_backend(backend, workers, cfg.excitation, cfg.sim)
+    runner = open_backend(backend, workers, cfg.excitation, cfg.sim, cfg.robot)
     try:
         with open_writer(cfg, out, chunk_size, physics) as writer:
             if known and writer.chunk_size != chunk_size:

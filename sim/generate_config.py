@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.sim.command_rule import CommandRule
 from snakeloco.sim.excitation import RECORD, ExcitationConfig
+from snakeloco.sim.robot import DEFAULT_ROBOT, Robot
 from snakeloco.sim.structured import StructuredConfig
 
 
@@ -37,6 +38,12 @@ class GenerateConfig(BaseModel):
         description="paper: the paper's random-phase multisines (chaotic on this robot); structured: "
         "randomised travelling-wave gaits that physics can predict (sim/structured.py).",
     )
+    robot: Robot = Field(
+        DEFAULT_ROBOT,
+        description="The robot the records are simulated on (``sim.robot``); its joint count sets the "
+        "arrays' joint axis.",
+        json_schema_extra={"cli": False},
+    )
     structured: StructuredConfig = Field(
         StructuredConfig(),
         description="How the structured family draws and screens its gaits (its defaults are documented "
@@ -49,7 +56,10 @@ class GenerateConfig(BaseModel):
         out, exactly as datasets written before the structured family hold it, so their meta hash
         (which a checkpoint records) is unchanged."""
         paper = self.family == "paper"
-        meta = self.model_dump(mode="json", exclude={"family", "structured"} if paper else None)
+        exclude = ({"family", "structured"} if paper else set()) | (
+            {"robot"} if self.robot == DEFAULT_ROBOT else set()
+        )  # the default robot left out too: datasets written before robots were data hash the same
+        meta = self.model_dump(mode="json", exclude=exclude or None)
         if not paper:  # undulation ranges at their defaults are left out the same way (older files)
             default = StructuredConfig()
             for name in (

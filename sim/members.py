@@ -5,7 +5,7 @@ kind the family allows, at one of that kind's excited frequencies, plus (where t
 slow steering wave of amplitude S and phase psi on the yaw joints at the lowest excited frequency:
 
     c_k(main bin)  = wave coefficients (``GaitEquation.shape``)
-    c_k(bin 0)    += S e^{i psi}   on the yaw joints (k = 2, 4, 6, 8)
+    c_k(bin 0)    += S e^{i psi}   on the yaw joints (k = 2, 4, 6, 8 on the default robot; every joint on a planar one)
 
 scaled as a whole to the command limit where its peak command would exceed it. Its parameters are
 named, JSON-ready and re-synthesise its commands to the bit (``Member.commands``).
@@ -19,13 +19,14 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.sim.excitation import RECORD
-from snakeloco.sim.gaits import PITCH, GaitEquation, turned
-from snakeloco.sim.robot import COMMAND_LIMIT
+from snakeloco.sim.gaits import PITCH, GaitEquation, layout, turned
+from snakeloco.sim.robot import COMMAND_LIMIT, DEFAULT_ROBOT, Robot
 from snakeloco.sim.spectra import shape_to_commands
 
 STEERING_BIN = 0
 """The steering wave runs at the lowest excited frequency (0.05 Hz: 20 s periods)."""
 YAW = ~PITCH
+"""The default robot's yaw joints (``sim.gaits.layout`` gives any robot's)."""
 FREQS = RECORD.freqs
 """(L,) excited frequencies (Hz)."""
 
@@ -45,18 +46,21 @@ class Member(BaseModel):
         "(``sim.structured.curve_wave``): the path bends into an arc. None: straight.",
     )
 
-    def shape(self) -> np.ndarray:
-        """The member's commanded joint shape (8, L, 2) rad (``sim.spectra`` convention)."""
-        shape = self.wave.shape()
+    def shape(self, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+        """The member's commanded joint shape (N, L, 2) rad on ``robot`` (``sim.spectra``
+        convention; its parameters are in that robot's units, rad per module of its joints)."""
+        shape = self.wave.shape(robot)
         if self.curve is not None:
-            shape += self.curve.shape()
-        shape[YAW, STEERING_BIN, 0] += self.steering_amplitude * np.cos(self.steering_phase)
-        shape[YAW, STEERING_BIN, 1] += self.steering_amplitude * np.sin(self.steering_phase)
+            shape += self.curve.shape(robot)
+        yaw = ~layout(robot)[1]
+        shape[yaw, STEERING_BIN, 0] += self.steering_amplitude * np.cos(self.steering_phase)
+        shape[yaw, STEERING_BIN, 1] += self.steering_amplitude * np.sin(self.steering_phase)
         return shape
 
-    def commands(self) -> np.ndarray:
-        """Its joint commands (2000, 8) rad at 20 Hz: what is replayed, drawn and exported."""
-        return shape_to_commands(self.shape())
+    def commands(self, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+        """Its joint commands (2000, N) rad at 20 Hz on ``robot``: what is replayed, drawn and
+        exported."""
+        return shape_to_commands(self.shape(robot), limit=robot.command_limit)
 
     def mirrored(self) -> Member:
         """The member's mirror image: its yaw joints' commands negated (the yaw wave's offset and the

@@ -1,6 +1,6 @@
 """The projection of a joint shape onto the structured family's members (``sim.members``).
 
-``project`` takes a *commanded* joint shape (8, L, 2) rad (a decoded shape divided by the servo
+``project`` takes a *commanded* joint shape (N, L, 2) rad (a decoded shape divided by the servo
 gain) and returns the member of ``StructuredConfig`` closest to it in the least-squares sense over
 the complex coefficients, with the relative residual of the fit. For each allowed kind and
 frequency the amplitudes and phase offsets have closed forms given the spatial frequency nu, and
@@ -18,15 +18,16 @@ import functools
 import numpy as np
 
 from snakeloco.sim.excitation import RECORD
-from snakeloco.sim.gaits import MODULES, PITCH, GaitEquation
-from snakeloco.sim.members import FREQS, STEERING_BIN, YAW, Member
-from snakeloco.sim.robot import COMMAND_LIMIT
+from snakeloco.sim.gaits import GaitEquation, layout
+from snakeloco.sim.members import FREQS, STEERING_BIN, Member
+from snakeloco.sim.robot import DEFAULT_ROBOT, Robot
 from snakeloco.sim.spectra import shape_to_commands
 from snakeloco.sim.structured import (
     KINDS,
     NU_RANGES,
     StructuredConfig,
     curve_wave,
+    for_robot,
     library_gait,
     undulation_scale,
 )
@@ -133,14 +134,17 @@ def _amplitude(z: np.ndarray, k: np.ndarray, nu: float, free: bool) -> tuple[flo
     return max(float(s.real), 0.0), 0.0
 
 
-def _fit_wave(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig) -> GaitEquation:
-    """The ``kind`` wave at ``frequency`` closest to commanded coefficients c (8,) complex at its bin.
+def _fit_wave(
+    kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig, robot: Robot
+) -> GaitEquation:
+    """The ``kind`` wave at ``frequency`` closest to commanded coefficients c (N,) complex at its bin.
 
     The wave's coefficients are A e^{i(phi_k - pi/2)} (``GaitEquation.shape``), so z = c e^{i pi/2}
     holds A e^{i phi_k}: pitch phase nu_p k, yaw phase nu_y k + delta.
     """
     z = c * 1j
-    zp, zy, kp, ky = z[PITCH], z[YAW], MODULES[PITCH].astype(float), MODULES[YAW].astype(float)
+    modules, pitch = layout(robot)
+    zp, zy, kp, ky = z[pitch], z[~pitch], modules[pitch].astype(float), modules[~pitch].astype(float)
     if kind == "undulate":
         lo, hi = cfg.undulate_wavenumber
         nu = _best_nu([(zy, ky, False)], lo, hi)
@@ -159,20 +163,24 @@ def _fit_wave(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig)
     a_y, delta = _amplitude(zy, ky, nu_y, True)
     (p_lo, p_hi), (y_lo, y_hi) = cfg.amplitude_ranges(kind)
     if kind == "roll":  # one amplitude for both groups: the least-squares one
-        a_p = a_y = float(np.clip((4 * a_p + 4 * a_y) / 8, p_lo, p_hi))
+        a_p = a_y = float(np.clip((len(zp) * a_p + len(zy) * a_y) / len(z), p_lo, p_hi))
     a_p, a_y = float(np.clip(a_p, p_lo, p_hi)), float(np.clip(a_y, y_lo, y_hi))
     return GaitEquation(a_pitch=a_p, a_yaw=a_y, nu_pitch=nu_p, nu_yaw=nu_y, delta=delta, frequency=frequency)
 
 
-@functools.cache
-def _library_templates(kind: str) -> tuple[np.ndarray, dict[float, np.ndarray]]:
+@functools.lru_cache(maxsize=64)
+def _library_templates(kind: str, robot: Robot) -> tuple[np.ndarray, dict[float, np.ndarray]]:
     """The library gait's pitch template and its yaw template per direction (+1; -1 for an
-    undulation's backward wave), complex (8,): ``_fit_library``'s constants, made once a kind."""
-    base = library_gait(kind)
-    k = MODULES.astype(float)
-    pitch = np.where(PITCH, base.a_pitch * np.exp(1j * base.nu_pitch * k), 0)
+    undulation's backward wave), complex (N,): ``_fit_library``'s constants, made once a kind and
+    robot."""
+    base = library_gait(kind, robot)
+    modules, pitch_joints = layout(robot)
+    k = modules.astype(float)
+    pitch = np.where(pitch_joints, base.a_pitch * np.exp(1j * base.nu_pitch * k), 0)
     signs = (1.0, -1.0) if kind == "undulate" else (1.0,)
-    yaws = {sign: np.where(PITCH, 0, base.a_yaw * np.exp(1j * sign * base.nu_yaw * k)) for sign in signs}
+    yaws = {
+        sign: np.where(pitch_joints, 0, base.a_yaw * np.exp(1j * sign * base.nu_yaw * k)) for sign in signs
+    }
     return _frozen(pitch), {sign: _frozen(yaw) for sign, yaw in yaws.items()}
 
 
@@ -182,15 +190,17 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _fit_library(kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig) -> GaitEquation:
-    """The library family's ``kind`` wave at ``frequency`` closest to coefficients c (8,) complex at
+def _fit_library(
+    kind: str, c: np.ndarray, frequency: float, cfg: StructuredConfig, robot: Robot
+) -> GaitEquation:
+    """The library family's ``kind`` wave at ``frequency`` closest to coefficients c (N,) complex at
     its bin: the library gait's pitch and yaw templates, the yaw one forward or backward
     (undulation), at the offset that fits (free in its drawn range and that range + pi where
     ``library_offsets`` names the kind, else the gait's own or + pi), and the least-squares scale
     in ``amplitude_scale``. Closed forms throughout: a member projects onto itself to rounding."""
-    base = library_gait(kind)
+    base = library_gait(kind, robot)
     z = c * 1j  # A e^{i phi_k} (``_fit_wave``)
-    pitch, yaws = _library_templates(kind)
+    pitch, yaws = _library_templates(kind, robot)
     lo, hi = cfg.amplitude_scale
     best: tuple[float, float, float, float] | None = None  # residual, scale, direction, offset
     for sign, yaw in yaws.items():
@@ -225,12 +235,12 @@ def _nearest_in(angle: float, bounds: tuple[float, float]) -> float:
     return lo if (lo + 2 * np.pi - a) <= (a - hi) else hi
 
 
-def _steering(c0: np.ndarray, cfg: StructuredConfig) -> tuple[float, float]:
-    """The steering wave (amplitude, phase) closest to the yaw joints' lowest-bin coefficients: their
-    mean, its amplitude snapped to the family's {0} u [lo, hi]."""
+def _steering(c0: np.ndarray, cfg: StructuredConfig, yaw: np.ndarray) -> tuple[float, float]:
+    """The steering wave (amplitude, phase) closest to the yaw joints' (``yaw``) lowest-bin
+    coefficients: their mean, its amplitude snapped to the family's {0} u [lo, hi]."""
     if cfg.steering <= 0:
         return 0.0, 0.0
-    s = c0[YAW].mean()
+    s = c0[yaw].mean()
     lo, hi = cfg.steering_amplitude
     amplitude = float(abs(s))
     if amplitude < lo / 2:
@@ -238,67 +248,72 @@ def _steering(c0: np.ndarray, cfg: StructuredConfig) -> tuple[float, float]:
     return float(np.clip(amplitude, lo, hi)), float(np.angle(s))
 
 
-@functools.cache
-def _curve_template(frequency: float, b: int, mirrored: bool) -> np.ndarray:
-    """The unit curving wave's coefficients (8,) complex at its bin b (``_curve``'s constants)."""
-    t = curve_wave(1.0, frequency, mirrored).shape()
+@functools.lru_cache(maxsize=64)
+def _curve_template(frequency: float, b: int, mirrored: bool, robot: Robot) -> np.ndarray:
+    """The unit curving wave's coefficients (N,) complex at its bin b (``_curve``'s constants)."""
+    t = curve_wave(1.0, frequency, mirrored, robot).shape(robot)
     return _frozen(t[:, b, 0] + 1j * t[:, b, 1])
 
 
-def _curve(c: np.ndarray, wave: GaitEquation, cfg: StructuredConfig) -> GaitEquation | None:
-    """The curving wave (``curve_wave``) closest to coefficients c (8, L) complex beside the
+def _curve(c: np.ndarray, wave: GaitEquation, cfg: StructuredConfig, robot: Robot) -> GaitEquation | None:
+    """The curving wave (``curve_wave``) closest to coefficients c (N, L) complex beside the
     undulation ``wave``: as tuned or mirrored, whichever fits, at the least-squares scale snapped to
     the family's {0} u [lo, hi] times the undulation's scale; None where the family does not curve
     there."""
     if cfg.curve <= 0 or abs(wave.frequency - cfg.curve_frequency) < 1e-6:
         return None
     b = int(np.argmin(np.abs(FREQS - cfg.curve_frequency)))
-    lo, hi = np.multiply(cfg.curve_scale, undulation_scale(wave))
+    lo, hi = np.multiply(cfg.curve_scale, undulation_scale(wave, robot))
     best: tuple[float, bool] = (-np.inf, False)
     for mirrored in (False, True):
-        t = _curve_template(cfg.curve_frequency, b, mirrored)
+        t = _curve_template(cfg.curve_frequency, b, mirrored, robot)
         s = float((np.conj(t) * c[:, b]).sum().real / (np.abs(t) ** 2).sum())
         if s > best[0]:
             best = (s, mirrored)
     s, mirrored = best
     if s < lo / 2:
         return None
-    return curve_wave(float(np.clip(s, lo, hi)), cfg.curve_frequency, mirrored)
+    return curve_wave(float(np.clip(s, lo, hi)), cfg.curve_frequency, mirrored, robot)
 
 
-def _within_limit(member: Member) -> tuple[Member, np.ndarray]:
+def _within_limit(member: Member, robot: Robot) -> tuple[Member, np.ndarray]:
     """The member scaled as ``draw_structured`` scales a draw (its peak command at most the limit),
     and its shape (``Member.shape``)."""
-    shape = member.shape()
-    if np.hypot(shape[..., 0], shape[..., 1]).sum(axis=1).max() <= COMMAND_LIMIT:
+    shape, limit = member.shape(robot), robot.command_limit
+    if np.hypot(shape[..., 0], shape[..., 1]).sum(axis=1).max() <= limit:
         return member, shape  # the sum of a joint's amplitudes bounds its peak: no synthesis needed
     peak = float(np.abs(shape_to_commands(shape, limit=np.inf)).max())
-    if peak <= COMMAND_LIMIT:
+    if peak <= limit:
         return member, shape
-    member = member.scaled(COMMAND_LIMIT / peak)
-    return member, member.shape()
+    member = member.scaled(limit / peak)
+    return member, member.shape(robot)
 
 
-def residual(shape: np.ndarray, member: Member | np.ndarray) -> float:
-    """Relative distance of a commanded shape (8, L, 2) from a member (or the member's shape):
-    ||c - c_m|| / ||c||."""
+def residual(shape: np.ndarray, member: Member | np.ndarray, robot: Robot = DEFAULT_ROBOT) -> float:
+    """Relative distance of a commanded shape (N, L, 2) from a member (or the member's shape) on
+    ``robot``: ||c - c_m|| / ||c||."""
     shape = np.asarray(shape, np.float64)
-    theirs = member if isinstance(member, np.ndarray) else member.shape()
+    theirs = member if isinstance(member, np.ndarray) else member.shape(robot)
     return float(np.linalg.norm(shape - theirs) / max(np.linalg.norm(shape), 1e-12))
 
 
 def project(
-    shape: np.ndarray, cfg: StructuredConfig, margin: float = SPECIFIC_MARGIN
+    shape: np.ndarray,
+    cfg: StructuredConfig,
+    margin: float = SPECIFIC_MARGIN,
+    robot: Robot = DEFAULT_ROBOT,
 ) -> tuple[Member, float]:
-    """The member of family ``cfg`` closest to a commanded joint shape (8, L, 2) rad, and the fit's
-    relative residual (0 for a member: projecting a member gives it back). Of the kinds, the most
-    specific one whose fit is within ``margin`` times the best fit's residual (``SPECIFIC_MARGIN``;
-    1: the least residual)."""
+    """The member of family ``cfg`` on ``robot`` closest to a commanded joint shape (N, L, 2) rad,
+    and the fit's relative residual (0 for a member: projecting a member gives it back). Of the
+    kinds, the most specific one whose fit is within ``margin`` times the best fit's residual
+    (``SPECIFIC_MARGIN``; 1: the least residual)."""
     shape = np.asarray(shape, np.float64)
-    if shape.shape != (len(MODULES), RECORD.n_components, 2) or not np.isfinite(shape).all():
-        raise ValueError(f"a joint shape must be finite ({len(MODULES)}, {RECORD.n_components}, 2)")
-    c = shape[..., 0] + 1j * shape[..., 1]  # (8, L)
-    amplitude, phase = _steering(c[:, STEERING_BIN], cfg)
+    n = robot.n_joints
+    if shape.shape != (n, RECORD.n_components, 2) or not np.isfinite(shape).all():
+        raise ValueError(f"a joint shape must be finite ({n}, {RECORD.n_components}, 2)")
+    cfg = for_robot(cfg, robot)
+    c = shape[..., 0] + 1j * shape[..., 1]  # (N, L)
+    amplitude, phase = _steering(c[:, STEERING_BIN], cfg, ~layout(robot)[1])
     fits: list[tuple[float, Member]] = []  # each kind's best, most specific kind first
     weights = dict(zip(KINDS, cfg.kind_weights, strict=True))
     for kind in SPECIFIC_FIRST:
@@ -308,10 +323,11 @@ def project(
         for f in cfg.frequencies[kind]:
             b = int(np.argmin(np.abs(FREQS - f)))
             fit = _fit_library if cfg.library else _fit_wave
-            wave = fit(kind, c[:, b], float(FREQS[b]), cfg)
-            curve = _curve(c, wave, cfg) if kind == "undulate" else None
+            wave = fit(kind, c[:, b], float(FREQS[b]), cfg, robot)
+            curve = _curve(c, wave, cfg, robot) if kind == "undulate" else None
             member, theirs = _within_limit(
-                Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase, curve=curve)
+                Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase, curve=curve),
+                robot,
             )
             r = residual(shape, theirs)
             if best is None or r < best[0] - 1e-9:
@@ -325,7 +341,9 @@ def project(
     return member, r
 
 
-def project_many(shapes: np.ndarray, cfg: StructuredConfig) -> tuple[list[Member], np.ndarray]:
-    """``project`` over commanded shapes (B, 8, L, 2): the members and residuals (B,)."""
-    fits = [project(s, cfg) for s in np.asarray(shapes, np.float64)]
+def project_many(
+    shapes: np.ndarray, cfg: StructuredConfig, robot: Robot = DEFAULT_ROBOT
+) -> tuple[list[Member], np.ndarray]:
+    """``project`` over commanded shapes (B, N, L, 2) on ``robot``: the members and residuals (B,)."""
+    fits = [project(s, cfg, robot=robot) for s in np.asarray(shapes, np.float64)]
     return [m for m, _ in fits], np.array([r for _, r in fits])

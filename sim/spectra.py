@@ -3,7 +3,7 @@
 Convention: for a record x(n), n = 0..T-1 at ``sample_rate``, the coefficient of excited bin b_l is
 c_l = 2 X[b_l] / T with X = numpy.fft.rfft(x). |c_l| is then the amplitude (rad) of that sinusoid and
 x(t) = sum_l Re(c_l exp(i 2 pi f_l t)) for a signal made only of the excited components. A shape
-stores c as (real, imag) in its last axis: shape (..., 8, L, 2).
+stores c as (real, imag) in its last axis: shape (..., N, L, 2) for N joints.
 """
 
 from __future__ import annotations
@@ -13,22 +13,22 @@ import functools
 import numpy as np
 
 from snakeloco.sim.excitation import RECORD, ExcitationConfig
-from snakeloco.sim.robot import COMMAND_LIMIT, N_JOINTS
+from snakeloco.sim.robot import COMMAND_LIMIT
 
 
 def joint_shape(angles: np.ndarray, cfg: ExcitationConfig = RECORD) -> np.ndarray:
     """Single-sided spectrum of joint signals at the excited bins.
 
     Args:
-        angles: (..., T, 8) joint angles or commands (rad) at ``cfg.sample_rate``.
+        angles: (..., T, N) joint angles or commands (rad) at ``cfg.sample_rate``, N joints.
         cfg: the excitation whose bins to keep.
 
     Returns:
-        (..., 8, L, 2) float64: real and imaginary parts of c_kl (rad).
+        (..., N, L, 2) float64: real and imaginary parts of c_kl (rad).
     """
     angles = np.asarray(angles, dtype=np.float64)
-    if angles.shape[-2:] != (cfg.n_samples, N_JOINTS):
-        raise ValueError(f"expected (..., {cfg.n_samples}, {N_JOINTS}) angles, got {angles.shape}")
+    if angles.ndim < 2 or angles.shape[-2] != cfg.n_samples or angles.shape[-1] < 1:
+        raise ValueError(f"expected (..., {cfg.n_samples}, N) angles, got {angles.shape}")
     spectrum = np.fft.rfft(angles, axis=-2)  # (..., T//2+1, 8)
     c = 2.0 * spectrum[..., cfg.bins, :] / cfg.n_samples  # (..., L, 8)
     c = np.swapaxes(c, -1, -2)  # (..., 8, L)
@@ -81,23 +81,24 @@ def shape_to_commands(
     compensation; the learned shapes are measured angles).
 
     Args:
-        shape: (..., 8, L, 2) real and imaginary parts of c_kl (rad).
+        shape: (..., N, L, 2) real and imaginary parts of c_kl (rad), N joints.
         freqs: (L,) frequencies of the components (Hz); default: the standard excitation's.
         n_samples: samples to synthesise (T).
         sample_rate: command rate (Hz).
         limit: clip bound (rad).
 
     Returns:
-        (..., T, 8) float64 commands (rad).
+        (..., T, N) float64 commands (rad).
     """
     shape = np.asarray(shape, dtype=np.float64)
     freqs = RECORD.freqs if freqs is None else np.asarray(freqs, dtype=np.float64)
-    if shape.ndim < 3 or shape.shape[-3:] != (N_JOINTS, freqs.shape[0], 2):
-        raise ValueError(f"expected (..., {N_JOINTS}, {freqs.shape[0]}, 2) shape, got {shape.shape}")
+    if shape.ndim < 3 or shape.shape[-2:] != (freqs.shape[0], 2):
+        raise ValueError(f"expected (..., N, {freqs.shape[0]}, 2) shape, got {shape.shape}")
+    n_joints = shape.shape[-3]
     if response is not None:
         response = np.asarray(response, dtype=np.float64)
-        if response.shape != (N_JOINTS, freqs.shape[0], 2):
-            raise ValueError(f"response must be ({N_JOINTS}, {freqs.shape[0]}, 2), got {response.shape}")
+        if response.shape != (n_joints, freqs.shape[0], 2):
+            raise ValueError(f"response must be ({n_joints}, {freqs.shape[0]}, 2), got {response.shape}")
         c = (shape[..., 0] + 1j * shape[..., 1]) / (response[..., 0] + 1j * response[..., 1])
         shape = np.stack([c.real, c.imag], axis=-1)
     cos, sin = _synthesis_basis(tuple(freqs.tolist()), n_samples, float(sample_rate))
@@ -133,7 +134,7 @@ def servo_response(
     """Mean complex gain measured/commanded of each joint at each excited frequency.
 
     Args:
-        commands, joint_angles: (N, T, 8) records (rad): arrays, or ``Dataset.rows`` read a chunk at a
+        commands, joint_angles: (n, T, N) records (rad): arrays, or ``Dataset.rows`` read a chunk at a
             time.
 
     A record counts at a joint and frequency only where it commands at least ``MIN_EXCITATION`` there
@@ -141,11 +142,12 @@ def servo_response(
     mean is over those records, and a joint and frequency no record excites keeps gain 1.
 
     Returns:
-        (8, L, 2) real and imaginary parts of mean_n (X_meas / X_cmd): |G| is the amplitude ratio,
+        (N, L, 2) real and imaginary parts of mean_n (X_meas / X_cmd): |G| is the amplitude ratio,
         arg G the phase lag.
     """
-    total = np.zeros((N_JOINTS, len(cfg.bins)), dtype=np.complex128)
-    count = np.zeros((N_JOINTS, len(cfg.bins)), dtype=np.int64)
+    n_joints = np.asarray(commands[0:1]).shape[-1]  # an array or ``Dataset.rows``
+    total = np.zeros((n_joints, len(cfg.bins)), dtype=np.complex128)
+    count = np.zeros((n_joints, len(cfg.bins)), dtype=np.int64)
     for i in range(0, len(commands), chunk):
         u = joint_shape(np.asarray(commands[i : i + chunk], np.float64), cfg)
         q = joint_shape(np.asarray(joint_angles[i : i + chunk], np.float64), cfg)

@@ -21,8 +21,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.sim.excitation import RECORD
-from snakeloco.sim.gaits import PRESETS, GaitEquation
-from snakeloco.sim.robot import COMMAND_LIMIT, N_JOINTS
+from snakeloco.sim.gaits import PRESETS, GaitEquation, layout
+from snakeloco.sim.robot import DEFAULT_ROBOT, Robot
 from snakeloco.sim.spectra import shape_to_commands
 
 KINDS = ("undulate", "sidewind", "roll", "turn")
@@ -304,16 +304,35 @@ def draw_wave(
     raise ValueError(f"unknown wave kind {kind!r}; one of {KINDS}")
 
 
-def library_gait(kind: str) -> GaitEquation:
-    """The gait library's ``kind`` gait (``sim.gaits.PRESETS``), which a library family scales."""
-    return PRESETS[kind].gait
+PITCH_KINDS = ("sidewind", "roll", "turn")
+"""Kinds whose wave needs pitch joints: a planar robot's family draws none of them."""
 
 
-def draw_library_wave(kind: str, rng: np.random.Generator, cfg: StructuredConfig) -> GaitEquation:
+def for_robot(cfg: StructuredConfig, robot: Robot) -> StructuredConfig:
+    """The family ``cfg`` as ``robot`` can draw it: on a planar robot (no pitch joints) undulation
+    only, each other kind's weight 0 (a sidewinding or rolling wave on yaw joints alone is an
+    undulation under another name); otherwise ``cfg`` itself."""
+    if robot.joint_pattern != "planar":
+        return cfg
+    weights = tuple(
+        w if kind not in PITCH_KINDS else 0.0 for kind, w in zip(KINDS, cfg.kind_weights, strict=True)
+    )
+    return cfg.model_copy(update={"kind_weights": weights})
+
+
+def library_gait(kind: str, robot: Robot = DEFAULT_ROBOT) -> GaitEquation:
+    """The gait library's ``kind`` gait (``sim.gaits.PRESETS``) on ``robot`` (carried there by the
+    serpenoid rule, ``GaitEquation.on_robot``), which a library family scales."""
+    return PRESETS[kind].gait.on_robot(robot)
+
+
+def draw_library_wave(
+    kind: str, rng: np.random.Generator, cfg: StructuredConfig, robot: Robot = DEFAULT_ROBOT
+) -> GaitEquation:
     """A library family's ``kind`` wave (``StructuredConfig.library``): the library gait scaled by s
     in amplitude_scale, at one of the kind's frequencies, its offset drawn where library_offsets
     names the kind, mirrored (offset + pi) or not, an undulation forward or backward."""
-    base = library_gait(kind)
+    base = library_gait(kind, robot)
     f = float(rng.choice(cfg.frequencies[kind]))
     s = rng.uniform(*cfg.amplitude_scale)
     delta = rng.uniform(*cfg.library_offsets[kind]) if kind in cfg.library_offsets else base.delta
@@ -328,16 +347,16 @@ def draw_library_wave(kind: str, rng: np.random.Generator, cfg: StructuredConfig
     )
 
 
-def undulation_scale(wave: GaitEquation) -> float:
-    """An undulation's yaw amplitude relative to the library undulation's."""
-    return wave.a_yaw / library_gait("undulate").a_yaw
+def undulation_scale(wave: GaitEquation, robot: Robot = DEFAULT_ROBOT) -> float:
+    """An undulation's yaw amplitude relative to the library undulation's (on ``robot``)."""
+    return wave.a_yaw / library_gait("undulate", robot).a_yaw
 
 
-def curve_wave(scale: float, frequency: float, mirrored: bool) -> GaitEquation:
+def curve_wave(scale: float, frequency: float, mirrored: bool, robot: Robot = DEFAULT_ROBOT) -> GaitEquation:
     """The library's turning gait at ``scale`` of its amplitudes and at ``frequency``, as tuned or
     mirrored (yaw joints negated). Beside an undulation at another frequency it bends the path into
     an arc (docs/gaits.md, "The arcs family")."""
-    base = library_gait("turn")
+    base = library_gait("turn", robot)
     delta = base.delta + (np.pi if mirrored else 0.0)
     return base.scaled(scale).model_copy(
         update={
@@ -347,21 +366,26 @@ def curve_wave(scale: float, frequency: float, mirrored: bool) -> GaitEquation:
     )
 
 
-def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) -> tuple[np.ndarray, dict]:
-    """Record ``index``'s gait at ``attempt``: its commanded joint shape (8, L, 2) rad and what was
-    drawn (kinds, waves, steering, curve, scale), JSON-ready."""
+def draw_structured(
+    cfg: StructuredConfig, seed: int, index: int, attempt: int, robot: Robot = DEFAULT_ROBOT
+) -> tuple[np.ndarray, dict]:
+    """Record ``index``'s gait at ``attempt`` on ``robot``: its commanded joint shape (N, L, 2) rad
+    and what was drawn (kinds, waves, steering, curve, scale), JSON-ready. Waves are in the robot's
+    own units (rad per module of its joints); a library family's gaits are carried to it by the
+    serpenoid rule (``library_gait``)."""
+    cfg = for_robot(cfg, robot)
     rng = np.random.default_rng([seed, index, attempt])
     weights = np.asarray(cfg.kind_weights, np.float64)
     kind = str(rng.choice(KINDS, p=weights / weights.sum()))
     undulation = (cfg.undulate_amplitude, cfg.undulate_wavenumber)
     if cfg.library:
-        main = draw_library_wave(kind, rng, cfg)
+        main = draw_library_wave(kind, rng, cfg, robot)
     else:
         main = draw_wave(kind, rng, cfg.frequencies[kind], undulation)
     if cfg.amplitude_scale != (1.0, 1.0) and not cfg.library:  # no draw at (1, 1): streams unchanged
         s = rng.uniform(*cfg.amplitude_scale)
         main = main.scaled(s)
-    shape = main.shape()
+    shape = main.shape(robot)
     drawn: dict = {"kind": kind, "wave": main.model_dump()}
     if rng.random() < cfg.second_wave:
         second_kind = str(rng.choice(KINDS))
@@ -371,11 +395,11 @@ def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) 
         ]
         second = draw_wave(second_kind, rng, tuple(sorted(set(others))), undulation)
         scale = rng.uniform(*cfg.second_scale)
-        shape = shape + scale * second.shape()
+        shape = shape + scale * second.shape(robot)
         drawn["second_wave"] = second.model_dump() | {"scale": scale}
     if rng.random() < cfg.steering:
         amplitude, phase = rng.uniform(*cfg.steering_amplitude), rng.uniform(-np.pi, np.pi)
-        yaw = np.arange(N_JOINTS) % 2 == 1  # joints 2, 4, 6, 8
+        yaw = ~layout(robot)[1]  # joints 2, 4, 6, 8 of the default robot
         shape[yaw, 0, 0] += amplitude * np.cos(phase)  # bin 0: the lowest excited frequency
         shape[yaw, 0, 1] += amplitude * np.sin(phase)
         drawn["steering"] = {"amplitude": amplitude, "phase": phase, "frequency": float(RECORD.freqs[0])}
@@ -385,11 +409,11 @@ def draw_structured(cfg: StructuredConfig, seed: int, index: int, attempt: int) 
         and abs(main.frequency - cfg.curve_frequency) > 1e-6
         and rng.random() < cfg.curve
     ):
-        scale = np.exp(rng.uniform(*np.log(cfg.curve_scale))) * undulation_scale(main)  # log-uniform
-        curve = curve_wave(scale, cfg.curve_frequency, bool(rng.integers(2)))
-        shape = shape + curve.shape()
+        scale = np.exp(rng.uniform(*np.log(cfg.curve_scale))) * undulation_scale(main, robot)  # log-uniform
+        curve = curve_wave(scale, cfg.curve_frequency, bool(rng.integers(2)), robot)
+        shape = shape + curve.shape(robot)
         drawn["curve"] = curve.model_dump()
     peak = np.abs(shape_to_commands(shape, limit=np.inf)).max()
-    scale = min(1.0, COMMAND_LIMIT / peak)  # within the command limit without clipping the waves
+    scale = min(1.0, robot.command_limit / peak)  # within the command limit without clipping the waves
     drawn["scale"] = scale
     return shape * scale, drawn

@@ -77,7 +77,7 @@ def test_gait_model_api_units_and_shapes(checkpoint, tiny_dataset):
     # Trained on this robot: no warning; a checkpoint of another MJCF says so.
     assert model.robot_warning() is None
     other = type(model)(model.net, model.config.model_copy(update={"mjcf_sha256": "f" * 64}))
-    assert "another robot model" in other.robot_warning()
+    assert "trained on robot snakeloco-8 (MJCF sha256 ffffffffffff)" in other.robot_warning()
 
 
 def test_bad_checkpoints_are_refused_clearly(checkpoint, tmp_path):
