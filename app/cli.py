@@ -284,7 +284,12 @@ def run_serve(cmd: Serve) -> None:
     from snakeloco.app.server import serve
 
     serve(
-        cmd.host, cmd.port, cmd.checkpoint, cmd.ensemble, robot=_robot(cmd.robot), variations=cmd.variations
+        cmd.host,
+        cmd.port,
+        tuple(cmd.checkpoint),
+        cmd.ensemble,
+        robot=None if cmd.robot is None else _robot(cmd.robot),
+        variations=cmd.variations,
     )
 
 

@@ -162,11 +162,16 @@ class Serve(Command):
     """Interface to bind; the default keeps the designer on this machine. Use 0.0.0.0 only on a trusted network."""
     port: Annotated[int, Field(ge=0, le=65535)] = 8080
     """TCP port (0: any free port)."""
-    checkpoint: Checkpoint = None
+    checkpoint: Annotated[
+        tuple[str, ...],
+        tyro.conf.UseAppendAction,
+        tyro.conf.arg(metavar="structured|paper|DIR"),
+    ] = ()
+    """A checkpoint directory (a built robot's: runs/NAME/model), or a shipped one by gait family: structured (the default) or paper. Give it several times for several entries in the Gait family dropdown; the first is where a tab starts, the shipped families are offered beside them."""
     ensemble: Ensemble = ENSEMBLE_SIZE
     """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
     robot: Path | None = None
-    """Robot description YAML every replay runs on (a fitted robot: `snakeloco fit-robot`); default: the paper's robot."""
+    """Robot description YAML every replay runs on (a fitted robot: `snakeloco fit-robot`); default: the robot the first checkpoint was trained on."""
     variations: bool = True
     """Replay each gait on the default physics variations after its ensemble (the Variations fan, at the lowest priority); --no-variations on a slow machine."""
 

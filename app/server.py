@@ -159,13 +159,15 @@ def _refuse_upload(client: viser.ClientHandle, filename: str, size: int) -> None
 
 
 def load_families(
-    checkpoint: str | Path | None, families: dict[str, str | Path] | None = None
+    checkpoint: str | Path | None | tuple[str | Path, ...], families: dict[str, str | Path] | None = None
 ) -> tuple[dict[str, GaitModel], str]:
     """The models a designer offers by family name, and the name of ``checkpoint``'s.
 
     ``families`` (name -> checkpoint) if given, ``checkpoint`` then naming one of them (default: the
     first); else every shipped checkpoint (``model.checkpoint.SHIPPED``) and ``checkpoint`` itself
-    where it is a directory of its own, under its folder's name.
+    where it is a directory of its own, under its folder's name (a built robot's ``runs/NAME/model``:
+    under NAME). Several checkpoints (a tuple, ``serve --checkpoint A --checkpoint B``): each is
+    offered, the first is the one returned.
     """
     if families is not None:
         models = {name: load_pretrained(path) for name, path in families.items()}
@@ -174,13 +176,18 @@ def load_families(
             raise CheckpointError(f"checkpoint {checkpoint}: not one of the families {list(models)}")
         return models, default
     models = {name: load_pretrained(path) for name, path in SHIPPED.items()}
-    wanted = resolve_checkpoint(checkpoint)
-    for name, path in SHIPPED.items():
-        if path.resolve() == wanted.resolve():
-            return models, name
-    name = wanted.name if wanted.name not in models else f"{wanted.name} (directory)"
-    models[name] = load_pretrained(wanted)
-    return models, name
+    names = []
+    for c in (checkpoint if isinstance(checkpoint, tuple) else (checkpoint,)) or (None,):
+        wanted = resolve_checkpoint(c)
+        shipped = next((n for n, path in SHIPPED.items() if path.resolve() == wanted.resolve()), None)
+        if shipped is not None:
+            names.append(shipped)
+            continue
+        label = wanted.parent.name if wanted.name == "model" and wanted.parent.name else wanted.name
+        name = label if label not in models else f"{label} (directory)"
+        models[name] = load_pretrained(wanted)
+        names.append(name)
+    return models, names[0]
 
 
 class DesignerServer:
@@ -190,7 +197,7 @@ class DesignerServer:
         self,
         host: str = "127.0.0.1",
         port: int = 8080,
-        checkpoint: str | Path | None = None,
+        checkpoint: str | Path | None | tuple[str | Path, ...] = None,
         ensemble: int = ENSEMBLE_SIZE,
         workers: int | None = None,
         verbose: bool = True,
@@ -293,13 +300,13 @@ class DesignerServer:
 def serve(
     host: str = "127.0.0.1",
     port: int = 8080,
-    checkpoint: str | Path | None = None,
+    checkpoint: str | Path | None | tuple[str | Path, ...] = None,
     ensemble: int = ENSEMBLE_SIZE,
     robot: Robot | None = None,
     variations: bool = True,
 ) -> None:
     """Run the designer until Ctrl-C or SIGTERM; then stop cleanly (port freed, threads joined);
-    ``robot``: the robot every replay runs on (default: the paper's); ``variations``: replay each
+    ``robot``: the robot every replay runs on (default: the first checkpoint's); ``variations``: replay each
     gait on the default physics variations (the Variations fan)."""
     tune_process()
     app = DesignerServer(host, port, checkpoint, ensemble, robot=robot, variations=variations)

@@ -230,3 +230,18 @@ def test_build_quick_goes_from_a_description_to_a_servable_model_and_resumes(tmp
     with pytest.raises(SystemExit):
         main(["build", "--robot", str(ROBOTS_DIR / "planar6.yaml"), "--out", str(out), "--records", "64"])
     assert "its generate stage was built with other options (heldout, records)" in capsys.readouterr().err
+
+
+def test_serve_offers_several_checkpoints_in_the_family_dropdown(twelve_checkpoint, tmp_path):
+    from snakeloco.app.cli import parse_args
+    from snakeloco.app.server import load_families
+
+    path, _ = twelve_checkpoint
+    built = tmp_path / "runs" / "twelve"  # a build's folder: its model is offered under the robot's name
+    built.mkdir(parents=True)
+    (built / "model").symlink_to(path, target_is_directory=True)
+    cmd = parse_args(["serve", "--checkpoint", str(built / "model"), "--checkpoint", "paper", "--port", "0"])
+    assert cmd.checkpoint == (str(built / "model"), "paper")
+    models, first = load_families(tuple(cmd.checkpoint))
+    assert first == "twelve" and list(models) == ["structured", "paper", "twelve"]
+    assert models["twelve"].robot == TWELVE
