@@ -159,7 +159,7 @@ def _refuse_upload(client: viser.ClientHandle, filename: str, size: int) -> None
 
 
 def load_families(
-    checkpoint: str | Path | None | tuple[str | Path, ...], families: dict[str, str | Path] | None = None
+    checkpoint: str | Path | tuple[str | Path, ...] | None, families: dict[str, str | Path] | None = None
 ) -> tuple[dict[str, GaitModel], str]:
     """The models a designer offers by family name, and the name of ``checkpoint``'s.
 
@@ -197,7 +197,7 @@ class DesignerServer:
         self,
         host: str = "127.0.0.1",
         port: int = 8080,
-        checkpoint: str | Path | None | tuple[str | Path, ...] = None,
+        checkpoint: str | Path | tuple[str | Path, ...] | None = None,
         ensemble: int = ENSEMBLE_SIZE,
         workers: int | None = None,
         verbose: bool = True,
@@ -300,7 +300,7 @@ class DesignerServer:
 def serve(
     host: str = "127.0.0.1",
     port: int = 8080,
-    checkpoint: str | Path | None | tuple[str | Path, ...] = None,
+    checkpoint: str | Path | tuple[str | Path, ...] | None = None,
     ensemble: int = ENSEMBLE_SIZE,
     robot: Robot | None = None,
     variations: bool = True,
