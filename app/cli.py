@@ -46,7 +46,7 @@ from snakeloco.app.robot_commands import (
     run_robot_show,
     run_robustness,
 )
-from snakeloco.model.train import PRESETS
+from snakeloco.model.options import PRESETS
 
 # What each command writes: "dir" (a directory it fills) or "file"; a "file" that already exists
 # where the option is also an input (--replays, --gaits: reused when present) is not written.
@@ -354,6 +354,30 @@ def parse_args(args: list[str]) -> Command:
     return parse(COMMANDS, args, "snakeloco")
 
 
+USER_ERRORS = (
+    ("snakeloco.app.options", "OptionError"),
+    ("snakeloco.model.checkpoint", "CheckpointError"),
+    ("snakeloco.sim.dataset", "DatasetError"),
+    ("snakeloco.model.figures", "ReportError"),
+    ("snakeloco.model.train", "TrainingError"),
+    ("snakeloco.sim.results", "SimulationError"),
+    ("snakeloco.sim.backend", "BackendError"),
+    ("snakeloco.app.bench.load_browser", "MissingBrowserError"),
+)
+"""Errors that mean bad input, not a bug: a one-line message and exit status 2 (module, class)."""
+
+
+def _user_error(exc: Exception) -> bool:
+    """Whether ``exc`` is one of ``USER_ERRORS``. Only modules already imported are looked in (an
+    error of a module never imported cannot have been raised), so the command line imports no
+    torch, MuJoCo or viser to answer ``--help``."""
+    return any(
+        isinstance(exc, getattr(sys.modules[module], name))
+        for module, name in USER_ERRORS
+        if module in sys.modules
+    )
+
+
 def main(args: list[str] | None = None) -> None:
     """Entry point of the ``snakeloco`` console script.
 
@@ -362,13 +386,6 @@ def main(args: list[str] | None = None) -> None:
     breaks the simulation in every phase draw ends the command with a one-line message naming the
     problem and exit status 2, not a traceback.
     """
-    from snakeloco.app.bench.load_browser import MissingBrowserError
-    from snakeloco.model.checkpoint import CheckpointError
-    from snakeloco.model.figures import ReportError
-    from snakeloco.model.train import TrainingError
-    from snakeloco.sim import DatasetError, SimulationError
-    from snakeloco.sim.backend import BackendError
-
     args = list(sys.argv[1:] if args is None else args)
     try:
         cmd = parse_args(args)
@@ -376,21 +393,14 @@ def main(args: list[str] | None = None) -> None:
         if problem is not None:
             raise OptionError(problem)
         RUNNERS[type(cmd)](cmd)
-    except (
-        OptionError,
-        CheckpointError,
-        DatasetError,
-        ReportError,
-        TrainingError,
-        SimulationError,
-        BackendError,
-        MissingBrowserError,
-    ) as exc:
-        print(f"snakeloco: error: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
     except OSError as exc:  # e.g. --out under a read-only or missing directory, a disk that is full
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"snakeloco: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except Exception as exc:
+        if not _user_error(exc):
+            raise
+        print(f"snakeloco: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
 
 

@@ -17,12 +17,9 @@ from pydantic import Field
 
 from snakeloco.app.bench.options import Bench
 from snakeloco.app.options import Checkpoint, Command, Ensemble, Flat, Json, Seed, Workers
-from snakeloco.model.calibrate import CalibrateConfig
 from snakeloco.model.config import ModelConfig
 from snakeloco.model.design_config import DesignConfig, Target
-from snakeloco.model.evaluate import ConsistencyConfig
-from snakeloco.model.sampler import SamplerConfig
-from snakeloco.model.train import PRESETS, TrainConfig
+from snakeloco.model.options import PRESETS, CalibrateConfig, ConsistencyConfig, SamplerConfig, TrainConfig
 from snakeloco.sim import GenerateConfig
 from snakeloco.sim.backend import BackendConfig
 from snakeloco.sim.consistency import ENSEMBLE_SIZE

@@ -135,8 +135,15 @@ class DesignPanel:
         self.result, self.candidates = result, result.candidates
         labels = tuple(candidate_label(i + 1, c) for i, c in enumerate(self.candidates))
         best = self.candidates[0]
+        far = result.extra.get("beyond_reach")
         if result.met:
             verdict = f"**Met**: candidate 1 ends {best.error_m:.2f} m from the target"
+        elif far is not None and best.simulated is not None:
+            verdict = (
+                f"**Beyond reach**: the target is {far['distance_m']:.3g} m away; this family's gaits end at most "
+                f"{far['reach_m']:.1f} m from the start. Its nearest gait ends at ({best.simulated[0]:.2f}, "
+                f"{best.simulated[1]:.2f}) m"
+            )
         elif best.simulated is None:
             verdict = "**Not met**: every candidate's replay broke"
         else:

@@ -82,6 +82,7 @@ def write_design(cmd) -> dict:
         "seconds": time.perf_counter() - t0,
         "robot": robot.name,
         "robust": None if robust is None else result.extra["score"],
+        "beyond_reach": result.extra.get("beyond_reach"),
     }
     (cmd.out / "report.json").write_text(jsonlib.dumps(report, indent=1))
     best = result.candidates[0] if result.candidates else None
@@ -90,6 +91,11 @@ def write_design(cmd) -> dict:
     else:
         where = f"forward {best.simulated[0]:.2f} m, sideways {best.simulated[1]:.2f} m"
         verdict = "met" if result.met else "not met: the closest reached is"
+        if (far := result.extra.get("beyond_reach")) is not None:
+            verdict = (
+                f"not met: the target is {far['distance_m']:.3g} m away, beyond the family's reach (its gaits "
+                f"end at most {far['reach_m']:.1f} m from the start), so no search was run; its nearest gait ends at"
+            )
         print(
             f"{verdict} {where} ({best.error_m:.2f} m from the target, tolerance {result.tolerance_m:.2f} m; "
             f"ensemble spread {best.spread_m:.2f} m); {len(candidates)} candidates in {cmd.out} "

@@ -30,73 +30,21 @@ import time
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.model.api import GaitModel
 from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.finetune import fit_head, fit_path_decoder
+from snakeloco.model.options import MODES, SAMPLED_MODES, ZERO_MODE, CalibrateConfig
 from snakeloco.model.replays import Fit, check_same_gaits, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.stats import STAT_NAMES, stats_vector
 from snakeloco.model.train import split_records
 
-MODES: dict[str, float | None] = {"zk_zero": None, "zk_t0.5": 0.5, "zk_t1": 1.0}
-"""z_k modes of the calibration gaits, name -> sampling temperature (None: z_k = 0), as
-``GaitModel.joint_latents`` takes it."""
-ZERO_MODE = list(MODES.values()).index(None)
-"""Index of the z_k = 0 mode (the ``mode`` array of the replayed gaits)."""
-SAMPLED_MODES = [m for m, t in enumerate(MODES.values()) if t is not None]
-"""Indices of the sampled-z_k modes."""
 ZERO_SEED_OFFSET = 1000
 """The extra z_k = 0 draws use seed + this, apart from the shared draws."""
 SAMPLED_SEED_OFFSET = 2000
 """The extra sampled draws use seed + this (z_B) and seed + this + 1 + mode (z_k)."""
 GAIT_KEYS = ("shape", "stats", "body", "z_b", "z_j", "z_index", "mode", "broken")
 GAITS = "calibration-gaits"
-
-
-class CalibrateConfig(BaseModel):
-    """What a calibration replays and how it fine-tunes (defaults: the shipped calibration)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-    prior_samples: int = Field(
-        512,
-        ge=1,
-        description="z_B drawn from the prior, each decoded with z_k = 0 and sampled at T 0.5 and 1.",
-    )
-    zero_samples: int | None = Field(
-        None,
-        ge=0,
-        description="Further z_B decoded with z_k = 0 only (default: 4 x --prior-samples); seed + 1000. "
-        "With z_k = 0 whether a gait hops is a property of z_B that the head learns from many "
-        "neighbouring draws.",
-    )
-    sampled_samples: int | None = Field(
-        None,
-        ge=0,
-        description="Further z_B decoded with z_k sampled at each temperature (default: 2 x "
-        "--prior-samples); seed + 2000. The head's sampled net-roll error fell with each doubling.",
-    )
-    epochs: int = Field(40, ge=1, description="Fine-tuning epochs of each stage.")
-    lr: float = Field(1e-2, gt=0, description="Peak learning rate of both stages (Adam, cosine to 1%).")
-    batch_size: int = Field(128, ge=2, description="Examples per step.")
-    seed: int = Field(1000, ge=0, description="Seed of the z_B draws (evaluate draws with seed 0).")
-    val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
-
-    @property
-    def zero_count(self) -> int:
-        """Extra z_k = 0 draws: ``zero_samples``, or 4 x ``prior_samples``."""
-        return 4 * self.prior_samples if self.zero_samples is None else self.zero_samples
-
-    @property
-    def sampled_count(self) -> int:
-        """Extra sampled draws (each decoded in every sampled mode): ``sampled_samples``, or 2 x."""
-        return 2 * self.prior_samples if self.sampled_samples is None else self.sampled_samples
-
-    @property
-    def gait_count(self) -> int:
-        """Gaits a calibration replays (before broken ones are dropped)."""
-        return self.prior_samples * len(MODES) + self.zero_count + self.sampled_count * len(SAMPLED_MODES)
 
 
 def replay_prior_gaits(model: GaitModel, cfg: CalibrateConfig, fit: Fit) -> dict[str, np.ndarray]:

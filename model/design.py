@@ -206,6 +206,30 @@ def search(
     return _candidates(model, z_all, c_all, cfg.candidates, 1)
 
 
+REACH_MARGIN, REACH_SLACK_M = 1.5, 2.0
+"""A target farther than REACH_MARGIN times the family's reach plus REACH_SLACK_M metres
+(``nearest_in_reach``) is answered at once: no search, the nearest gait the family has, replayed,
+and ``met`` False. The slack keeps a search for targets a few metres off, where refinement on what
+physics did may still get there."""
+
+
+def nearest_in_reach(model: GaitModel, target: Target, cfg: DesignConfig) -> tuple[float, Candidate] | None:
+    """None where ``target`` may be in the family's reach; else (reach in m, the screen's draw whose
+    predicted end is nearest the target): a target more than ``REACH_MARGIN`` times farther than any
+    gait of the family goes, plus ``REACH_SLACK_M`` (``design --forward 1e6`` searched 5 min before
+    saying not met)."""
+    distance = float(np.hypot(target.forward, target.sideways))
+    screen = model.sample_z_b(cfg.screen, seed=cfg.seed)
+    _, body = model.decode(screen)
+    ends = path_end(body)
+    farthest = float(np.hypot(ends[:, 0], ends[:, 1]).max())
+    if distance <= REACH_MARGIN * farthest + REACH_SLACK_M:
+        return None
+    cost = objective(ends, target, cfg)
+    best = int(np.argmin(cost))
+    return farthest, _candidates(model, screen[best : best + 1], cost[best : best + 1], 1, 0)[0]
+
+
 def corrected(target: Target, c: Candidate) -> Target:
     """``target`` moved by what physics did otherwise than ``c``'s decoded path (replay end minus
     decoded end; heading too where asked): the target to search for near ``c`` so that the replay,
@@ -337,6 +361,35 @@ def design(
     best: list[Candidate] = []
     first: Candidate | None = None
     replays = rounds = 0
+    t0 = time.perf_counter()
+    beyond = nearest_in_reach(model, target, cfg)
+    search_s += time.perf_counter() - t0
+    if beyond is not None:  # answered from what the family reaches: its nearest gait, replayed
+        reach_m, nearest = beyond
+        t0 = time.perf_counter()
+        runner = runner or open_backend(backend, workers, robot=robot or model.robot)
+        try:
+            verified = verify(model, [nearest], target, cfg, runner, members=1)
+        finally:
+            if own:
+                runner.close()
+        extra = {
+            "beyond_reach": {
+                "reach_m": reach_m,
+                "distance_m": float(np.hypot(target.forward, target.sideways)),
+            }
+        }
+        return DesignResult(
+            target,
+            cfg.tolerance_for(target),
+            verified,
+            False,
+            search_s,
+            time.perf_counter() - t0,
+            1,
+            0,
+            extra,
+        )
     try:
         for rnd in range(1, cfg.rounds + 1):
             t0 = time.perf_counter()

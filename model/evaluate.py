@@ -8,21 +8,20 @@ body path is scored beside the ensemble's spread (``sim.consistency``).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import SHAPE_STD_FLOOR
 from snakeloco.model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
+from snakeloco.model.options import PRIOR_SAMPLES as PRIOR_SAMPLES  # re-exported
+from snakeloco.model.options import ZK_MODES, ConsistencyConfig
 from snakeloco.model.replays import check_same_gaits, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.stats import median_relative_errors
 from snakeloco.sim import BODY_CHANNELS, BODY_RATE, load_dataset
 from snakeloco.sim.backend import BackendConfig, open_backend
 from snakeloco.sim.consistency import (
     ENSEMBLE_NOISE,
-    ENSEMBLE_SIZE,
     PREDICTABLE,
     compare,
     diversity,
@@ -121,39 +120,7 @@ def latent_health(model: GaitModel, z_b: np.ndarray, z_j: np.ndarray, shape, bod
     }
 
 
-PRIOR_SAMPLES = 256
-"""z_B the consistency check draws by default (``snakeloco evaluate --prior-samples``)."""
-ZK_MODES: dict[str, float | None] = {"zk_zero": None, "zk_sampled": 1.0}
-"""The consistency check's z_k modes (report keys): z_k = 0, and z_k sampled from the learned prior
-at this temperature (``GaitModel.joint_latents``)."""
 REPLAYS = "consistency-replays"
-
-
-class ConsistencyConfig(BaseModel):
-    """What the generated-gait consistency check draws and how it replays (``consistency``; the flags
-    of ``snakeloco evaluate``)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    prior_samples: int = Field(PRIOR_SAMPLES, ge=0, description="z_B drawn for the check (0 skips it).")
-    positions: Literal["sampler", "prior"] = Field(
-        "sampler",
-        description="Where those z_B come from: the checkpoint's sampler (its density over the training "
-        "posteriors, where the sliders and Random put them) or the N(0, I) prior (what sliders dragged to "
-        "their edges reach).",
-    )
-    ensemble: int = Field(
-        ENSEMBLE_SIZE,
-        ge=2,
-        description="Replays per generated gait: the commands plus ensemble-1 copies with 1e-3 relative noise.",
-    )
-    seed: int = Field(0, ge=0, description="Seed of the draws and the noise.")
-    zk_modes: tuple[Literal["zk_zero", "zk_sampled"], ...] = Field(
-        tuple(ZK_MODES),
-        min_length=1,
-        description="The z_k modes replayed: z_k = 0 (what the sliders decode) and z_k sampled at T = 1 "
-        "(what Random with a temperature decodes); one of them halves the replays.",
-    )
 
 
 def consistency(

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
-from typing import Literal
 
 import numpy as np
 import torch
@@ -37,19 +36,13 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
 from snakeloco.model.fitting import fit_best
+from snakeloco.model.options import HeadInputs, HeadPath
 from snakeloco.sim.body import mirror_body
 from snakeloco.sim.members import Member
 from snakeloco.sim.robot import DEFAULT_ROBOT, Robot
 from snakeloco.sim.structured import KINDS, StructuredConfig
 
 MEMBER_HEAD_WEIGHTS = "member_head.safetensors"
-HeadInputs = Literal["coefficients", "named", "named_curve"]
-"""What describes a member to the head (``member_inputs``); "named_curve": the named parameters and
-the curving wave's (``Member.curve``)."""
-HeadPath = Literal["direct", "heading"]
-"""How the head draws the path in the plane: "direct", forward and sideways positions as outputs;
-"heading", velocities in the body's own frame, turned by the predicted heading and summed (dead
-reckoning), so a turn in place ends where its predicted yaw takes it round its circle."""
 CHANNEL_WEIGHTS = (1.0, 4.0, 4.0, 1.0, 1.0, 4.0)
 """Loss weight per body channel (vertical, forward, sideways, roll, pitch, yaw): the path in the
 plane and the heading are what the designer draws and scores; the oscillating channels still count

@@ -24,20 +24,18 @@ import time
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from snakeloco.model.api import GaitModel
 from snakeloco.model.checkpoint import check_trained_on, save_checkpoint
 from snakeloco.model.density import fit_density, name_components
 from snakeloco.model.member_path import (
-    HeadInputs,
-    HeadPath,
     fit_member_head,
     kind_weights,
     member_inputs,
     path_scales,
     with_mirror_images,
 )
+from snakeloco.model.options import SamplerConfig
 from snakeloco.model.replays import Fit, load_side_file, replay_shapes, save_side_file
 from snakeloco.model.train import split_records
 from snakeloco.sim import BODY_RATE, DatasetError, joint_shape
@@ -48,85 +46,6 @@ SAMPLER_GAITS = "sampler-gaits"
 GAIT_KEYS = ("z_b", "mode", "z_index", "shape", "body")
 ZK_TEMPERATURE = 1.0
 """The sampled z_k mode's temperature: the designer's default."""
-
-
-class SamplerConfig(BaseModel):
-    """What ``calibrate --sampler`` fits (defaults: the shipped structured checkpoint's)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-    density_only: bool = Field(
-        False, description="Fit and store the slider density only (no replays; the paper family)."
-    )
-    regenerated: bool = Field(
-        False,
-        description="The dataset is the checkpoint's training set generated again (the same family, seed "
-        "and config; records are deterministic in seed and index), possibly only its first N records or "
-        "under another MuJoCo version, so its meta hash differs: the records of the training split are "
-        "used. For a training set not at hand or too large to regenerate whole.",
-    )
-    max_components: int = Field(6, ge=1, description="Most mixture components tried (chosen by BIC).")
-    samples: int = Field(
-        256,
-        ge=0,
-        description="Sampler z_B decoded with z_k = 0 and with z_k sampled (T = 1), each member replayed "
-        "once: the member path head's labels beside the records.",
-    )
-    seed: int = Field(
-        3000,
-        ge=0,
-        description="Seed of those draws (evaluate uses 0, calibrate 1000, the designer's Random none).",
-    )
-    epochs: int = Field(400, ge=1, description="Epochs of the member path head.")
-    lr: float = Field(2e-3, gt=0, description="Peak learning rate of the head (Adam, cosine to 1%).")
-    hidden: int = Field(
-        128, ge=8, description="Width of the head's hidden layers (docs/model.md: 128 over 256)."
-    )
-    head_sees_z_b: bool = Field(
-        False,
-        description="The head also reads the member's z_B (a record's posterior, a sampler gait's draw). "
-        "Off for the shipped checkpoint: its path is then the member's alone (docs/model.md).",
-    )
-    head_inputs: HeadInputs = Field(
-        "coefficients",
-        description="What describes a member to the head: its coefficients (the shipped undulation "
-        "checkpoint) or its named parameters (kind, amplitudes, wavenumbers, phases, frequency, "
-        "steering; the every family's, docs/every-model.md).",
-    )
-    mirror: bool = Field(
-        False,
-        description="Train the head on each member's mirror image too (yaw joints negated: the path "
-        "mirrored) where it is a member (``StructuredConfig.mirrors``): more examples at no replay cost.",
-    )
-    val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
-    head_path: HeadPath = Field(
-        "direct",
-        description="How the head draws the path in the plane (``model.member_path.HeadPath``): "
-        "positions directly, or (heading) velocities in the body's frame turned by the predicted "
-        "heading and summed, so a turn in place ends where its yaw takes it.",
-    )
-    xy_floor: float | None = Field(
-        None,
-        gt=0,
-        description="Weight each example's forward and sideways errors by 1 / (its path's scale² + "
-        "this²) (m; ``model.member_path.fit_member_head``), so a turn in place that wanders half a "
-        "metre is fitted as closely, relative to its size, as a 15 m undulation. None: errors in "
-        "the family's metres (the library checkpoint's head).",
-    )
-    balance_kinds: bool = Field(
-        False,
-        description="Weight each training example by 1 / its kind's share, so that every kind of member "
-        "(undulation, sidewinding, rolling, turning in place) weighs the same in the head's loss, as in "
-        "the per-kind figures (docs/model.md).",
-    )
-
-    @model_validator(mode="after")
-    def _mirror_has_no_z_b(self) -> SamplerConfig:
-        if self.mirror and self.head_sees_z_b:
-            raise ValueError(
-                "a mirrored member has no z_B of its own: mirror and head_sees_z_b exclude each other"
-            )
-        return self
 
 
 def _drawn(cfg: SamplerConfig) -> dict:

@@ -15,11 +15,9 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.model.checkpoint import (
     SCHEMA_VERSION,
@@ -32,6 +30,9 @@ from snakeloco.model.config import ModelConfig
 from snakeloco.model.losses import loss_terms
 from snakeloco.model.metrics import r2_overall, r2_per_channel
 from snakeloco.model.network import HierarchicalVAE
+from snakeloco.model.options import PRESETS as PRESETS  # re-exported: the recipes live with the configs
+from snakeloco.model.options import TrainConfig
+from snakeloco.model.options import TrainPreset as TrainPreset
 from snakeloco.model.stats import stats_vector
 from snakeloco.sim import BODY_DOWNSAMPLE, load_dataset, mjcf_sha256, servo_response, synthesis_phase
 from snakeloco.sim.robot import DEFAULT_ROBOT
@@ -39,53 +40,6 @@ from snakeloco.sim.robot import DEFAULT_ROBOT
 
 class TrainingError(RuntimeError):
     """Training cannot run or went wrong: the asked-for device is missing, or the loss diverged."""
-
-
-class TrainConfig(BaseModel):
-    """Optimisation settings (the model's own are in ``ModelConfig``)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-    epochs: int = Field(300, ge=1, description="Training epochs (the shipped model: 140, preset paper).")
-    batch_size: int = Field(
-        128, ge=2, description="Records per step (the MMD and batch statistics need two)."
-    )
-    lr_min: float = Field(2e-4, gt=0, description="Floor of the cyclical learning rate (paper).")
-    lr_max: float = Field(4e-3, gt=0, description="First peak of the cyclical learning rate (paper).")
-    cycle_epochs: float = Field(
-        50.0,
-        gt=0,
-        description="Period of the triangular learning-rate cycle (epochs); the paper's 800 scaled to a "
-        "140-epoch CPU run.",
-    )
-    peak_decay: float = Field(0.5, gt=0, le=1, description="Peak multiplier per completed cycle.")
-    val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of records held out for validation.")
-    seed: int = Field(0, ge=0, description="Seed of the split, initialisation and batches.")
-    device: Literal["cpu", "cuda"] = Field("cpu", description="Torch device; cuda only where present.")
-    grad_clip: float = Field(10.0, gt=0, description="Gradient-norm clip.")
-
-
-class TrainPreset(NamedTuple):
-    """A named training recipe: the settings that made a shipped checkpoint."""
-
-    train: TrainConfig
-    model: ModelConfig
-
-
-PRESETS: dict[str, TrainPreset] = {
-    "paper": TrainPreset(TrainConfig(epochs=140), ModelConfig()),
-    "structured": TrainPreset(
-        TrainConfig(epochs=200, cycle_epochs=50.0),
-        ModelConfig(
-            z_b_dim=8, body_sees_signals=True, body_signals_see_latent=True, encoder_sees_signals=True
-        ),
-    ),
-}
-"""``snakeloco train --preset NAME`` starts from these (any option still overrides them). ``paper``:
-the shipped checkpoint of the paper family (``model/pretrained``), 140 epochs on the 4096-record
-dataset (docs/model.md). ``structured``: the structured family's recipe, chosen on its first 1744
-records (docs/structured-notes.md: z_B of 8, the body decoder and encoder both seeing the joint
-signals, 200 epochs in cycles of 50)."""
 
 
 def cyclic_lr(epoch: float, cfg: TrainConfig) -> float:

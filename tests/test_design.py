@@ -305,3 +305,32 @@ def test_uniform_design_targets_cover_every_direction_and_the_range():
         bench_design(None)
     with pytest.raises(ValueError, match="0 < min <= max"):
         bench_design(None, reach=(5.0, 2.0))
+
+
+def test_a_target_beyond_the_familys_reach_is_answered_at_once(checkpoint, tmp_path, capsys):
+    """`design --forward 1e6` searched 5 minutes before saying not met: now the family's reach answers."""
+    from snakeloco.model import load_pretrained
+    from snakeloco.model.design import nearest_in_reach
+
+    model = load_pretrained(checkpoint)
+    assert nearest_in_reach(model, Target(forward=1.0, sideways=0.0), QUICK) is None  # a search is worth it
+    reach_m, nearest = nearest_in_reach(model, Target(forward=1e6, sideways=0.0), QUICK)
+    assert 0 < reach_m < 1e3 and len(nearest.z_b) == model.z_b_dim
+    main(
+        [
+            "design",
+            "--checkpoint",
+            str(checkpoint),
+            "--forward",
+            "1e6",
+            "--sideways",
+            "0",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    out = capsys.readouterr().out
+    assert "beyond the family's reach" in out and "no search was run" in out
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["met"] is False and report["replays"] == 1 and report["beyond_reach"]["distance_m"] == 1e6
+    assert len(report["candidates"]) == 1 and (tmp_path / "candidate_1.csv").exists()
