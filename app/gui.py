@@ -22,7 +22,10 @@ SLIDER_RANGE = 3.0
 """Sliders span +/- 3 standard deviations: of z_B ~ N(0, I), or along a density component's axes."""
 NO_BASELINE = "none"
 """The Baseline dropdown's entry for "no library gait"."""
-PATH_PLOTS = {"forward (m)": 1, "sideways (m)": 2, "yaw (rad)": 5}
+PATH_PLOTS = {"forward (m)": 1, "sideways (m)": 2, "heading (deg)": 5}
+"""Path plots and their body channel; the heading in degrees, as the readout says it (the body
+series holds radians)."""
+PLOT_SCALE = {"heading (deg)": 180.0 / np.pi}
 """Generated-vs-simulated plots: title -> body channel (``sim.BODY_CHANNELS``)."""
 PATH_PLOT_BUCKET = 4
 """The path plots draw each 4 samples (0.8 s) of the 5 Hz body series as their lowest and highest
@@ -125,8 +128,9 @@ class Controls:
         """Generated vs simulated body series (500, 6) in the plots; a missing one is drawn as NaN."""
         missing = np.full(len(PATH_PLOT_TIMES), np.nan)
         for name, ch in PATH_PLOTS.items():
-            gen = path_plot_values(generated[:, ch]) if generated is not None else missing
-            sim = path_plot_values(simulated[:, ch]) if simulated is not None else missing
+            k = PLOT_SCALE.get(name, 1.0)
+            gen = path_plot_values(k * generated[:, ch]) if generated is not None else missing
+            sim = path_plot_values(k * simulated[:, ch]) if simulated is not None else missing
             set_plot_data(self.plots[name], plot_series(PATH_PLOT_TIMES, gen, sim))
 
     def set_joint_count(self, gui: viser.GuiApi, n_joints: int) -> None:

@@ -3,6 +3,10 @@ physics itself allows (markdown for viser's ``add_markdown``)."""
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
+
 from snakeloco.app.session import DecodedGait, SimulatedGait
 from snakeloco.sim.consistency import PREDICTABLE
 
@@ -37,6 +41,32 @@ def spread_text(std: float, relative: float) -> str:
     return text + (f" ({100 * relative:.1f}%)" if relative < 1.0 else "")
 
 
+RELATIVE_FLOOR: dict[str, float] = dict(zip(PREDICTABLE, (0.5, 0.005, 0.001, math.pi), strict=True))
+"""Smallest simulated value (SI units) of each statistic that is a base for a percentage: a path of
+0.5 m, 5 mm/s, 1 mm of vertical oscillation, half a turn of roll. Below it the error is said in the
+statistic's units: a net roll error of 618% where the gait does not roll (0.03 rad against 0.2) says
+nothing a person can use."""
+R2_MIN_DISTANCE_M = 0.5
+"""Shortest simulated path (start to end, m) whose xy-path R² is shown: the R² of a path that barely
+moves divides by a variance of millimetres (R² -1.42 beside "inside the ensemble spread")."""
+
+
+def error_text(key: str, f: dict, unit: float) -> str:
+    """A statistic's model error: relative where the simulated value is a base for it
+    (``RELATIVE_FLOOR``), else absolute in the row's units."""
+    if abs(f[key + "_simulated"]) >= RELATIVE_FLOOR[key]:
+        return f"{100 * f[key + '_err']:.0f}%"
+    return f"{unit * abs(f[key + '_decoded'] - f[key + '_simulated']):.2g}"
+
+
+def r2_text(f: dict) -> str:
+    """The xy-path R², or why it is not shown (a path too short for it)."""
+    travelled = f.get("displacement_m", np.inf)
+    if travelled < R2_MIN_DISTANCE_M:
+        return f"xy-path R²: not shown (the replay moved {travelled:.2f} m: too little for a fit to mean anything)"
+    return f"xy-path R²: {f['xy_r2']:.2f}"
+
+
 OFF_DATA = (
     "⚠ **Off the data**: this z_B is less likely under the training records' density than 99% of "
     "them; its gait and path are the model's extrapolation."
@@ -48,8 +78,14 @@ def gait_text(gait: DecodedGait) -> str:
     residual) and the off-the-data flag; empty for a gait with neither."""
     lines = []
     if gait.member is not None:
-        fit = f" (decoded shape {100 * gait.residual:.1f}% off it)" if gait.residual is not None else ""
-        lines.append(f"**Gait**: {gait.member.describe()}{fit}")
+        lines.append(f"**Gait**: {gait.member.describe()}")
+        if (
+            gait.residual is not None
+        ):  # the member is what is replayed: the residual is the decode's, not an error
+            lines.append(
+                f"The model decoded a joint shape {100 * gait.residual:.0f}% (relative distance) from this "
+                "member; the member itself is replayed, drawn and exported."
+            )
     if gait.off_data:
         lines.append(OFF_DATA)
     return "\n\n".join(lines)
@@ -96,13 +132,12 @@ def simulated_text(gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> str
             for key, (label, unit) in STAT_ROWS.items():
                 table.append(
                     f"| {label} | {unit * f[key + '_decoded']:.3g} | {unit * f[key + '_simulated']:.3g} | "
-                    f"{100 * f[key + '_err']:.0f}% | {spread_text(unit * f[key + '_std'], f[key + '_spread'])} |"
+                    f"{error_text(key, f, unit)} | {spread_text(unit * f[key + '_std'], f[key + '_spread'])} |"
                 )
             inside = "**inside**" if f["final_inside"] else "**outside**"
             lines += [
                 "\n".join(table),
-                f"xy-path R²: {f['xy_r2']:.2f} · decoded final position {inside} the ensemble spread "
-                f"({f['final_z']:.1f}× RMS)",
+                f"{r2_text(f)} · decoded final position {inside} the ensemble spread ({f['final_z']:.1f}× RMS)",
             ]
         if f.get("ensemble_broken"):
             lines.append(f"{int(f['ensemble_broken'])} ensemble member(s) broke and were left out.")

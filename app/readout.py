@@ -198,10 +198,8 @@ class TabReadout:
         from snakeloco.app.scene import BAND_COLOR, FAN_COLOR, GEN_COLOR, SIM_COLOR, VARIATION_COLOR
         from snakeloco.sim import RECORD
 
-        if gait.member is not None:
+        if gait.member is not None:  # what is replayed and drawn; how near the decode was is the panel's
             words = f"Gait: {gait.member.describe()}"
-            if gait.residual is not None:
-                words += f" (the decoded shape was {100 * gait.residual:.1f}% off this member)"
         else:
             words = "" if gait.source == "model" else f"Gait: {gait.source}"
         self.readout = Readout(

@@ -22,3 +22,33 @@ def test_the_readout_says_headings_in_half_turns_and_no_percentage_of_a_short_pa
     assert "+42° (1.1 turns left)" in text and "402" not in text
     far = PathEnd(3.0, 10.0, 5.0, 3.0, 0.5)
     assert 'data-key="gap-share"' in readout_html(Readout(model=model, mujoco=far, state="done"), colors)
+
+
+def test_the_panel_says_each_error_where_it_has_a_base_and_no_r2_of_a_path_that_barely_moved():
+    """Issue 59's numbers: a net-roll error of 618% where the gait does not roll, R² -1.42 beside
+    "inside the ensemble spread", "95% off this member" beside a 0.03 m gap."""
+    import math
+
+    import numpy as np
+
+    from snakeloco.app.gui import PATH_PLOTS, PLOT_SCALE
+    from snakeloco.app.panel import error_text, gait_text, r2_text
+    from snakeloco.app.session import DecodedGait
+    from snakeloco.sim.gaits import PRESETS
+    from snakeloco.sim.members import Member
+
+    no_roll = {"net_roll_simulated": 0.2, "net_roll_decoded": 0.03, "net_roll_err": 6.18}
+    assert error_text("net_roll", no_roll, 1.0) == "0.17"  # rad, not 618%
+    rolls = {"net_roll_simulated": 30.0, "net_roll_decoded": 27.0, "net_roll_err": 0.1}
+    assert error_text("net_roll", rolls, 1.0) == "10%"
+    assert r2_text({"displacement_m": 0.2, "xy_r2": -1.42}).startswith(
+        "xy-path R²: not shown (the replay moved 0.20 m"
+    )
+    assert r2_text({"displacement_m": 3.0, "xy_r2": 0.97}) == "xy-path R²: 0.97"
+    member = Member(kind="undulate", wave=PRESETS["undulate"].gait)
+    gait = DecodedGait(
+        None, np.zeros((8, 8, 2)), None, np.zeros((2000, 8)), 1.0, member=member, residual=0.95
+    )
+    text = gait_text(gait)
+    assert "95%" in text and "the member itself is replayed" in text and "off this member" not in text
+    assert "heading (deg)" in PATH_PLOTS and PLOT_SCALE["heading (deg)"] == 180 / math.pi  # one unit: degrees
