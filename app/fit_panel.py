@@ -182,7 +182,9 @@ class FitPanel:
         gait = self.tab.decoded
         if gait.latents is not None:  # the model's gait: decoded again, its path kept, replayed here
             return self.tab.request_decode()
-        return self.tab._submit(self.tab.physics, ("load", gait.source, f"Robot: {label}", gait.commands))
+        return self.tab._submit(
+            self.tab.physics, ("load", gait.source, f"Robot: {label}", gait.commands, gait.no_model)
+        )
 
     def robot_changed(self) -> None:
         """The tab now designs for another robot (a family trained on it): the Robot dropdown offers

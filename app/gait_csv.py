@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
@@ -222,7 +223,7 @@ def gait_comments(
     comments = {"snakeloco gait": "commands (rad) at 20 Hz, replay with `snakeloco` or sim.physics.replay"}
     if gait.latents is not None:
         lat = gait.latents
-        comments["z_B"] = "[" + ", ".join(f"{v:.4f}" for v in lat.z_b) + "]"
+        comments["z_B"] = "[" + ", ".join(repr(float(v)) for v in lat.z_b) + "]"  # exact: import restores it
         if lat.axes is not None:  # sliders along a cluster's axes (``model.density``)
             comments["sliders"] = (
                 "[" + ", ".join(f"{v:.4f}" for v in lat.axes) + f"] in cluster {lat.component + 1}"
@@ -267,6 +268,41 @@ def library_gait_csv(name: str, robot: Robot = DEFAULT_ROBOT) -> str:
         f"carried to {robot.name} by the serpenoid rule (docs/robot.md), not measured there",
     }
     return write_gait_csv(gait.commands(robot), comments, robot)
+
+
+def exported_latents(text: str) -> tuple[dict | None, str]:
+    """Where a gait CSV says it came from in its comments (Export CSV's ``gait_comments``): its z_B,
+    z_k mode, seed and temperature and the checkpoint's hash, or None and why not in words."""
+    found = {}
+    for line in text.splitlines():
+        if not line.startswith("# "):
+            continue
+        key, _, value = line[2:].partition(": ")
+        found.setdefault(key, value.strip())
+    if "z_B" not in found:
+        return None, "the file names no z_B (a library gait, a design candidate or a hand-written file)"
+    try:
+        z_b = tuple(float(v) for v in found["z_B"].strip("[]").split(","))
+    except ValueError:
+        return None, f"its '# z_B:' comment is not a list of numbers ({found['z_B'][:40]})"
+    mode = found.get("z_k mode", "zero")
+    latents = {
+        "z_b": z_b,
+        "zk_mode": "zero",
+        "seed": 0,
+        "temperature": 1.0,
+        "checkpoint": found.get("checkpoint sha256"),
+    }
+    if mode.startswith("sampled"):
+        m = re.fullmatch(r"sampled \(seed (\d+), temperature ([-+0-9.eE]+)\)", mode)
+        try:
+            numbers = [float(v) for v in m.groups()] if m else []
+        except ValueError:
+            numbers = []
+        if len(numbers) != 2:
+            return None, f"its '# z_k mode:' comment is not one Export CSV writes ({mode[:40]})"
+        latents |= {"zk_mode": "sampled", "seed": int(numbers[0]), "temperature": numbers[1]}
+    return latents, ""
 
 
 def read_member(text: str):

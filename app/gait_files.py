@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from snakeloco.app.gait_csv import GaitCSVError, gait_comments, read_gait_csv, write_gait_csv
-from snakeloco.app.session import DecodedGait, Timing
+from snakeloco.app.session import DecodedGait, Latents, Timing, decode_latents
 from snakeloco.sim import SimulationError, joint_shape
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
@@ -84,8 +84,44 @@ class GaitFiles:
                 auto_close_seconds=15.0,
             )
             return None
+        text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
+        restored, why = self._restore_export(text, table.commands)
+        if restored is not None:
+            self.client.add_notification(
+                f"Import CSV: {name}",
+                "Restored as exported: its z_B (the sliders), the model's path and the readout.",
+                auto_close_seconds=5.0,
+            )
+            return restored
         self._clear_baseline()
-        return self._submit(self.physics, ("load", f"import: {name}", f"Import CSV: {name}", table.commands))
+        no_model = f"none: {why}; its commands are replayed as written"
+        return self._submit(
+            self.physics, ("load", f"import: {name}", f"Import CSV: {name}", table.commands, no_model)
+        )
+
+    def _restore_export(self, text: str, commands: np.ndarray) -> tuple[int | None, str]:
+        """Show a file Export CSV wrote from this tab's checkpoint as the gait it was: its z_B and z_k
+        decoded again, where that gives the file's very commands (the request version); else None and
+        why the file has no model path."""
+        from snakeloco.app.gait_csv import exported_latents
+
+        found, why = exported_latents(text)
+        if found is None:
+            return None, why
+        if found["checkpoint"] != self.model.hash:
+            return None, (
+                f"exported from another checkpoint (sha256 {str(found['checkpoint'])[:12]}; this family's is "
+                f"{self.model.hash[:12]})"
+            )
+        if len(found["z_b"]) != self.model.z_b_dim:
+            return None, f"its z_B has {len(found['z_b'])} values, this family's {self.model.z_b_dim}"
+        z_b = np.asarray(found["z_b"])
+        latents = Latents(
+            found["z_b"], found["zk_mode"], found["seed"], found["temperature"], *self._axes_of(z_b)
+        )
+        if not np.array_equal(decode_latents(self.model, latents).commands, commands):
+            return None, "its commands are not what this checkpoint decodes at its z_B (edited after export?)"
+        return self.show_latents(z_b, found["zk_mode"], found["seed"], found["temperature"]), ""
 
     def load_baseline(self, name: str) -> int | None:
         """Make the library gait ``name`` (``sim.gaits.PRESETS``) the current gait: replayed, drawn,
@@ -94,17 +130,23 @@ class GaitFiles:
             return None
         robot = self.session.robot
         commands = GAIT_PRESETS[name].gait.on_robot(robot).commands(robot)
-        return self._submit(self.physics, ("load", f"library: {name}", f"Baseline: {name}", commands))
+        no_model = "none: a library gait (gait-equation parameters), not the model's"
+        return self._submit(
+            self.physics, ("load", f"library: {name}", f"Baseline: {name}", commands, no_model)
+        )
 
     def _on_upload(self) -> None:
         f = self.controls.import_button.value
         self.import_bytes(f.name, f.content)  # read_gait_csv refuses more than MAX_BYTES
 
-    def _load_job(self, source: str, title: str, commands: np.ndarray, timing: Timing, is_current) -> None:
+    def _load_job(
+        self, source: str, title: str, commands: np.ndarray, no_model: str, timing: Timing, is_current
+    ) -> None:
         """Replay given commands (an imported CSV, a library gait) as the current gait, with the
-        sliders moved to where it encodes; ``title`` heads its notifications."""
+        sliders moved to where it encodes; ``title`` heads its notifications, ``no_model`` says why
+        it has no model path."""
         shape = joint_shape(commands)
-        gait = DecodedGait(None, shape, None, commands, 0.0, source=source)
+        gait = DecodedGait(None, shape, None, commands, 0.0, source=source, no_model=no_model)
         try:
             sim = self.session.replay(gait)
         except SimulationError as exc:

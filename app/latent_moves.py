@@ -86,28 +86,44 @@ class LatentMoves:
             self._show_component(int(comp[0]))
         self._set_z(density.to_axes(int(comp[0]), z[0]))
 
-    def _on_zk_mode_changed(self) -> None:
+    def _on_zk_changed(self, control: str) -> None:
         with self._z_lock:
-            if self._quiet_mode_events:  # set from Python by show_latents, which decodes itself
-                self._quiet_mode_events -= 1
+            if self._quiet_zk[control]:  # set from Python by show_latents, which decodes itself
+                self._quiet_zk[control] -= 1
                 return
         self.request_decode()
 
-    def show_latents(self, z_b: np.ndarray) -> int:
-        """Make the gait of exactly ``z_b`` (z_k = 0) current, the sliders moved there (rounded to
-        their step: the drawn gait stays the exact one until a slider is moved)."""
+    def _set_zk_quietly(self, mode: str, seed: int, temperature: float) -> None:
+        """The z_k controls to a gait's, their callbacks told not to decode (the caller does)."""
+        c = self.controls
+        for control, handle, value in (
+            ("mode", c.zk_mode, mode),
+            ("seed", c.zk_seed, int(seed)),
+            ("temperature", c.zk_temperature, float(temperature)),
+        ):
+            if handle.value != value and (control == "mode" or mode == "sampled"):
+                self._quiet_zk[control] += 1
+                handle.value = value
+
+    def show_latents(
+        self, z_b: np.ndarray, zk_mode: str = "zero", seed: int | None = None, temperature: float = 1.0
+    ) -> int:
+        """Make the gait of exactly ``z_b`` (z_k = 0, or sampled with ``seed`` and ``temperature``)
+        current, the sliders moved there (rounded to their step: the drawn gait stays the exact one
+        until a slider is moved)."""
         self._clear_baseline()
+        seed = int(self.controls.zk_seed.value) if seed is None else seed
         with self._z_lock:
             self._programmatic_z = self._write_z(z_b)
             self._shown_z = tuple(float(v) for v in z_b)
-            if self.controls.zk_mode.value != "zero":
-                self._quiet_mode_events += 1  # its on_update must not decode the rounded sliders
-                self.controls.zk_mode.value = "zero"
+            self._set_zk_quietly(
+                zk_mode, seed, temperature
+            )  # their on_update must not decode the rounded sliders
         latents = Latents(
             tuple(float(v) for v in z_b),
-            "zero",
-            int(self.controls.zk_seed.value),
-            1.0,
+            zk_mode,
+            seed,
+            temperature if zk_mode == "sampled" else 1.0,
             *self._axes_of(z_b),
         )
         return self._submit(self.decoder, latents)

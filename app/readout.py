@@ -57,6 +57,7 @@ class Readout:
     sliders: tuple[float, ...] | None = None  # the slider values of the gait (None: a file's gait)
     robot: str = ""  # why the model's path is another robot's than the replay's (``robot_warning``)
     variations: str = ""  # how far the end point moves on other robots (``sim.robustness.readout_line``)
+    no_model: str = ""  # why a gait has no model path (an imported file, a library gait)
 
     @property
     def gap_m(self) -> float | None:
@@ -100,9 +101,9 @@ def heading_text(change_deg: float) -> str:
     return text
 
 
-def _cells(end: PathEnd | None, who: str) -> str:
+def _cells(end: PathEnd | None, who: str, why: str = "") -> str:
     if end is None:
-        return f"<td>{who}</td><td colspan=3>—</td>"
+        return f"<td>{who}</td><td colspan=3>{html.escape(why) if why else '—'}</td>"
     return (
         f"<td>{who}</td>"
         f'<td data-key="{who.lower()}-distance">{end.distance_m:.2f} m</td>'
@@ -134,7 +135,9 @@ def readout_html(r: Readout, colors: dict[str, tuple[int, int, int]]) -> str:
     else:
         state = "simulating..."
     gap = r.gap_m
-    if gap is None:
+    if r.model is None and r.no_model:
+        gap_text = "<b>End-point gap</b>: none without a model path"
+    elif gap is None:
         gap_text = "<b>End-point gap</b> after the replay"
     elif r.mujoco.distance_m >= GAP_BASE_M:
         gap_text = (
@@ -154,7 +157,7 @@ def readout_html(r: Readout, colors: dict[str, tuple[int, int, int]]) -> str:
         "<div>" + " &nbsp;".join(legend) + "</div>",
         '<table style="border-collapse:collapse;width:100%"><tr style="opacity:0.7">'
         "<td></td><td>distance</td><td>direction</td><td>heading</td></tr>",
-        f"<tr>{_cells(r.model, 'Model')}</tr><tr>{_cells(r.mujoco, 'MuJoCo')}</tr></table>",
+        f"<tr>{_cells(r.model, 'Model', r.no_model)}</tr><tr>{_cells(r.mujoco, 'MuJoCo')}</tr></table>",
         f"<div>{gap_text} · <span data-key='state'>{state}</span></div>",
     ]
     if r.gait:
@@ -215,6 +218,7 @@ class TabReadout:
             sliders=gait.latents.sliders if gait.latents is not None else None,
             robot=self.model.robot_warning(self.session.robot) or "",
             variations=self._variations_line(),
+            no_model=gait.no_model,
         )
         colors = {
             "model": GEN_COLOR,

@@ -62,6 +62,7 @@ class DecodedGait:
     member: Member | None = None  # the exact family member replayed (checkpoints that project)
     residual: float | None = None  # the projection's relative residual
     off_data: bool = False  # z_B lies where the checkpoint's density says records are not
+    no_model: str = ""  # why a loaded gait (a file, a library gait) has no model path, in words
 
 
 @dataclass

@@ -122,7 +122,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self._shown_z: tuple[float, ...] | None = None  # the exact z_B they stand for
         self._z_lock = threading.RLock()
         self._setting_z = False
-        self._quiet_mode_events = 0
+        self._quiet_zk = {"mode": 0, "seed": 0, "temperature": 0}  # z_k controls set by show_latents
         self._quiet_component_events = 0
         self._closed = threading.Event()
         self._version = 0
@@ -178,10 +178,10 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         c, g = self.controls, self._guarded
         self._wire_sliders()
         c.family.on_update(g(lambda _e: self.switch_family(c.family.value)))
-        c.zk_mode.on_update(g(lambda _e: self._on_zk_mode_changed()))
-        c.zk_seed.on_update(g(lambda _e: self.request_decode()))
+        c.zk_mode.on_update(g(lambda _e: self._on_zk_changed("mode")))
+        c.zk_seed.on_update(g(lambda _e: self._on_zk_changed("seed")))
         c.zk_temperature.on_update(
-            g(lambda _e: self.request_decode() if c.zk_mode.value == "sampled" else None)
+            g(lambda _e: self._on_zk_changed("temperature") if c.zk_mode.value == "sampled" else None)
         )
         c.resample_button.on_click(g(lambda _e: self._resample()))
         c.play_button.on_click(g(lambda _e: self.playback.toggle()))
