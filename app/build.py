@@ -187,7 +187,7 @@ class Build:
         return self.state
 
     def _generate(self) -> dict:
-        from snakeloco.app.cli import Progress
+        from snakeloco.app.progress import Progress
         from snakeloco.sim.generate import generate_dataset
         from snakeloco.sim.generate_config import GenerateConfig
         from snakeloco.sim.results import SimulationError
@@ -284,7 +284,7 @@ class Build:
         return {"best_epoch": summary.best_epoch, "epochs_run": summary.epochs_run}
 
     def _calibrate(self) -> dict:
-        from snakeloco.app.cli import Progress
+        from snakeloco.app.progress import Progress
         from snakeloco.model.replays import Fit
         from snakeloco.model.sampler import SamplerConfig, fit_sampler
 
@@ -308,7 +308,7 @@ class Build:
         return {"components": summary.get("components"), "head": summary.get("head", {})}
 
     def _evaluate(self) -> dict:
-        from snakeloco.app.cli import Progress
+        from snakeloco.app.progress import Progress
         from snakeloco.model.evaluate import ConsistencyConfig, evaluate
 
         cc = ConsistencyConfig(

@@ -37,6 +37,7 @@ from snakeloco.app.commands import (
     Train,
 )
 from snakeloco.app.options import Command, OptionError, flag, parse, parse_one
+from snakeloco.app.progress import Progress
 from snakeloco.app.robot_commands import (
     _robot,
     run_build,
@@ -103,37 +104,6 @@ def outputs_problem(cmd: Command) -> str | None:
         if problem is not None:
             return f"{flag(name)} {problem}"
     return None
-
-
-class Progress:
-    """A progress callback with a tqdm bar that opens on its first call (after the inputs are
-    checked: a refused command prints no empty bar) and closes when ``total`` is reached (before
-    the log lines that follow) or when its ``with`` block ends, however it ends."""
-
-    def __init__(self, total: int, desc: str, unit: str = "gait") -> None:
-        self.total, self.desc, self.unit = total, desc, unit
-        self.bar = None
-
-    @property
-    def n(self) -> int:
-        """Steps done so far."""
-        return self.bar.n if self.bar is not None else 0
-
-    def __call__(self, k: int) -> None:
-        from tqdm import tqdm
-
-        if self.bar is None:
-            self.bar = tqdm(total=self.total, unit=self.unit, desc=self.desc)
-        self.bar.update(k)
-        if self.bar.n >= self.bar.total:
-            self.bar.close()
-
-    def __enter__(self) -> Progress:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self.bar is not None:
-            self.bar.close()
 
 
 def run_generate(cmd: Generate) -> Path:
