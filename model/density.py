@@ -157,13 +157,17 @@ def fit_density(
     return density.model_copy(update={"threshold": threshold})
 
 
-def direction_name(forward: float, sideways: float, heading_deg: float) -> str:
+def direction_name(forward: float, sideways: float, heading_deg: float, precise: bool = False) -> str:
     """A path's end in words: "forward, 17 m", "backward, turning left, 9 m", "in place, turning
-    right 2.2 turns" (start frame, m, deg)."""
+    right 2.2 turns" (start frame, m, deg); ``precise``: to 0.1 m and 0.01 turns, with the heading
+    change of a path that does not turn ("forward, 18.8 m, heading -3°")."""
     if np.hypot(forward, sideways) < 1.0 and abs(heading_deg) >= 45:
-        return (
-            f"in place, turning {'left' if heading_deg > 0 else 'right'} {abs(heading_deg) / 360:.1f} turns"
-        )
+        turns = f"{abs(heading_deg) / 360:.2f}" if precise else f"{abs(heading_deg) / 360:.1f}"
+        return f"in place, turning {'left' if heading_deg > 0 else 'right'} {turns} turns"
+    if precise:
+        coarse = direction_name(forward, sideways, heading_deg)
+        text = f"{coarse.rsplit(',', 1)[0]}, {np.hypot(forward, sideways):.1f} m"
+        return text + (f", heading {heading_deg:+.0f}°" if abs(heading_deg) < 45 else f" ({heading_deg:+.0f}°)")
     angle = np.degrees(np.arctan2(sideways, forward))
     way = (
         "forward"
@@ -182,17 +186,37 @@ KIND_WORDS = {"undulate": "undulation", "sidewind": "sidewinding", "roll": "roll
 """A structured member's kind (``sim.members.Member.kind``) as a component's name begins it."""
 
 
-def name_components(ends: np.ndarray, kinds: list[str] | None = None) -> list[str]:
+def name_components(
+    ends: np.ndarray, kinds: list[str] | None = None, weights: list[float] | None = None
+) -> list[str]:
     """Distinct names of components from where their mean gaits end: ends (K, 3) = forward,
     sideways (m) and heading change (deg) of each component mean's predicted path; ``kinds`` (K),
-    where the family has several, the kind of each mean's member ("rolling: right, 5 m")."""
-    names: list[str] = []
-    for k, (f, s, h) in enumerate(np.asarray(ends, np.float64)):
-        name, n = direction_name(f, s, h), 2
-        if kinds is not None:
-            name = f"{KIND_WORDS.get(kinds[k], kinds[k])}: {name}"
-        base = name
-        while name in names:
+    where the family has several, the kind of each mean's member ("rolling: right, 5 m").
+
+    Names that would repeat are told apart by what differs: the distance to 0.1 m and the heading
+    change in degrees, then each component's share of the records (``weights``), and only then a
+    number: the paper family's five clusters read "forward, turning left, 1 m" three times, once
+    with "(2)" and "(3)" (issue 59)."""
+    ends = np.asarray(ends, np.float64)
+    names = [
+        (f"{KIND_WORDS.get(kinds[k], kinds[k])}: " if kinds is not None else "") + direction_name(f, s, h)
+        for k, (f, s, h) in enumerate(ends)
+    ]
+    names = [  # to 0.1 m, 0.01 turns and the heading in degrees where the coarse name repeats
+        (n.split(": ")[0] + ": " if kinds is not None else "") + direction_name(f, s, h, precise=True)
+        if names.count(n) > 1
+        else n
+        for n, (f, s, h) in zip(names, ends, strict=True)
+    ]
+    if weights is not None:
+        names = [
+            f"{n}, {100 * w:.0f}% of the records" if names.count(n) > 1 else n
+            for n, w in zip(names, weights, strict=True)
+        ]
+    out: list[str] = []
+    for name in names:
+        base, n = name, 2
+        while name in out:
             name, n = f"{base} ({n})", n + 1
-        names.append(name)
-    return names
+        out.append(name)
+    return out

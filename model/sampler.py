@@ -249,7 +249,7 @@ def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
     else:
         _, body = model.decode(means)
     ends = np.stack([body[:, -1, 1], body[:, -1, 2], np.degrees(body[:, -1, 5] - body[:, 0, 5])], axis=1)
-    density = density.model_copy(update={"names": name_components(ends, kinds)})
+    density = density.model_copy(update={"names": name_components(ends, kinds, density.weights)})
     summary["names"] = density.names
     summary["wall_time_s"] = time.perf_counter() - t_start
     summary["data"] = str(fit.data)

@@ -55,7 +55,24 @@ def test_the_density_separates_clusters_samples_deterministically_and_flags_the_
 def test_components_are_named_by_where_their_gaits_go():
     names = name_components(np.array([[17.0, 1.0, 5.0], [-12.0, 0.5, 0.0], [0.5, 4.0, 120.0], [16.0, 0, 0]]))
     assert names == ["forward, 17 m", "backward, 12 m", "left, turning left, 4 m", "forward, 16 m"]
-    assert name_components(np.array([[5.0, 0, 0], [5.2, 0, 0]])) == ["forward, 5 m", "forward, 5 m (2)"]
+    # Names that would repeat say what differs: 0.1 m and the heading, then the share of the records.
+    assert name_components(np.array([[5.0, 0, 0], [5.2, 0, 2.0]])) == [
+        "forward, 5.0 m, heading +0°",
+        "forward, 5.2 m, heading +2°",
+    ]
+    same = np.array([[5.0, 0, 0], [5.0, 0, 0], [0.2, 0.1, 400.0], [0.1, 0.3, 770.0]])
+    assert name_components(same, weights=[0.5, 0.2, 0.2, 0.1]) == [
+        "forward, 5.0 m, heading +0°, 50% of the records",
+        "forward, 5.0 m, heading +0°, 20% of the records",
+        "in place, turning left 1.1 turns",
+        "in place, turning left 2.1 turns",
+    ]
+    assert name_components(np.array([[5.0, 0, 0], [5.0, 0, 0]]))[1] == "forward, 5.0 m, heading +0° (2)"
+    from snakeloco.model import load_pretrained
+
+    for family in ("structured", "paper"):  # the shipped clusters all read differently
+        names = load_pretrained(family).config.density.names
+        assert len(set(names)) == len(names) and not any("(2)" in n for n in names)
     # A family of several kinds names each component's kind first (the every family's sampler).
     kinds = name_components(np.array([[0.5, -5.0, 3.0], [0.2, 0.1, 800.0]]), ["roll", "turn"])
     assert kinds == ["rolling: right, 5 m", "turning wave: in place, turning left 2.2 turns"]
