@@ -54,6 +54,20 @@ SHAPE_SCALE = 1.5
 """Point-cloud metres per radian of FFT coefficient."""
 JOINT_SPACING = 0.12
 """Point-cloud height step between joints (m)."""
+SHAPES_AT = {"decoded": (-1.5, 1.0, 0.0), "measured": (-1.5, -1.0, 0.0)}
+"""Where the decoded and re-measured joint shapes' point clouds stand (start frame, m)."""
+SHAPE_CORNERS = np.array(
+    [(0.0, 0.0, 0.0)]
+    + [
+        (x + dx, y + dy, z)
+        for x, y, _ in SHAPES_AT.values()
+        for dx in (-0.6, 0.6)
+        for dy in (-0.6, 0.6)
+        for z in (0.0, 1.2)
+    ]
+)
+"""What framing keeps in view beside the paths: the start and the point clouds (their typical
+extent, 0.4 rad coefficients, and their labels), which a first view framed on the paths alone cut."""
 LAYERS = (
     "Snake",
     "Generated path",
@@ -149,7 +163,7 @@ class TabScene:
         scene.add_label("/shapes/measured/label", "re-measured joint shape", position=(0, 0, 1.15))
         self.shape_frames = {
             name: scene.add_frame(f"/shapes/{name}", position=position, show_axes=True, axes_length=0.3)
-            for name, position in (("decoded", (-1.5, 1.0, 0.0)), ("measured", (-1.5, -1.0, 0.0)))
+            for name, position in SHAPES_AT.items()
         }
         self.clouds: dict[str, viser.PointCloudHandle] = {}
         self.metres = MetreGrid(scene)
@@ -343,7 +357,7 @@ class TabScene:
     def frame(self, force: bool = False) -> bool:
         """Point the camera at the snake's start and both paths (``view.Framer``: not after the
         user moved it, unless ``force``); returns whether it moved."""
-        points = [np.zeros((1, 3)), *(p for p in (self._gen_points, self._sim_points) if p is not None)]
+        points = [SHAPE_CORNERS, *(p for p in (self._gen_points, self._sim_points) if p is not None)]
         return self.framer.frame(np.concatenate(points), force=force)
 
     def draw_fan(self, ensemble_body: np.ndarray) -> None:

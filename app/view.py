@@ -25,6 +25,9 @@ FRAME_STILL = 0.01
 of where they are is not sent: the view moves by a few pixels at most, and most slider moves of a
 drag frame within it (a camera move is two messages and 1.5 ms of a decoded view's 3-4 ms of the
 server's drawing, cProfile of one tab). The margin (``FRAME_MARGIN``) keeps what is framed in view."""
+PANEL_PX = 350
+"""Pixels of the canvas's right side under viser's control panel (its 320 px and margins, measured
+at 1500 px): what is framed goes in the rest, or a path's end can sit behind the readout."""
 GRID_HALF_M = 40
 """The metre grid spans +/- this many metres around the start (the fastest gaits go ~33 m in 100 s)."""
 RINGS_M = (1.0, 2.0, 5.0, 10.0, 20.0, 30.0)
@@ -151,16 +154,24 @@ class MetreGrid:
             node.visible = on
 
 
-def framing(points: np.ndarray, fov: float, aspect: float) -> tuple[np.ndarray, np.ndarray]:
+def framing(
+    points: np.ndarray, fov: float, aspect: float, covered: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Camera position and look-at (start frame, m) that show ``points`` (n, 3) whole from
     ``VIEW_DIRECTION``: their bounding circle (at least 1 m across) fits the narrower of the vertical
-    field of view ``fov`` (rad) and the horizontal one that ``aspect`` (width / height) gives."""
+    field of view ``fov`` (rad) and the horizontal one that ``aspect`` (width / height) gives, in the
+    part of the image left of the ``covered`` share of its width (the control panel): the camera
+    moves right by as much, so that the circle's centre lands in the middle of what is seen."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     centre = (p.min(axis=0) + p.max(axis=0)) / 2
     radius = max(float(np.linalg.norm(p - centre, axis=1).max()), 0.5)
-    half = min(fov / 2, np.arctan(np.tan(fov / 2) * max(aspect, 1e-3)))
+    seen = 1.0 - float(np.clip(covered, 0.0, 0.6))
+    half = min(fov / 2, np.arctan(np.tan(fov / 2) * max(aspect * seen, 1e-3)))
     distance = FRAME_MARGIN * radius / np.sin(half)
-    return centre + VIEW_DIRECTION * distance, centre
+    right = np.cross(-VIEW_DIRECTION, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    shift = right * (1.0 - seen) * distance * np.tan(fov / 2) * aspect
+    return centre + VIEW_DIRECTION * distance + shift, centre + shift
 
 
 def in_view(points: np.ndarray, position, look_at, fov: float, aspect: float) -> np.ndarray:
@@ -201,7 +212,9 @@ class Framer:
             return False
         camera = self.client.camera
         aspect = camera.aspect if camera.image_height > 0 else 1.5
-        position, look_at = framing(points, camera.fov, aspect)
+        width = camera.image_width
+        covered = PANEL_PX / width if width >= 3 * PANEL_PX else 0.0  # a narrow page: the panel floats
+        position, look_at = framing(points, camera.fov, aspect, covered)
         still = FRAME_STILL * float(np.linalg.norm(position - look_at))
         here, target = np.asarray(camera.position, np.float64), np.asarray(camera.look_at, np.float64)
         if np.linalg.norm(position - here) < still and np.linalg.norm(look_at - target) < still:

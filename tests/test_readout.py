@@ -52,3 +52,26 @@ def test_the_panel_says_each_error_where_it_has_a_base_and_no_r2_of_a_path_that_
     text = gait_text(gait)
     assert "95%" in text and "the member itself is replayed" in text and "off this member" not in text
     assert "heading (deg)" in PATH_PLOTS and PLOT_SCALE["heading (deg)"] == 180 / math.pi  # one unit: degrees
+
+
+def test_framing_keeps_the_paths_and_the_point_clouds_left_of_the_control_panel():
+    """Issue 59, point 2: a path's end sat behind the panel and the point clouds were cut."""
+    import numpy as np
+
+    from snakeloco.app.scene import SHAPE_CORNERS
+    from snakeloco.app.view import PANEL_PX, framing
+
+    fov, width, height = np.radians(50), 1500, 950
+    aspect, covered = width / height, PANEL_PX / width
+    for path in (np.array([[0, 0, 0], [16.0, -4.0, 0]]), np.array([[0, 0, 0], [-2.0, 9.5, 0]])):
+        points = np.concatenate([SHAPE_CORNERS, path])
+        position, look_at = framing(points, fov, aspect, covered)
+        f = (look_at - position) / np.linalg.norm(look_at - position)
+        right = np.cross(f, [0, 0, 1.0])
+        right /= np.linalg.norm(right)
+        up = np.cross(right, f)
+        v = points - position
+        x = (v @ right) / (v @ f) / (np.tan(fov / 2) * aspect)  # -1 left edge, +1 right edge
+        y = (v @ up) / (v @ f) / np.tan(fov / 2)
+        panel_edge = 1 - 2 * covered
+        assert (x > -1).all() and (x < panel_edge).all() and (np.abs(y) < 1).all()
