@@ -11,7 +11,8 @@ import viser.uplot as uplot
 
 from snakeloco.app.export import ROBOT_FORMATS
 from snakeloco.app.fit_panel import FitControls, build_fit_controls
-from snakeloco.app.scene import GEN_COLOR, LAYERS, LIGHT_RENDERING, SIM_COLOR, joint_colors
+from snakeloco.app.scene import GEN_COLOR, LAYERS, LIGHT_RENDERING, SIM_COLOR
+from snakeloco.app.scene_geometry import joint_colors
 from snakeloco.app.viser_patches import set_plot_data
 from snakeloco.sim import BODY_TIMES, N_JOINTS, RECORD
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS

@@ -18,7 +18,8 @@ from snakeloco.model.api import GaitModel
 from snakeloco.sim import BODY_DOWNSAMPLE, BODY_RATE, SimulationError, joint_shape
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, compare, perturbed_commands
 from snakeloco.sim.members import Member
-from snakeloco.sim.physics import Simulator, StreamedReplay
+from snakeloco.sim.physics import Simulator
+from snakeloco.sim.results import StreamedReplay
 from snakeloco.sim.robot import Robot
 from snakeloco.sim.scheduler import FairPhysics, OnTurns, Turn
 from snakeloco.sim.threads import resolve_workers

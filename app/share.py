@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from snakeloco.app.scene import FAN_COLOR, GEN_COLOR, SIM_COLOR, SNAKE_COLOR, path_points, polyline
+from snakeloco.app.scene import FAN_COLOR, GEN_COLOR, SIM_COLOR, SNAKE_COLOR
+from snakeloco.app.scene_geometry import path_points, polyline
 from snakeloco.app.view import framing
 from snakeloco.sim.consistency import ENSEMBLE_SIZE, perturbed_commands
 from snakeloco.sim.excitation import RECORD

@@ -167,7 +167,9 @@ def direction_name(forward: float, sideways: float, heading_deg: float, precise:
     if precise:
         coarse = direction_name(forward, sideways, heading_deg)
         text = f"{coarse.rsplit(',', 1)[0]}, {np.hypot(forward, sideways):.1f} m"
-        return text + (f", heading {heading_deg:+.0f}°" if abs(heading_deg) < 45 else f" ({heading_deg:+.0f}°)")
+        return text + (
+            f", heading {heading_deg:+.0f}°" if abs(heading_deg) < 45 else f" ({heading_deg:+.0f}°)"
+        )
     angle = np.degrees(np.arctan2(sideways, forward))
     way = (
         "forward"

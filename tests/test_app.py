@@ -13,7 +13,8 @@ from test_app_parts import bad_gait_files
 from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.gait_csv import read_gait_csv, write_gait_csv
 from snakeloco.app.gui import path_plot_values
-from snakeloco.app.scene import FAN_STEP, shape_points
+from snakeloco.app.scene import FAN_STEP
+from snakeloco.app.scene_geometry import shape_points
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.session import Latents
 from snakeloco.sim.physics import replay
@@ -253,7 +254,7 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
 
 
 def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server):
-    from snakeloco.sim.physics import STREAM_CHUNK, STREAM_FIRST
+    from snakeloco.sim.results import STREAM_CHUNK, STREAM_FIRST
 
     client, d = connect_headless(server)
     try:

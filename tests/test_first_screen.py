@@ -12,7 +12,7 @@ from PIL import Image
 
 from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.readout import GAP_BASE_M, READOUT_ID, heading_text
-from snakeloco.app.scene import path_points
+from snakeloco.app.scene_geometry import path_points
 from snakeloco.app.view import in_view
 
 from helpers import BROWSER, designer_page

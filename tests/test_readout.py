@@ -58,7 +58,7 @@ def test_framing_keeps_the_paths_and_the_point_clouds_left_of_the_control_panel(
     """Issue 59, point 2: a path's end sat behind the panel and the point clouds were cut."""
     import numpy as np
 
-    from snakeloco.app.scene import SHAPE_CORNERS
+    from snakeloco.app.scene_geometry import SHAPE_CORNERS
     from snakeloco.app.view import PANEL_PX, framing
 
     fov, width, height = np.radians(50), 1500, 950

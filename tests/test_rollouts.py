@@ -166,7 +166,7 @@ def test_a_batch_left_while_it_waits_for_its_turn_is_not_simulated(tiny_dataset)
 def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_left(monkeypatch):
     from snakeloco.sim import threads
     from snakeloco.sim.gaits import PRESETS
-    from snakeloco.sim.physics import STREAM_FIRST
+    from snakeloco.sim.results import STREAM_FIRST
     from snakeloco.sim.threads import RolloutThreads
 
     simulator = Simulator(workers=1)
