@@ -252,7 +252,7 @@ def test_framing_sends_a_camera_move_only_where_the_view_would_move():
             super().__setattr__(name, np.asarray(value, np.float64))
 
     camera = Camera(position=(-2.5, -3.5, 2.5), look_at=(0.0, 0.0, 0.0))
-    camera.__dict__.update(fov=np.radians(50), aspect=1.5, image_height=600)
+    camera.__dict__.update(fov=np.radians(50), aspect=1.5, image_height=600, image_width=900)
     client = SimpleNamespace(camera=camera, atomic=contextlib.nullcontext)
     framer = Framer(client)
     path = np.stack([np.linspace(0, 10, 50), np.zeros(50), np.zeros(50)], -1)

@@ -86,6 +86,15 @@ def test_bench_load_protocol_clients_with_a_page_beside_them(checkpoint, capsys)
     )
 
 
+def test_bench_load_jumps_pattern_times_every_move(checkpoint, capsys):
+    """Issue 59's own client: z_B 1 jumps, the client waits for that replay, rests; 8 moves each."""
+    r = _bench_load(capsys, checkpoint, "--pattern", "jumps", "--no-browser-page")
+    assert r["pattern"] == "jumps" and r["server_exceptions"] == 0, r["exception_messages"]
+    assert r["single_replays_drawn"] == 8 and r["replays_drawn"] == [8, 8]  # every jump's replay came
+    assert np.isfinite([r["single_replay_p95_ms"], *r["multi_replay_p95_ms"], r["replay_p95_ratio"]]).all()
+    assert r["stale_draws"] == 0, r["stale_details"]
+
+
 def test_bench_tabs_two_rendering_tabs_in_one_browser(checkpoint, capsys):
     pytest.importorskip("playwright.sync_api")
     from snakeloco.app.cli import main

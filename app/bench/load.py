@@ -107,6 +107,7 @@ def bench_load(
     browser_nice: int | None = None,
     driver: str = "protocol",
     browser_page: bool = True,
+    pattern: str = "drags",
 ) -> dict:
     """Run the single-client and ``clients``-client phases and summarise them (see module docstring).
     ``driver``: "protocol" (``bench.protocol`` clients; ``browser_page``: one Chromium page beside
@@ -143,7 +144,9 @@ def bench_load(
                     log(f"{n} client(s) dragging sliders for {length:g} s")
                 if driver == "protocol":
                     with_page = browser_page and n == clients and clients > 1
-                    phases[n] = protocol_phase(server, n, length, rng, Path(tmp), log, pages, with_page, seed)
+                    phases[n] = protocol_phase(
+                        server, n, length, rng, Path(tmp), log, pages, with_page, seed, pattern
+                    )
                 else:
                     phases[n] = browser_phase(server, n, length, rng, Path(tmp), log, pages)
     finally:
@@ -169,6 +172,7 @@ def bench_load(
     pages_checked = [ph["page"] for ph in phases.values() if ph.get("page")]
     result = {
         "driver": driver,
+        "pattern": pattern,
         "clients": clients,
         "seconds": seconds,
         "rendered": render,

@@ -109,6 +109,7 @@ def protocol_phase(
     pages,
     with_page: bool,
     gaits_seed: int,
+    pattern: str = "drags",
 ) -> dict:
     """``n`` protocol clients drag for ``seconds`` (plus, ``with_page``, one Chromium page); the
     phase in ``bench_load``'s form. ``gaits_seed``: every client drags through the same gaits
@@ -144,6 +145,7 @@ def protocol_phase(
                 CLIENT_NICE,
                 SETTLE_S,
                 gaits_seed,
+                pattern,
             ),
             name="bench-load-protocol",
         )

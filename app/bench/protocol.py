@@ -39,6 +39,15 @@ send periods), the clients' sends stayed on one 50 ms grid: 16.5-17% of the slid
 the server within 1 ms of another client's, against 1.5% for independent users at that rate, and
 the values queued for the decode stage in bunches (bench load, 8 clients, 2026-12-04)."""
 DONE_STATES = ("done", "failed")
+JUMPS = 8
+"""Moves of a client of the ``jumps`` pattern (issue 59's own load client): z_B 1 jumps to a random
+value, the client waits for that gait's replay, rests ``JUMP_REST_S`` and jumps again."""
+JUMP_REST_S = (0.5, 1.5)
+"""Its rest after each replay (s, uniform)."""
+PATTERNS = ("drags", "jumps")
+"""How the protocol clients move the sliders: ``drags`` (a random slider dragged in 10-30 sends,
+resting ``dwell``) or ``jumps`` (``JUMPS``: one value a move, the next once its replay is in; a
+newcomer's tab, playback running and full rendering)."""
 MOVES = 3
 """Single moves each client makes after its drags, each once the last one's replay is done: the
 bytes of one slider move (decoded view, streamed replay, ensemble)."""
@@ -172,9 +181,9 @@ class ProtocolClient:
 
     # --- a user ------------------------------------------------------------------------------
 
-    async def join(self, timeout: float = 90.0) -> None:
-        """Connect, report a camera, wait for the sliders and the first replay; pause playback and
-        turn light rendering on."""
+    async def join(self, timeout: float = 90.0, prepare: bool = True) -> None:
+        """Connect, report a camera, wait for the sliders and the first replay; ``prepare``: pause
+        playback and turn light rendering on (as the browser driver does; a newcomer does neither)."""
         self._ws = await websockets.connect(self.url, subprotocols=[subprotocol()], max_size=None)
         self._reader = asyncio.ensure_future(self._read(self._ws))
         await self._ws.send(msgspec.msgpack.encode(CAMERA))
@@ -183,8 +192,31 @@ class ProtocolClient:
         ):
             raise RuntimeError(f"the designer at {self.url} sent no sliders and replay within {timeout:g} s")
         self.values = [float(self.gui[u]["value"]) for u in self.sliders()]
-        await self.send(self.find("Pause", "GuiButtonMessage"), True)
-        await self.send(self.find("Light rendering", "GuiCheckboxMessage"), True)
+        if prepare:
+            await self.send(self.find("Pause", "GuiButtonMessage"), True)
+            await self.send(self.find("Light rendering", "GuiCheckboxMessage"), True)
+
+    async def jump(self, settle_s: float = 60.0) -> Drag:
+        """z_B 1 to a new random value in one send (a click on its track), waiting until that gait's
+        replay is in (or ``settle_s``), then resting ``JUMP_REST_S``."""
+        uuid = self.sliders()[0]
+        props = self.gui[uuid]["props"]
+        lo, hi, step = float(props["min"]), float(props["max"]), float(props["step"])
+        value = self.values[0]
+        while value == self.values[0]:  # a move whose value equals the last changes nothing
+            value = round(round(float(self.gaits.uniform(lo, hi)) / step) * step, 6)
+        self.values[0] = value
+        drag = Drag(0, tuple(self.values), time.perf_counter())
+        self.drags.append(drag)
+        await self.send(uuid, value)
+        await self.wait_for(lambda: np.isfinite(drag.replayed), settle_s)
+        await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))
+        return drag
+
+    async def jump_for(self, jumps: int) -> None:
+        await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))  # users do not start together
+        for _ in range(jumps):
+            await self.jump()
 
     async def drag(self, dwell: float) -> Drag:
         """Drag one random slider to a random value in 10-30 sends 50 ms apart (the last one sent
@@ -305,7 +337,14 @@ def stream_problems(s: dict) -> list[str]:
 
 
 async def _run(
-    url: str, seeds: list[int], seconds: float, dwell: float, settle_s: float, done=None, gaits_seed=None
+    url: str,
+    seeds: list[int],
+    seconds: float,
+    dwell: float,
+    settle_s: float,
+    done=None,
+    gaits_seed=None,
+    pattern: str = "drags",
 ) -> dict:
     """Join ``len(seeds)`` clients, drag for ``seconds``, wait for each last drag's replay; returns the
     clients' summaries and the cores this process used while they dragged. ``gaits_seed``: every
@@ -313,10 +352,11 @@ async def _run(
     ``done``: a coroutine function awaited, clients still connected and reading, before they leave
     (the caller checks the server's tabs meanwhile)."""
     clients = [ProtocolClient(url, seed, gaits_seed) for seed in seeds]
-    await asyncio.gather(*(c.join() for c in clients))
+    jumps = pattern == "jumps"
+    await asyncio.gather(*(c.join(prepare=not jumps) for c in clients))
     bytes_before = [c.bytes for c in clients]
     cpu0, wall0 = time.process_time(), time.perf_counter()
-    await asyncio.gather(*(c.drag_for(seconds, dwell) for c in clients))
+    await asyncio.gather(*(c.jump_for(JUMPS) if jumps else c.drag_for(seconds, dwell) for c in clients))
     cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
     moved = [c.bytes - b for c, b in zip(clients, bytes_before, strict=True)]
 
@@ -354,6 +394,7 @@ def main(
     nice: int,
     settle_s: float,
     gaits_seed=None,
+    pattern: str = "drags",
 ) -> None:
     """Process entry (``bench load``): run the clients (``_run``), send ``("ok", result)`` (or ``("error",
     message)``), and keep them connected until the benchmark sends anything back."""
@@ -367,7 +408,7 @@ def main(
         await asyncio.get_running_loop().run_in_executor(None, conn.poll, 600.0)
 
     try:
-        asyncio.run(_run(url, seeds, seconds, dwell, settle_s, done, gaits_seed))
+        asyncio.run(_run(url, seeds, seconds, dwell, settle_s, done, gaits_seed, pattern))
     except Exception as exc:
         conn.send(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=4)}"))
     finally:
