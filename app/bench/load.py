@@ -108,6 +108,7 @@ def bench_load(
     driver: str = "protocol",
     browser_page: bool = True,
     pattern: str = "drags",
+    variations: bool = False,
 ) -> dict:
     """Run the single-client and ``clients``-client phases and summarise them (see module docstring).
     ``driver``: "protocol" (``bench.protocol`` clients; ``browser_page``: one Chromium page beside
@@ -126,9 +127,11 @@ def bench_load(
     if split:
         pin_process(split[0])  # before the server starts: its threads inherit the server half
     tune_process()  # as `snakeloco serve` runs it
-    # Without the Variations fan: the figures stay comparable with docs/load.md (the fan runs after
-    # the ensemble at the pool's lowest turn but design; docs/variations.md has its own timing).
-    server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False, variations=False)
+    # Without the Variations fan unless asked (--variations): the figures stay comparable with
+    # docs/load.md (the fan runs after the ensemble at the pool's lowest turn but design and fits).
+    server = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False, variations=variations
+    )
     freeze_started()  # as `snakeloco serve` does
     rss = RssSampler()
     browser_idle = driver == "protocol"  # the page stands for a browser on another machine
@@ -173,6 +176,7 @@ def bench_load(
     result = {
         "driver": driver,
         "pattern": pattern,
+        "variations": variations,
         "clients": clients,
         "seconds": seconds,
         "rendered": render,
