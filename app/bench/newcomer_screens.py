@@ -1,0 +1,95 @@
+"""A newcomer's path through the designer (issue 59) in one Chromium page at 1500x950: first load, a
+slider drag, the family switch, a cluster change, an import of the exported gait and a finished
+design, each a screenshot (JPEG) with whether both paths' ends are on the canvas, in OUT/report.json.
+
+    python -m snakeloco.app.bench.newcomer_screens static/screens/newcomer
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
+from snakeloco.app.scene_geometry import path_points
+from snakeloco.app.server import DesignerServer
+from snakeloco.app.view import in_view
+
+W, H = 1500, 950
+
+
+def ends_seen(d) -> tuple[bool, int]:
+    """Whether the model's and MuJoCo's path ends are both inside the camera's image, and how many."""
+    cam = d.client.camera
+    pts = []
+    if d.decoded is not None and d.decoded.body_ds is not None:
+        pts.append(path_points(d.decoded.body_ds, 0.0)[-1])
+    if d.simulated is not None:
+        pts.append(path_points(d.simulated.body, 0.0)[-1])
+    inside = in_view(np.array(pts), cam.position, cam.look_at, cam.fov, cam.aspect)
+    return bool(inside.all()), len(pts)
+
+
+def main(out: Path) -> dict:
+    from playwright.sync_api import sync_playwright
+
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {}
+
+    def shot(page, d, name: str) -> None:
+        time.sleep(2.5)  # the camera's move and the last frames drawn
+        Image.open(io.BytesIO(page.screenshot())).convert("RGB").save(out / f"{name}.jpg", quality=80)
+        inside, n = ends_seen(d)
+        report[name] = {"path_ends_in_canvas": inside, "paths": n, "readout_state": d.readout.state}
+        print(name, report[name], flush=True)
+
+    srv = DesignerServer(port=0, ensemble=2, workers=2, verbose=False, variations=False)
+    try:
+        with sync_playwright() as p:
+            b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            page = b.new_page(viewport={"width": W, "height": H})
+            page.goto(f"http://127.0.0.1:{srv.port}")
+            assert wait_until(lambda: len(srv.clients) == 1, 60)
+            d = next(iter(srv.clients.values()))
+            assert d.wait_idle(120)
+            shot(page, d, "1-first-load")
+            d.sliders[0].value = 2.0
+            assert wait_until(
+                lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 120
+            )
+            shot(page, d, "2-drag")
+            exported = d.export_text()
+            d.controls.family.value = "paper"
+            assert wait_until(lambda: d.model.family == "paper" and d.idle() and d.simulated is not None, 120)
+            shot(page, d, "3-family-paper")
+            d.controls.family.value = "structured"
+            assert wait_until(lambda: d.model.family == "structured" and d.idle(), 120)
+            d.controls.component.value = d.model.config.density.names[4]
+            time.sleep(1)
+            assert wait_until(lambda: d.idle() and d.simulated is not None, 120)
+            shot(page, d, "4-cluster")
+            d.import_bytes("exported.csv", exported.encode())
+            time.sleep(1)
+            assert wait_until(lambda: d.idle() and d.simulated is not None, 120)
+            shot(page, d, "5-import")
+            dc = d.controls.design
+            dc.forward.value, dc.sideways.value = 3.0, 2.0
+            time.sleep(0.5)
+            d.design.request()
+            assert d.design.worker.wait_idle(400) and wait_until(lambda: d.idle(), 120)
+            shot(page, d, "6-design-finished")
+            report["design_status"] = dc.status.content
+    finally:
+        srv.stop()
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    return report
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]))
