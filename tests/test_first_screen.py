@@ -98,3 +98,73 @@ def test_the_readout_is_in_view_and_says_what_the_server_computed_and_the_camera
         assert np.allclose(d.client.camera.position, (30.0, 30.0, 2.0), atol=0.05)
         page.get_by_role("button", name="Frame paths").click()
         assert wait_until(lambda: _ends_in_view(d), 15)
+
+
+def _left_of_panel(d) -> bool:
+    """Both paths' ends and the start project inside the canvas, left of the control panel."""
+    from snakeloco.app.view import PANEL_PX
+
+    cam = d.client.camera
+    pts = np.array(
+        [[0.0, 0.0, 0.0], path_points(d.decoded.body_ds, 0.0)[-1], path_points(d.simulated.body, 0.0)[-1]]
+    )
+    pos, f = np.asarray(cam.position, np.float64), np.asarray(cam.look_at, np.float64) - cam.position
+    f /= np.linalg.norm(f)
+    right = np.cross(f, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, f)
+    v = pts - pos
+    x = (v @ right) / (v @ f) / (np.tan(cam.fov / 2) * cam.aspect)
+    y = (v @ up) / (v @ f) / np.tan(cam.fov / 2)
+    edge = 1 - 2 * PANEL_PX / cam.image_width
+    return bool(((v @ f) > 0).all() and (x > -1).all() and (x < edge).all() and (np.abs(y) < 1).all())
+
+
+def test_a_newcomers_first_hour_in_the_browser():
+    """Issue 59, points 1-6 in one Chromium page at 1500x950 on the shipped checkpoints: the structured
+    family first; framed left of the panel after load, drag, family and cluster; a target beyond
+    reach answered at once; numbers in one unit each; an import that round-trips; clusters named apart."""
+    with designer_page(None, viewport=VIEWPORT) as (sync_api, _srv, page, d):
+        readout = page.locator(f"#{READOUT_ID}")
+        # 1. The family whose promise holds, first; the paper family one click away.
+        assert d.model.family == "structured" and d.controls.family.options[:2] == ("structured", "paper")
+        # 2. Framing, after load and after each change that replaces the gait.
+        assert wait_until(lambda: _left_of_panel(d), 15), "first load: a path end behind the panel"
+        d.sliders[0].value = 2.0
+        assert wait_until(
+            lambda: d.idle() and d.decoded.latents.axes[0] == 2.0 and d.simulated is not None, 120
+        )
+        assert wait_until(lambda: _left_of_panel(d), 15), "drag"
+        exported, model_cell = d.export_text(), readout.locator('[data-key="model-distance"]').inner_text()
+        d.controls.family.value = "paper"
+        assert wait_until(lambda: d.model.family == "paper" and d.idle() and d.simulated is not None, 120)
+        assert wait_until(lambda: _left_of_panel(d), 15), "family switch"
+        sync_api.expect(readout).to_contain_text("paths are a spread", timeout=30000)
+        # 6. Clusters named apart (they read "forward, turning left, 1 m", "(2)", "(3)").
+        names = d.controls.component.options
+        assert len(set(names)) == len(names) and not any("(2)" in n for n in names)
+        d.controls.family.value = "structured"
+        assert wait_until(lambda: d.model.family == "structured" and d.idle(), 120)
+        d.controls.component.value = d.controls.component.options[4]
+        assert wait_until(
+            lambda: d.idle() and d.decoded.latents.component == 4 and d.simulated is not None, 120
+        )
+        assert wait_until(lambda: _left_of_panel(d), 15), "cluster change"
+        # 4. One unit per quantity: the heading plot in degrees, as the readout.
+        sync_api.expect(page.locator(".u-title", has_text="heading (deg)")).to_be_visible(timeout=30000)
+        assert page.locator(".u-title", has_text="yaw (rad)").count() == 0
+        # 5. The exported gait imports as exported: the same model path in the readout.
+        d.import_bytes("mine.csv", exported.encode())
+        assert wait_until(
+            lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 120
+        )
+        sync_api.expect(readout.locator('[data-key="model-distance"]')).to_have_text(
+            model_cell, timeout=30000
+        )
+        # 3. A target beyond the family's reach is answered at once, from what the family reaches.
+        d.controls.design.forward.value, d.controls.design.sideways.value = 1000.0, 0.0
+        assert wait_until(lambda: d.design.marker.position[0] == 1000.0, 10)
+        d.design.request()
+        assert d.design.worker.wait_idle(120)
+        assert "Beyond reach" in d.controls.design.status.content  # in its folder, closed at first
+        assert d.design.result.replays == 1 and not d.design.result.met
