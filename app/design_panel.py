@@ -39,6 +39,18 @@ def candidate_label(rank: int, c: Candidate) -> str:
     return f"{rank}: {c.error_m:.2f} m off (spread {c.spread_m:.2f} m)"
 
 
+def robust_line(result) -> str:
+    """What a robust design adds to its verdict: where candidate 1 ends on the other robots."""
+    robust = result.extra.get("robust")
+    if not robust:
+        return ""
+    r = robust[0]
+    return (
+        f"\n\n**On other robots** candidate 1 ends at most {r['worst_m']:.2f} m from the target (worst: "
+        f"{r['worst_variation']}; p90 {r['p90_m']:.2f} m over {r['replayed']} variations, each replayed)."
+    )
+
+
 class DesignPanel:
     """Wires a tab's ``DesignControls``; ``tab`` is its ``DesignerClient``."""
 
@@ -127,10 +139,19 @@ class DesignPanel:
                 )
 
         runner = LocalBackend.on(self.tab.session.simulator_for(Turn.DESIGN))
-        result = design(
-            self.tab.model, target, self.config, runner=runner, cancelled=stopped, on_verify=verifying
-        )
-        if stopped():
+        if self.controls.robust.value:
+            from snakeloco.model.robust_design import robust_design
+
+            result = robust_design(
+                self.tab.model, target, self.config, runner=runner, cancelled=stopped, on_verify=verifying
+            )
+        else:
+            result = design(
+                self.tab.model, target, self.config, runner=runner, cancelled=stopped, on_verify=verifying
+            )
+        if stopped() or not result.candidates:
+            if not stopped():
+                self.controls.status.content = "**Not met**: no candidate could be verified"
             return
         self.result, self.candidates = result, result.candidates
         labels = tuple(candidate_label(i + 1, c) for i, c in enumerate(self.candidates))
@@ -155,7 +176,7 @@ class DesignPanel:
             self.controls.status.content = (
                 f"{verdict} (tolerance {result.tolerance_m:.2f} m; {result.rounds} rounds, search "
                 f"{result.search_s:.1f} s, physics {result.physics_s:.1f} s for {result.replays} replays). "
-                "Spread: where physics itself scatters the end."
+                "Spread: where physics itself scatters the end." + robust_line(result)
             )
             self.controls.candidate.options = (NO_CANDIDATE, *labels)
         # The best candidate becomes the current gait at once (the others stay in the dropdown): a

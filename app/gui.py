@@ -72,6 +72,7 @@ class DesignControls:
     button: viser.GuiButtonHandle
     status: viser.GuiMarkdownHandle
     candidate: viser.GuiDropdownHandle
+    robust: viser.GuiCheckboxHandle
 
 
 def build_design_controls(gui: viser.GuiApi) -> DesignControls:
@@ -80,6 +81,13 @@ def build_design_controls(gui: viser.GuiApi) -> DesignControls:
         sideways = gui.add_number("Sideways (m)", 0.0, step=0.1, hint="Final sideways displacement (left +)")
         use_heading = gui.add_checkbox("Match heading", False, hint="Also ask for a heading change")
         heading = gui.add_number("Heading (deg)", 0.0, step=5.0, hint="Heading change in 100 s (left +)")
+        robust = gui.add_checkbox(
+            "Robust to other robots",
+            False,
+            hint="Rank the verified candidates by their worst end over the 12 physics variations (friction, "
+            "anisotropy, masses, servo gains, slope, latency), each candidate replayed on every one: "
+            "about 12 times the physics of a design (docs/variations.md)",
+        )
         button = gui.add_button("Design", hint="Search z_B for gaits that end there, verify each in MuJoCo")
         status = gui.add_markdown("Set a target (or click the ground), then press **Design**.")
         candidate = gui.add_dropdown(
@@ -88,7 +96,7 @@ def build_design_controls(gui: viser.GuiApi) -> DesignControls:
             initial_value=NO_CANDIDATE,
             hint="Make a verified candidate the current gait",
         )
-    return DesignControls(forward, sideways, use_heading, heading, button, status, candidate)
+    return DesignControls(forward, sideways, use_heading, heading, button, status, candidate, robust)
 
 
 @dataclass

@@ -291,7 +291,7 @@ def design(
     first: Candidate | None = None
     replays = rounds = 0
     t0 = time.perf_counter()
-    beyond = nearest_in_reach(model, target, cfg)
+    beyond = nearest_in_reach(model, target, cfg) if cfg.reach_check else None
     search_s += time.perf_counter() - t0
     if beyond is not None:  # answered from what the family reaches: its nearest gait, replayed
         reach_m, nearest = beyond

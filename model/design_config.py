@@ -85,6 +85,13 @@ class DesignConfig(BaseModel):
     )
     refine_sigma: float = Field(0.2, gt=0, description="CMA-ES initial step of a refinement (prior units).")
     refine_generations: int = Field(20, ge=1, description="CMA-ES generations of a refinement.")
+    reach_check: bool = Field(
+        True,
+        description="Answer a target far beyond the family's reach at once with its nearest gait "
+        "(``model.design.nearest_in_reach``) instead of searching; off: always search (``bench design`` "
+        "measures the search itself).",
+        json_schema_extra={"cli": False},
+    )
 
     @model_validator(mode="after")
     def _enough_starts(self) -> DesignConfig:

@@ -75,19 +75,28 @@ def robust_design(
     robot=None,
     variations: tuple[Variation, ...] = DEFAULT_SET,
     score: str = "worst",
+    runner=None,
+    cancelled=None,
+    on_verify=None,
 ) -> DesignResult:
     """Design for ``target`` (twice the candidates), then rank the verified candidates by their
     ``score`` ("worst" or "p90") error over ``variations`` (every one replayed). ``met``: the best
-    one's nominal and worst-case errors both within the tolerance."""
+    one's nominal and worst-case errors both within the tolerance. ``runner``: an open backend to
+    replay on (the designer's turns; left open), else one opened here; ``cancelled`` and
+    ``on_verify`` as ``design``'s."""
     cfg = cfg or DesignConfig()
     wide = cfg.model_copy(update={"candidates": min(2 * cfg.candidates, 32)})
-    runner = open_backend(backend, workers, robot=robot or model.robot)
+    own = runner is None
+    runner = runner or open_backend(backend, workers, robot=robot or model.robot)
     try:
-        result = design(model, target, wide, runner=runner)
+        result = design(model, target, wide, runner=runner, cancelled=cancelled, on_verify=on_verify)
         verified = [c for c in result.candidates if c.simulated is not None]
+        if cancelled is not None and cancelled():
+            verified = []
         scores = worst_case(verified, model, target, runner, variations) if verified else []
     finally:
-        runner.close()
+        if own:
+            runner.close()
     key = "worst_m" if score == "worst" else "p90_m"
     order = sorted(range(len(verified)), key=lambda i: scores[i][key])[: cfg.candidates]
     ranked = [verified[i] for i in order]

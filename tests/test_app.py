@@ -102,17 +102,26 @@ def test_export_import_export_round_trips_exactly(server):
     try:
         assert apply(d, d.sliders[1], -0.8, 60)
         first = d.export_text()
-        assert first.startswith("# snakeloco gait") and "# z_B: [0.0000, -0.8000" in first
+        assert first.startswith("# snakeloco gait") and "# z_B: [0.0, -0.8" in first  # z_B exactly
         rows = _data_rows(first)
         assert rows[0] == "time_s," + ",".join(f"joint_{k}" for k in range(1, 9)) and len(rows) == 2001
+        assert apply(d, d.sliders[1], 0.3, 60)
         version = d.import_bytes("gait.csv", first.encode())
         assert version is not None and d.wait_idle(60)
-        # Writing the encoding into the sliders ran their callbacks: none asked for a decode over it.
-        assert d.version == version and d.decoded.source == "import: gait.csv"
+        # An export of this checkpoint comes back as the gait it was: its z_B decoded again (issue 59).
+        assert d.version == version and d.decoded.source == "model" and d.decoded.latents.z_b[1] == -0.8
         second = d.export_text()
         assert _data_rows(second) == rows
         np.testing.assert_array_equal(read_gait_csv(second).commands, read_gait_csv(first).commands)
-        assert "# z_B (encoded)" in second
+        # A file that is not this checkpoint's export is replayed exactly as written, the sliders where
+        # it encodes.
+        other = first.replace(d.model.hash, "0" * 64)
+        version = d.import_bytes("other.csv", other.encode())
+        assert version is not None and d.wait_idle(60)
+        # Writing the encoding into the sliders ran their callbacks: none asked for a decode over it.
+        assert d.version == version and d.decoded.source == "import: other.csv"
+        third = d.export_text()
+        assert _data_rows(third) == rows and "# z_B (encoded)" in third
         # The imported commands were replayed exactly as written (the simulator's replay, to the bit).
         expected = replay(read_gait_csv(first).commands)
         np.testing.assert_array_equal(d.simulated.joint_angles, expected.joint_angles)

@@ -42,12 +42,15 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
         path = tmp_path / "gait.csv"
         info.value.save_as(path)
         text = path.read_text()
-        assert f"# z_B: [{d.sliders[0].value:.4f}" in text
+        z = d.decoded.latents.z_b
+        assert f"# z_B: [{float(z[0])!r}" in text  # exactly, so that the import restores it
         table = read_gait_csv(text.encode())
         np.testing.assert_array_equal(table.commands, d.decoded.commands)
-        # Import it back through the upload button.
+        # Import it back through the upload button: the gait it was, its z_B decoded again.
+        before = d.version
         page.locator("input[type=file]").first.set_input_files(str(path))
-        assert wait_until(lambda: d.decoded.source == "import: gait.csv" and d.idle(), 90)
+        assert wait_until(lambda: d.version > before and d.idle(), 90)
+        assert d.decoded.source == "model" and d.decoded.latents.z_b == z
         np.testing.assert_array_equal(d.decoded.commands, table.commands)
         # An oversized upload is refused when it starts (nothing buffered) with a visible message,
         # and a malformed one after parsing; the imported gait stays in both cases.
@@ -61,7 +64,7 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
         bad.write_text(path.read_text().replace("joint_8", "joint_9"))
         page.locator("input[type=file]").first.set_input_files(str(bad))
         sync_api.expect(page.get_by_text("Import CSV: bad.csv rejected")).to_be_visible(timeout=90000)
-        assert d.idle() and d.decoded.source == "import: gait.csv"
+        assert d.idle() and d.decoded.source == "model" and d.decoded.latents.z_b == z
         np.testing.assert_array_equal(d.decoded.commands, table.commands)
         page.wait_for_timeout(1500)
         screenshot = tmp_path / "designer.png"  # under the test's own folder: nothing goes into the repo

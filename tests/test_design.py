@@ -334,3 +334,38 @@ def test_a_target_beyond_the_familys_reach_is_answered_at_once(checkpoint, tmp_p
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["met"] is False and report["replays"] == 1 and report["beyond_reach"]["distance_m"] == 1e6
     assert len(report["candidates"]) == 1 and (tmp_path / "candidate_1.csv").exists()
+
+
+@pytest.mark.slow
+def test_the_designer_designs_robust_to_other_robots_when_asked(checkpoint):
+    """Issue 55: the Design panel's "Robust to other robots" ranks candidates by their worst end over
+    the variations, each replayed, and says where candidate 1 ends on them."""
+    from snakeloco.app.server import DesignerServer
+
+    from helpers import connect_headless
+
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+    )
+    client = None
+    try:
+        client, d = connect_headless(srv)
+        d.design.config = DesignConfig(
+            candidates=1, screen=16, starts=1, generations=3, population=4, rounds=1
+        )
+        d.controls.design.robust.value = True
+        d.controls.design.forward.value, d.controls.design.sideways.value = 0.5, 0.0
+        d.design.request()
+        assert d.design.worker.wait_idle(300)
+        robust = d.design.result.extra["robust"]
+        assert (
+            len(robust) == 1
+            and robust[0]["replayed"] == 12
+            and robust[0]["worst_m"] >= d.design.result.candidates[0].error_m
+        )
+        assert "On other robots" in d.controls.design.status.content
+        assert srv.errors == []
+    finally:
+        if client is not None:
+            client.close()
+        srv.stop()
