@@ -306,7 +306,8 @@ def design(
             "beyond_reach": {
                 "reach_m": reach_m,
                 "distance_m": float(np.hypot(target.forward, target.sideways)),
-            }
+            },
+            "first_round_best": None,  # no round was searched
         }
         return DesignResult(
             target,

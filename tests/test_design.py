@@ -272,7 +272,10 @@ def test_bench_design_compares_with_the_same_physics_budget(checkpoint, tiny_dat
         # a gait that spins turns many times), would be a broken measurement.
         assert 0 < r[name]["error_rel_median"] < 100 and 0 <= r[name]["heading_error_deg_median"] < 1e5
         assert 0 <= r[name]["met_share"] <= 1
-    assert r["design"]["error_rel_median"] <= r["design_first_round"]["error_rel_median"]
+    # Refinement keeps every verified candidate: a target met in round 1 stays met. (Its distance
+    # error need not fall: candidates are ranked on the whole objective, heading included, and the
+    # tiny model's numbers move with torch's threads from one training to the next.)
+    assert r["design"]["met_share"] >= r["design_first_round"]["met_share"]
     assert r["seconds_p95"] >= r["seconds_p50"] > 0
     assert r["unreachable"]["met"] is False and r["unreachable"]["error_m"] > 50
     # Uniform targets all round: no dataset, no heading asked.

@@ -277,9 +277,18 @@ def test_inverse_design_on_a_sampler_checkpoint_searches_on_the_data(member_chec
     best = search(m, target, cfg)[0]
     assert not m.off_data(best.z_b[None])[0]
     assert best.cost < 3 * OUTSIDE_COST
-    # A target no gait of the family reaches: MuJoCo says not met, with the closest end it reached.
-    far = design(m, Target(forward=100.0, sideways=0.0), cfg.model_copy(update={"rounds": 1}), workers=2)
+    # A target no gait of the family reaches: searched (the reach check off), MuJoCo says not met, with
+    # the closest end it reached; with the check (the default) answered at once, one replay.
+    far = design(
+        m,
+        Target(forward=100.0, sideways=0.0),
+        cfg.model_copy(update={"rounds": 1, "reach_check": False}),
+        workers=2,
+    )
     assert far.met is False and far.candidates[0].error_m > 80 and far.replays == 2 + 2 * 3
+    at_once = design(m, Target(forward=100.0, sideways=0.0), cfg, workers=2)
+    assert at_once.met is False and at_once.replays == 1 and at_once.rounds == 0
+    assert at_once.extra["beyond_reach"]["distance_m"] == 100.0 and at_once.candidates[0].error_m > 80
 
 
 @pytest.mark.slow

@@ -33,7 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from snakeloco.app.bench.load_browser import percentile, require_browser
+from snakeloco.app.bench.load_browser import comment_numbers, percentile, require_browser
 from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.bench.processes import BrowserNice, RssSampler
 from snakeloco.app.gait_csv import read_gait_csv
@@ -159,7 +159,12 @@ def bench_tabs(
                     read_gait_csv(path.read_bytes())  # a whole, valid gait file, of this tab's gait
                     own |= current()
                     text = path.read_text()
-                    export_ok.append(any(f"# {k}: [{v:.4f}" in text for v in own for k in ("z_B", "sliders")))
+                    first = [
+                        numbers[0]
+                        for ln in text.splitlines()
+                        if ln.startswith(("# z_B: [", "# sliders: [")) and (numbers := comment_numbers(ln))
+                    ]
+                    export_ok.append(any(abs(f - v) < 5e-5 for f in first for v in own))
                     export_errors.append(
                         None
                         if export_ok[-1]
