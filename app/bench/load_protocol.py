@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.bench import protocol
+from snakeloco.app.bench import protocol, protocol_run
 from snakeloco.app.bench.load_browser import (
     Browser,
     breakdown_p95,
@@ -135,7 +135,7 @@ def protocol_phase(
         busy_before = dict(server.physics.busy_s)
         t_start = time.monotonic()
         process = ctx.Process(
-            target=protocol.main,
+            target=protocol_run.main,
             args=(
                 child,
                 f"http://127.0.0.1:{server.port}",
