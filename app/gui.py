@@ -14,7 +14,7 @@ from snakeloco.app.fit_panel import FitControls, build_fit_controls
 from snakeloco.app.scene import GEN_COLOR, LAYERS, LIGHT_RENDERING, SIM_COLOR
 from snakeloco.app.scene_geometry import joint_colors
 from snakeloco.app.viser_patches import set_plot_data
-from snakeloco.sim import BODY_TIMES, N_JOINTS, RECORD
+from snakeloco.sim import BODY_TIMES, RECORD
 from snakeloco.sim.gaits import PRESETS as GAIT_PRESETS
 
 HELP_PATH = Path(__file__).resolve().parent / "help.md"
@@ -232,7 +232,8 @@ def build_controls(
     family: str,
     components: list[str] | None = None,
     wide: bool = False,
-    n_joints: int = N_JOINTS,
+    *,
+    n_joints: int,
 ) -> Controls:
     """Add every folder and control of a tab to ``gui``: the readout first, in view without
     scrolling; ``wide`` (a window of at least ``WIDE_PX``): the plots open too."""

@@ -140,7 +140,8 @@ def run_build(cmd: Build) -> dict:
     robot = _robot(cmd.robot)
     cfg = QUICK if cmd.quick else BuildConfig(records=cmd.records, epochs=cmd.epochs)
     try:
-        state = Build(robot, cmd.out, cfg, cmd.workers, cmd.backend).run()
+        build = Build(robot, cmd.out, cfg, cmd.workers, cmd.backend)
+        state = build.run()
     except BuildError as exc:
         raise OptionError(str(exc)) from None
     f = state["evaluate"]["figures"]
@@ -156,5 +157,5 @@ def run_build(cmd: Build) -> dict:
             f"{k} {state[k]['seconds']:.0f} s" for k in ("generate", "train", "calibrate", "evaluate")
         )
     )
-    print(f"serve it: snakeloco serve --checkpoint {Build(robot, cmd.out, cfg).checkpoint}")
+    print(f"serve it: snakeloco serve --checkpoint {build.checkpoint}")
     return state

@@ -111,16 +111,26 @@ def _candidates(model: GaitModel, z: np.ndarray, cost: np.ndarray, n: int, rnd: 
     ]
 
 
-def search(
-    model: GaitModel, target: Target, cfg: DesignConfig, cancelled: Callable[[], bool] | None = None
-) -> list[Candidate]:
-    """CMA-ES over z_B from ``cfg.starts`` starts; the ``cfg.candidates`` best distinct optima by
-    predicted cost. ``cancelled`` is polled every generation (True: stop and return what there is)."""
-    # The shipped sampler's draws: where the training records are (N(0, I) for a checkpoint without
-    # a density, the same draws as before it had one).
+def screen_ends(model: GaitModel, cfg: DesignConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The search's screen: ``cfg.screen`` draws of the shipped sampler (where the training records
+    are; N(0, I) for a checkpoint without a density) and where each decoded path ends (``path_end``)."""
     screen = model.sample_z_b(cfg.screen, seed=cfg.seed)
     _, body = model.decode(screen)
-    cost = objective(path_end(body), target, cfg) + prior_cost(model, screen, cfg)
+    return screen, path_end(body)
+
+
+def search(
+    model: GaitModel,
+    target: Target,
+    cfg: DesignConfig,
+    cancelled: Callable[[], bool] | None = None,
+    screened: tuple[np.ndarray, np.ndarray] | None = None,
+) -> list[Candidate]:
+    """CMA-ES over z_B from ``cfg.starts`` starts; the ``cfg.candidates`` best distinct optima by
+    predicted cost. ``cancelled`` is polled every generation (True: stop and return what there is);
+    ``screened``: ``screen_ends`` already computed."""
+    screen, ends = screened if screened is not None else screen_ends(model, cfg)
+    cost = objective(ends, target, cfg) + prior_cost(model, screen, cfg)
     starts: list[np.ndarray] = []
     for i in np.argsort(cost):  # the best draws that are not next to one already taken
         if all(np.linalg.norm(screen[i] - s) > cfg.sigma0 for s in starts):
@@ -142,15 +152,18 @@ and ``met`` False. The slack keeps a search for targets a few metres off, where 
 physics did may still get there."""
 
 
-def nearest_in_reach(model: GaitModel, target: Target, cfg: DesignConfig) -> tuple[float, Candidate] | None:
+def nearest_in_reach(
+    model: GaitModel,
+    target: Target,
+    cfg: DesignConfig,
+    screened: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[float, Candidate] | None:
     """None where ``target`` may be in the family's reach; else (reach in m, the screen's draw whose
     predicted end is nearest the target): a target more than ``REACH_MARGIN`` times farther than any
     gait of the family goes, plus ``REACH_SLACK_M`` (``design --forward 1e6`` searched 5 min before
     saying not met)."""
     distance = float(np.hypot(target.forward, target.sideways))
-    screen = model.sample_z_b(cfg.screen, seed=cfg.seed)
-    _, body = model.decode(screen)
-    ends = path_end(body)
+    screen, ends = screened if screened is not None else screen_ends(model, cfg)
     farthest = float(np.hypot(ends[:, 0], ends[:, 1]).max())
     if distance <= REACH_MARGIN * farthest + REACH_SLACK_M:
         return None
@@ -291,7 +304,8 @@ def design(
     first: Candidate | None = None
     replays = rounds = 0
     t0 = time.perf_counter()
-    beyond = nearest_in_reach(model, target, cfg) if cfg.reach_check else None
+    screened = screen_ends(model, cfg)  # decoded once: the reach check and the search's starts
+    beyond = nearest_in_reach(model, target, cfg, screened) if cfg.reach_check else None
     search_s += time.perf_counter() - t0
     if beyond is not None:  # answered from what the family reaches: its nearest gait, replayed
         reach_m, nearest = beyond
@@ -324,7 +338,7 @@ def design(
         for rnd in range(1, cfg.rounds + 1):
             t0 = time.perf_counter()
             if rnd == 1:
-                proposed = search(model, target, cfg, cancelled)
+                proposed = search(model, target, cfg, cancelled, screened)
             else:
                 parents = [c for c in verified if c.simulated is not None][: cfg.candidates]
                 if not parents:

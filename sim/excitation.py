@@ -13,7 +13,7 @@ import functools
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from snakeloco.sim.robot import COMMAND_LIMIT, N_JOINTS
+from snakeloco.sim.robot import COMMAND_LIMIT
 
 
 class ExcitationConfig(BaseModel):
@@ -80,7 +80,7 @@ RECORD = ExcitationConfig()
 gait CSVs, the model's time axes and the designer all use it."""
 
 
-def random_phases(rng: np.random.Generator, cfg: ExcitationConfig, n_joints: int = N_JOINTS) -> np.ndarray:
+def random_phases(rng: np.random.Generator, cfg: ExcitationConfig, n_joints: int) -> np.ndarray:
     """Phases phi_kl uniform in [0, 2 pi), shape (N, L), rad."""
     return rng.uniform(0.0, 2.0 * np.pi, size=(n_joints, cfg.n_components))
 

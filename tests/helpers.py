@@ -29,7 +29,7 @@ def random_commands(n: int, seed: int = 0) -> np.ndarray:
     from snakeloco.sim import multisine, random_phases
 
     rng = np.random.default_rng(seed)
-    return np.stack([multisine(random_phases(rng, RECORD), RECORD)[0] for _ in range(n)])
+    return np.stack([multisine(random_phases(rng, RECORD, 8), RECORD)[0] for _ in range(n)])
 
 
 def free_port() -> int:
