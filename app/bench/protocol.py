@@ -43,6 +43,11 @@ JUMPS = 8
 value, the client waits for that gait's replay, rests ``JUMP_REST_S`` and jumps again."""
 JUMP_REST_S = (0.5, 1.5)
 """Its rest after each replay (s, uniform)."""
+JOIN_GAP_S = (1.0, 4.0)
+"""How long after the client before it a client of the ``jumps`` pattern joins (s, uniform): as
+people open the page one after another, each tab's first load (replay, ensemble, variations) runs
+while the tabs before it move, and each starts moving once it has sliders, not once its first
+replay is in."""
 PATTERNS = ("drags", "jumps")
 """How the protocol clients move the sliders: ``drags`` (a random slider dragged in 10-30 sends,
 resting ``dwell``) or ``jumps`` (``JUMPS``: one value a move, the next once its replay is in; a
@@ -180,14 +185,15 @@ class ProtocolClient:
 
     # --- a user ------------------------------------------------------------------------------
 
-    async def join(self, timeout: float = 90.0, prepare: bool = True) -> None:
-        """Connect, report a camera, wait for the sliders and the first replay; ``prepare``: pause
-        playback and turn light rendering on (as the browser driver does; a newcomer does neither)."""
+    async def join(self, timeout: float = 90.0, prepare: bool = True, first_replay: bool = True) -> None:
+        """Connect, report a camera, wait for the sliders and (``first_replay``) the first replay;
+        ``prepare``: pause playback and turn light rendering on (as the browser driver does; a
+        newcomer does neither)."""
         self._ws = await websockets.connect(self.url, subprotocols=[subprotocol()], max_size=None)
         self._reader = asyncio.ensure_future(self._read(self._ws))
         await self._ws.send(msgspec.msgpack.encode(CAMERA))
         if not await self.wait_for(
-            lambda: len(self.sliders()) > 0 and self.readout[1] in DONE_STATES, timeout
+            lambda: len(self.sliders()) > 0 and (not first_replay or self.readout[1] in DONE_STATES), timeout
         ):
             raise RuntimeError(f"the designer at {self.url} sent no sliders and replay within {timeout:g} s")
         self.values = [float(self.gui[u]["value"]) for u in self.sliders()]
@@ -212,8 +218,11 @@ class ProtocolClient:
         await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))
         return drag
 
-    async def jump_for(self, jumps: int) -> None:
-        await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))  # users do not start together
+    async def jump_for(self, jumps: int, join_after: float = 0.0) -> None:
+        """Join ``join_after`` s from now (its first load not awaited), then jump ``jumps`` times."""
+        await asyncio.sleep(join_after)
+        await self.join(prepare=False, first_replay=False)
+        await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))
         for _ in range(jumps):
             await self.jump()
 

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from snakeloco.app.bench.protocol import DONE_STATES, JUMPS, MOVES, ProtocolClient
+from snakeloco.app.bench.protocol import DONE_STATES, JOIN_GAP_S, JUMPS, MOVES, ProtocolClient
 
 
 async def _run(
@@ -28,11 +28,16 @@ async def _run(
     ``done``: a coroutine function awaited, clients still connected and reading, before they leave
     (the caller checks the server's tabs meanwhile)."""
     clients = [ProtocolClient(url, seed, gaits_seed) for seed in seeds]
-    jumps = pattern == "jumps"
-    await asyncio.gather(*(c.join(prepare=not jumps) for c in clients))
-    bytes_before = [c.bytes for c in clients]
     cpu0, wall0 = time.process_time(), time.perf_counter()
-    await asyncio.gather(*(c.jump_for(JUMPS) if jumps else c.drag_for(seconds, dwell) for c in clients))
+    if pattern == "jumps":  # one after another, each moving once it has sliders (``JOIN_GAP_S``)
+        gaps = np.cumsum([0.0, *(c.rng.uniform(*JOIN_GAP_S) for c in clients[1:])])
+        bytes_before = [0] * len(clients)
+        await asyncio.gather(*(c.jump_for(JUMPS, float(g)) for c, g in zip(clients, gaps, strict=True)))
+    else:
+        await asyncio.gather(*(c.join() for c in clients))
+        bytes_before = [c.bytes for c in clients]
+        cpu0, wall0 = time.process_time(), time.perf_counter()
+        await asyncio.gather(*(c.drag_for(seconds, dwell) for c in clients))
     cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
     moved = [c.bytes - b for c, b in zip(clients, bytes_before, strict=True)]
 
