@@ -206,12 +206,20 @@ def test_build_figures_and_sectors():
     assert f["sectors"] == {"forward": 1, "left": 0, "backward": 0, "right": 1} and f["shape_r2"] == 0.99
 
 
+FIVE = DEFAULT_ROBOT.model_copy(update={"name": "five", "n_joints": 5})
+"""A 5-joint alternating snake (pitch, yaw, pitch, yaw, pitch) of the default's links and servos."""
+
+
 @pytest.mark.slow
-def test_build_quick_goes_from_a_description_to_a_servable_model_and_resumes(tmp_path, capsys):
-    out = tmp_path / "planar6"
-    main(
-        ["build", "--robot", str(ROBOTS_DIR / "planar6.yaml"), "--out", str(out), "--quick", "--workers", "2"]
-    )
+def test_build_quick_goes_from_a_description_to_a_served_five_joint_designer(tmp_path, capsys):
+    """A 5-joint robot through ``build --quick`` to a served decode, a 5-column CSV export and its
+    replay; a second run skips every stage, other sizes are refused."""
+    from snakeloco.app.server import DesignerServer
+    from snakeloco.model import load_pretrained
+
+    robot_file, out = tmp_path / "five.yaml", tmp_path / "runs" / "five"
+    robot_file.write_text(FIVE.to_yaml())
+    main(["build", "--robot", str(robot_file), "--out", str(out), "--quick", "--workers", "2"])
     printed = capsys.readouterr().out
     assert f"serve it: snakeloco serve --checkpoint {out / 'model'}" in printed
     state = json.loads((out / "build.json").read_text())
@@ -219,16 +227,37 @@ def test_build_quick_goes_from_a_description_to_a_servable_model_and_resumes(tmp
     assert state["generate"]["travel"]["travelling_fraction"] >= 0.25
     f = state["evaluate"]["figures"]
     assert f["positions"] + f["broken"] == QUICK.positions and sum(f["sectors"].values()) == f["positions"]
-    from snakeloco.model import load_pretrained
-
     model = load_pretrained(out / "model")
-    assert model.robot == PLANAR and model.projects and model.config.density is not None
+    assert model.robot == FIVE and model.projects and model.config.density is not None
+
+    # Served: the tab decodes and replays on the 5-joint robot; its CSV has 5 joint columns and
+    # replays when imported again.
+    srv = DesignerServer(
+        port=0, families={"five": out / "model"}, ensemble=2, workers=2, verbose=False, variations=False
+    )
+    client, d = connect_headless(srv)
+    try:
+        assert d.session.robot == FIVE and d.scene.kinematics.robot.n_links == 6
+        assert d.decoded.commands.shape == (2000, 5) and d.simulated is not None
+        assert d.simulated.qpos.shape[-1] == FIVE.compile().nq
+        text = d.export_text()
+        header = next(line for line in text.splitlines() if not line.startswith("#"))
+        assert header.split(",")[1:] == [f"joint_{i}" for i in range(1, 6)]
+        exported = d.decoded.commands.copy()
+        before = d.version
+        assert d.import_bytes("five.csv", text.encode()) is not None
+        assert d.version > before and d.wait_idle(60)
+        assert np.allclose(d.decoded.commands, exported, atol=1e-5) and d.simulated is not None
+        assert d.simulated.qpos.shape[-1] == FIVE.compile().nq and srv.errors == []
+    finally:
+        client.close()
+        srv.stop()
+
     # Run again: every stage is skipped; other sizes in the same folder are refused.
-    main(["build", "--robot", str(ROBOTS_DIR / "planar6.yaml"), "--out", str(out), "--quick"])
-    again = capsys.readouterr().out
-    assert again.count("skipped") == 4
+    main(["build", "--robot", str(robot_file), "--out", str(out), "--quick"])
+    assert capsys.readouterr().out.count("skipped") == 4
     with pytest.raises(SystemExit):
-        main(["build", "--robot", str(ROBOTS_DIR / "planar6.yaml"), "--out", str(out), "--records", "64"])
+        main(["build", "--robot", str(robot_file), "--out", str(out), "--records", "64"])
     assert "its generate stage was built with other options (heldout, records)" in capsys.readouterr().err
 
 
