@@ -3,6 +3,12 @@ slider drag, the family switch, a cluster change, an import of the exported gait
 design, each a screenshot (JPEG) with whether both paths' ends are on the canvas, in OUT/report.json.
 
     python -m snakeloco.app.bench.newcomer_screens static/screens/newcomer
+
+The same path on an older main (the "before" of docs/first-screen.md: the first load on that main's
+default family, the switch to the other one), run as a file so that ``snakeloco`` is that tree:
+
+    git worktree add /tmp/old fe669c1 && mkdir -p /tmp/oldpath && ln -s /tmp/old /tmp/oldpath/snakeloco
+    PYTHONPATH=/tmp/oldpath python app/bench/newcomer_screens.py static/screens/newcomer-before
 """
 
 from __future__ import annotations
@@ -17,9 +23,13 @@ import numpy as np
 from PIL import Image
 
 from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
-from snakeloco.app.scene_geometry import path_points
 from snakeloco.app.server import DesignerServer
 from snakeloco.app.view import in_view
+
+try:
+    from snakeloco.app.scene_geometry import path_points
+except ImportError:  # a main before the scene's geometry had a module of its own
+    from snakeloco.app.scene import path_points
 
 W, H = 1500, 950
 
@@ -46,10 +56,14 @@ def main(out: Path) -> dict:
         time.sleep(2.5)  # the camera's move and the last frames drawn
         Image.open(io.BytesIO(page.screenshot())).convert("RGB").save(out / f"{name}.jpg", quality=80)
         inside, n = ends_seen(d)
-        report[name] = {"path_ends_in_canvas": inside, "paths": n, "readout_state": d.readout.state}
+        report[name] = {"path_ends_in_canvas": inside, "paths": n, "family": d.model.family}
         print(name, report[name], flush=True)
 
-    srv = DesignerServer(port=0, ensemble=2, workers=2, verbose=False, variations=False)
+    import inspect
+
+    # (a main before the Variations fan has no such option, and no fan)
+    fan = {"variations": False} if "variations" in inspect.signature(DesignerServer).parameters else {}
+    srv = DesignerServer(port=0, ensemble=2, workers=2, verbose=False, **fan)
     try:
         with sync_playwright() as p:
             b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
@@ -65,9 +79,11 @@ def main(out: Path) -> dict:
             )
             shot(page, d, "2-drag")
             exported = d.export_text()
-            d.controls.family.value = "paper"
-            assert wait_until(lambda: d.model.family == "paper" and d.idle() and d.simulated is not None, 120)
-            shot(page, d, "3-family-paper")
+            first = d.model.family  # the default family; the newcomer tries the other one, then back
+            other = "paper" if first == "structured" else "structured"
+            d.controls.family.value = other
+            assert wait_until(lambda: d.model.family == other and d.idle() and d.simulated is not None, 120)
+            shot(page, d, f"3-family-{other}")
             d.controls.family.value = "structured"
             assert wait_until(lambda: d.model.family == "structured" and d.idle(), 120)
             d.controls.component.value = d.model.config.density.names[4]
