@@ -191,6 +191,9 @@ def bench_load(
         "multi_decoded_p50_ms": [c["decoded_p50_ms"] for c in multi["clients"]],
         "multi_decoded_p95_ms": p95s,
         "multi_replay_p95_ms": [c["replay_p95_ms"] for c in multi["clients"]],
+        # --pattern held: each client's moves to the value held, send -> the panel's next "· replay"
+        "single_held_ms": single.get("held_ms", []),
+        "multi_held_ms": [c.get("held_ms", []) for c in multi["clients"]],
         "single_first_motion_p95_ms": single["first_motion_p95_ms"],
         "multi_first_motion_p95_ms": [c["first_motion_p95_ms"] for c in multi["clients"]],
         # Fairness: the worst client against one alone and against the best client.

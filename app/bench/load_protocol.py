@@ -188,6 +188,7 @@ def protocol_phase(
                     "replay_p50_ms": percentile(s["replay_ms"], 50),
                     "replay_p95_ms": percentile(s["replay_ms"], 95),
                     "replay_server_p95_ms": percentile(s["replay_server_ms"], 95),
+                    "held_ms": s["held_ms"],
                     "first_motion_p50_ms": percentile(s["first_motion_ms"], 50),
                     "first_motion_p95_ms": percentile(s["first_motion_ms"], 95),
                     "delivery_p95_ms": s["delivery_p95_ms"],
@@ -211,6 +212,13 @@ def protocol_phase(
                     f"  client {i + 1}/{n}: {c['drags']} drags, {c['replays_drawn']} replays ready, decoded "
                     f"p95 {c['decoded_p95_ms']:.0f} ms, replay p95 {c['replay_p95_ms']:.0f} ms, "
                     f"{c['kb_per_move']:.0f} kB per slider move ({c['kb_per_view']:.0f} per decoded view dragging)"
+                    + (
+                        "; moves to the value held: the panel's next '· replay' after "
+                        + ", ".join(f"{t / 1e3:.1f}" for t in c["held_ms"])
+                        + " s"
+                        if c["held_ms"]
+                        else ""
+                    )
                 )
         conn.send("close")  # the clients may leave now
         process.join(60)

@@ -48,10 +48,16 @@ JOIN_GAP_S = (1.0, 4.0)
 people open the page one after another, each tab's first load (replay, ensemble, variations) runs
 while the tabs before it move, and each starts moving once it has sliders, not once its first
 replay is in."""
-PATTERNS = ("drags", "jumps")
+HELD_JUMPS = (3, 6)
+"""The ``held`` pattern's jumps (0-based) that send the value z_B 1 already holds."""
+PATTERNS = ("drags", "jumps", "held")
 """How the protocol clients move the sliders: ``drags`` (a random slider dragged in 10-30 sends,
-resting ``dwell``) or ``jumps`` (``JUMPS``: one value a move, the next once its replay is in; a
-newcomer's tab, playback running and full rendering)."""
+resting ``dwell``), ``jumps`` (``JUMPS``: one value a move, the next once its replay is in; a
+newcomer's tab, playback running and full rendering) or ``held`` (the jumps, but jumps
+``HELD_JUMPS`` send the value the slider holds, each timed as issue 59's client timed every move:
+until the Consistency panel next says "· replay", or ``settle_s``; ``held_ms``). viser calls no
+callback for a value that did not change, so such a move starts nothing, and the panel's next
+"· replay" is the previous gait's ensemble or Variations fan finishing."""
 MOVES = 3
 """Single moves each client makes after its drags, each once the last one's replay is done: the
 bytes of one slider move (decoded view, streamed replay, ensemble)."""
@@ -98,6 +104,8 @@ class ProtocolClient:
         self.values: list[float] = []  # the slider values this client sent last
         self.delivery_s: list[float] = []  # frame made on the server -> read here
         self.send_late_s: list[float] = []  # a drag's send after the one before, past the 50 ms
+        self.held_s: list[float] = []  # ``held`` jumps: the send -> the panel's next "· replay"
+        self._panel_replay_at = float("nan")  # when the Consistency panel last said "· replay"
         self._changed = asyncio.Event()
         self._ws = None
         self.reading = True  # False: stop reading (a client that hangs; ``bench load`` tests)
@@ -143,6 +151,9 @@ class ProtocolClient:
                     g["value"] = v
                 else:
                     g["props"][k] = v
+            markdown = message["updates"].get("_markdown")
+            if isinstance(markdown, str) and "· replay" in markdown:
+                self._panel_replay_at = now
             content = message["updates"].get("content")
             if isinstance(content, str) and 'id="snakeloco-readout"' in content:
                 self.readout = parse_readout(content)
@@ -201,10 +212,19 @@ class ProtocolClient:
             await self.send(self.find("Pause", "GuiButtonMessage"), True)
             await self.send(self.find("Light rendering", "GuiCheckboxMessage"), True)
 
-    async def jump(self, settle_s: float = 60.0) -> Drag:
+    async def jump(self, settle_s: float = 60.0, held: bool = False) -> Drag | None:
         """z_B 1 to a new random value in one send (a click on its track), waiting until that gait's
-        replay is in (or ``settle_s``), then resting ``JUMP_REST_S``."""
+        replay is in (or ``settle_s``), then resting ``JUMP_REST_S``. ``held``: send the value it
+        holds and wait for the panel's next "· replay" (``PATTERNS``), into ``held_s``."""
         uuid = self.sliders()[0]
+        if held:
+            sent = time.perf_counter()
+            self._panel_replay_at = float("nan")
+            await self.send(uuid, self.values[0])
+            came = await self.wait_for(lambda: np.isfinite(self._panel_replay_at), settle_s)
+            self.held_s.append(self._panel_replay_at - sent if came else settle_s)
+            await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))
+            return None
         props = self.gui[uuid]["props"]
         lo, hi, step = float(props["min"]), float(props["max"]), float(props["step"])
         value = self.values[0]
@@ -218,13 +238,14 @@ class ProtocolClient:
         await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))
         return drag
 
-    async def jump_for(self, jumps: int, join_after: float = 0.0) -> None:
-        """Join ``join_after`` s from now (its first load not awaited), then jump ``jumps`` times."""
+    async def jump_for(self, jumps: int, join_after: float = 0.0, held: tuple[int, ...] = ()) -> None:
+        """Join ``join_after`` s from now (its first load not awaited), then jump ``jumps`` times
+        (those in ``held`` to the value held)."""
         await asyncio.sleep(join_after)
         await self.join(prepare=False, first_replay=False)
         await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))
-        for _ in range(jumps):
-            await self.jump()
+        for k in range(jumps):
+            await self.jump(held=k in held)
 
     async def drag(self, dwell: float) -> Drag:
         """Drag one random slider to a random value in 10-30 sends 50 ms apart (the last one sent
@@ -311,6 +332,7 @@ class ProtocolClient:
             "replay_ms": ms("replayed"),
             "decoded_server_ms": server_ms("decoded"),
             "replay_server_ms": server_ms("replayed"),
+            "held_ms": [1e3 * t for t in self.held_s],
             "delivery_p95_ms": 1e3 * float(np.percentile(self.delivery_s, 95))
             if self.delivery_s
             else float("nan"),

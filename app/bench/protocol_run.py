@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from snakeloco.app.bench.protocol import DONE_STATES, JOIN_GAP_S, JUMPS, MOVES, ProtocolClient
+from snakeloco.app.bench.protocol import DONE_STATES, HELD_JUMPS, JOIN_GAP_S, JUMPS, MOVES, ProtocolClient
 
 
 async def _run(
@@ -29,10 +29,11 @@ async def _run(
     (the caller checks the server's tabs meanwhile)."""
     clients = [ProtocolClient(url, seed, gaits_seed) for seed in seeds]
     cpu0, wall0 = time.process_time(), time.perf_counter()
-    if pattern == "jumps":  # one after another, each moving once it has sliders (``JOIN_GAP_S``)
+    if pattern in ("jumps", "held"):  # one after another, each moving once it has sliders (``JOIN_GAP_S``)
         gaps = np.cumsum([0.0, *(c.rng.uniform(*JOIN_GAP_S) for c in clients[1:])])
+        held = HELD_JUMPS if pattern == "held" else ()
         bytes_before = [0] * len(clients)
-        await asyncio.gather(*(c.jump_for(JUMPS, float(g)) for c, g in zip(clients, gaps, strict=True)))
+        await asyncio.gather(*(c.jump_for(JUMPS, float(g), held) for c, g in zip(clients, gaps, strict=True)))
     else:
         await asyncio.gather(*(c.join() for c in clients))
         bytes_before = [c.bytes for c in clients]
