@@ -9,6 +9,11 @@ default family, the switch to the other one), run as a file so that ``snakeloco`
 
     git worktree add /tmp/old fe669c1 && mkdir -p /tmp/oldpath && ln -s /tmp/old /tmp/oldpath/snakeloco
     PYTHONPATH=/tmp/oldpath python app/bench/newcomer_screens.py static/screens/newcomer-before
+
+With a checkpoint (a build's ``runs/NAME/model``), the designer of that robot instead: its first
+load and a replay after z_B 1 moved to 2 (``robot_screens``):
+
+    python -m snakeloco.app.bench.newcomer_screens static/screens/twelve runs/twelve/model
 """
 
 from __future__ import annotations
@@ -46,6 +51,51 @@ def ends_seen(d) -> tuple[bool, int]:
     return bool(inside.all()), len(pts)
 
 
+def _shot(page, d, out: Path, name: str, report: dict) -> None:
+    """Screenshot ``page`` into OUT/NAME.jpg and note whether both paths' ends are on its canvas."""
+    time.sleep(2.5)  # the camera's move and the last frames drawn
+    Image.open(io.BytesIO(page.screenshot())).convert("RGB").save(out / f"{name}.jpg", quality=80)
+    inside, n = ends_seen(d)
+    report[name] = {"path_ends_in_canvas": inside, "paths": n, "family": d.model.family}
+    print(name, report[name], flush=True)
+
+
+def robot_screens(out: Path, checkpoint: Path) -> dict:
+    """The designer on ``checkpoint``'s robot: first load, then z_B 1 at 2 replayed (ensemble in)."""
+    from playwright.sync_api import sync_playwright
+
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {}
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=8, workers=2, verbose=False)
+    try:
+        with sync_playwright() as p:
+            b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            page = b.new_page(viewport={"width": W, "height": H})
+            page.goto(f"http://127.0.0.1:{srv.port}")
+            assert wait_until(lambda: len(srv.clients) == 1, 60)
+            d = next(iter(srv.clients.values()))
+            assert d.wait_idle(180)
+            _shot(page, d, out, "1-first-load", report)
+            report["first_load"] = {"gait": d.readout.gait, "gap_m": d.readout.gap_m}
+            d.sliders[0].value = 2.0
+            assert wait_until(
+                lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 180
+            )
+            _shot(page, d, out, "2-replayed", report)
+            report["robot"] = d.session.robot.model_dump(mode="json")
+            r = d.readout
+            report["readout"] = {
+                "model": r.model.__dict__ if r.model else None,
+                "mujoco": r.mujoco.__dict__ if r.mujoco else None,
+                "gap_m": r.gap_m,
+                "gait": r.gait,
+            }
+    finally:
+        srv.stop()
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    return report
+
+
 def main(out: Path) -> dict:
     from playwright.sync_api import sync_playwright
 
@@ -53,11 +103,7 @@ def main(out: Path) -> dict:
     report: dict = {}
 
     def shot(page, d, name: str) -> None:
-        time.sleep(2.5)  # the camera's move and the last frames drawn
-        Image.open(io.BytesIO(page.screenshot())).convert("RGB").save(out / f"{name}.jpg", quality=80)
-        inside, n = ends_seen(d)
-        report[name] = {"path_ends_in_canvas": inside, "paths": n, "family": d.model.family}
-        print(name, report[name], flush=True)
+        _shot(page, d, out, name, report)
 
     import inspect
 
@@ -108,4 +154,4 @@ def main(out: Path) -> dict:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]))
+    robot_screens(Path(sys.argv[1]), Path(sys.argv[2])) if len(sys.argv) > 2 else main(Path(sys.argv[1]))
