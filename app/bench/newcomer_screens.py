@@ -74,12 +74,12 @@ def robot_screens(out: Path, checkpoint: Path) -> dict:
             page.goto(f"http://127.0.0.1:{srv.port}")
             assert wait_until(lambda: len(srv.clients) == 1, 60)
             d = next(iter(srv.clients.values()))
-            assert d.wait_idle(180)
+            assert d.wait_idle(400)  # replay, ensemble and the Variations fan
             _shot(page, d, out, "1-first-load", report)
             report["first_load"] = {"gait": d.readout.gait, "gap_m": d.readout.gap_m}
             d.sliders[0].value = 2.0
             assert wait_until(
-                lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 180
+                lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 400
             )
             _shot(page, d, out, "2-replayed", report)
             report["robot"] = d.session.robot.model_dump(mode="json")
