@@ -22,6 +22,7 @@ import io
 import json
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -60,13 +61,11 @@ def _shot(page, d, out: Path, name: str, report: dict) -> None:
     print(name, report[name], flush=True)
 
 
-def robot_screens(out: Path, checkpoint: Path) -> dict:
-    """The designer on ``checkpoint``'s robot: first load, then z_B 1 at 2 replayed (ensemble in)."""
+@contextmanager
+def designer_page(srv, idle_s: float):
+    """One Chromium page at W x H on ``srv`` and its tab once idle (within ``idle_s``); stops ``srv``."""
     from playwright.sync_api import sync_playwright
 
-    out.mkdir(parents=True, exist_ok=True)
-    report: dict = {}
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=8, workers=2, verbose=False)
     try:
         with sync_playwright() as p:
             b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
@@ -74,31 +73,38 @@ def robot_screens(out: Path, checkpoint: Path) -> dict:
             page.goto(f"http://127.0.0.1:{srv.port}")
             assert wait_until(lambda: len(srv.clients) == 1, 60)
             d = next(iter(srv.clients.values()))
-            assert d.wait_idle(400)  # replay, ensemble and the Variations fan
-            _shot(page, d, out, "1-first-load", report)
-            report["first_load"] = {"gait": d.readout.gait, "gap_m": d.readout.gap_m}
-            d.sliders[0].value = 2.0
-            assert wait_until(
-                lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 400
-            )
-            _shot(page, d, out, "2-replayed", report)
-            report["robot"] = d.session.robot.model_dump(mode="json")
-            r = d.readout
-            report["readout"] = {
-                "model": r.model.__dict__ if r.model else None,
-                "mujoco": r.mujoco.__dict__ if r.mujoco else None,
-                "gap_m": r.gap_m,
-                "gait": r.gait,
-            }
+            assert d.wait_idle(idle_s)
+            yield page, d
     finally:
         srv.stop()
+
+
+def robot_screens(out: Path, checkpoint: Path) -> dict:
+    """The designer on ``checkpoint``'s robot: first load, then z_B 1 at 2 replayed (ensemble in)."""
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {}
+    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=8, workers=2, verbose=False)
+    with designer_page(srv, 400) as (page, d):  # 400 s: replay, ensemble and the Variations fan
+        _shot(page, d, out, "1-first-load", report)
+        report["first_load"] = {"gait": d.readout.gait, "gap_m": d.readout.gap_m}
+        d.sliders[0].value = 2.0
+        assert wait_until(
+            lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 400
+        )
+        _shot(page, d, out, "2-replayed", report)
+        report["robot"] = d.session.robot.model_dump(mode="json")
+        r = d.readout
+        report["readout"] = {
+            "model": r.model.__dict__ if r.model else None,
+            "mujoco": r.mujoco.__dict__ if r.mujoco else None,
+            "gap_m": r.gap_m,
+            "gait": r.gait,
+        }
     (out / "report.json").write_text(json.dumps(report, indent=1))
     return report
 
 
 def main(out: Path) -> dict:
-    from playwright.sync_api import sync_playwright
-
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {}
 
@@ -110,45 +116,36 @@ def main(out: Path) -> dict:
     # (a main before the Variations fan has no such option, and no fan)
     fan = {"variations": False} if "variations" in inspect.signature(DesignerServer).parameters else {}
     srv = DesignerServer(port=0, ensemble=2, workers=2, verbose=False, **fan)
-    try:
-        with sync_playwright() as p:
-            b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-            page = b.new_page(viewport={"width": W, "height": H})
-            page.goto(f"http://127.0.0.1:{srv.port}")
-            assert wait_until(lambda: len(srv.clients) == 1, 60)
-            d = next(iter(srv.clients.values()))
-            assert d.wait_idle(120)
-            shot(page, d, "1-first-load")
-            d.sliders[0].value = 2.0
-            assert wait_until(
-                lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 120
-            )
-            shot(page, d, "2-drag")
-            exported = d.export_text()
-            first = d.model.family  # the default family; the newcomer tries the other one, then back
-            other = "paper" if first == "structured" else "structured"
-            d.controls.family.value = other
-            assert wait_until(lambda: d.model.family == other and d.idle() and d.simulated is not None, 120)
-            shot(page, d, f"3-family-{other}")
-            d.controls.family.value = "structured"
-            assert wait_until(lambda: d.model.family == "structured" and d.idle(), 120)
-            d.controls.component.value = d.model.config.density.names[4]
-            time.sleep(1)
-            assert wait_until(lambda: d.idle() and d.simulated is not None, 120)
-            shot(page, d, "4-cluster")
-            d.import_bytes("exported.csv", exported.encode())
-            time.sleep(1)
-            assert wait_until(lambda: d.idle() and d.simulated is not None, 120)
-            shot(page, d, "5-import")
-            dc = d.controls.design
-            dc.forward.value, dc.sideways.value = 3.0, 2.0
-            time.sleep(0.5)
-            d.design.request()
-            assert d.design.worker.wait_idle(400) and wait_until(lambda: d.idle(), 120)
-            shot(page, d, "6-design-finished")
-            report["design_status"] = dc.status.content
-    finally:
-        srv.stop()
+    with designer_page(srv, 120) as (page, d):
+        shot(page, d, "1-first-load")
+        d.sliders[0].value = 2.0
+        assert wait_until(
+            lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 120
+        )
+        shot(page, d, "2-drag")
+        exported = d.export_text()
+        first = d.model.family  # the default family; the newcomer tries the other one, then back
+        other = "paper" if first == "structured" else "structured"
+        d.controls.family.value = other
+        assert wait_until(lambda: d.model.family == other and d.idle() and d.simulated is not None, 120)
+        shot(page, d, f"3-family-{other}")
+        d.controls.family.value = "structured"
+        assert wait_until(lambda: d.model.family == "structured" and d.idle(), 120)
+        d.controls.component.value = d.model.config.density.names[4]
+        time.sleep(1)
+        assert wait_until(lambda: d.idle() and d.simulated is not None, 120)
+        shot(page, d, "4-cluster")
+        d.import_bytes("exported.csv", exported.encode())
+        time.sleep(1)
+        assert wait_until(lambda: d.idle() and d.simulated is not None, 120)
+        shot(page, d, "5-import")
+        dc = d.controls.design
+        dc.forward.value, dc.sideways.value = 3.0, 2.0
+        time.sleep(0.5)
+        d.design.request()
+        assert d.design.worker.wait_idle(400) and wait_until(lambda: d.idle(), 120)
+        shot(page, d, "6-design-finished")
+        report["design_status"] = dc.status.content
     (out / "report.json").write_text(json.dumps(report, indent=1))
     return report
 
