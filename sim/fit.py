@@ -59,7 +59,8 @@ class FitConfig(BaseModel):
     horizons: tuple[float, ...] = (20.0, 50.0)
     """Seconds of each run the loss reads, in equal shares of the generations: short horizons first,
     where a path depends smoothly on the physics (over 100 s small changes can grow chaotically),
-    then the whole run. The uncertainty is probed on the whole run."""
+    then longer. The uncertainty is probed on the last horizon; the path errors before and after
+    are the whole run's."""
     seed: int = Field(0, ge=0)
     yaw_weight: float = Field(0.1, ge=0)
     """Weight of the RMS heading error (rad) beside the relative path error."""
