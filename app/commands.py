@@ -262,7 +262,7 @@ class Build(Command):
     robot: Path
     """Robot description YAML (`snakeloco robot show ROBOT.yaml` checks it)."""
     out: Path
-    """Build folder (runs/NAME): data, checkpoints, build.json; serve it with `snakeloco serve --checkpoint OUT/model`."""
+    """Build folder (runs/NAME): data, checkpoints, build.json; serve it with `snakeloco serve --checkpoint OUT` (its model/)."""
     records: Annotated[int, Field(ge=8)] = 2048
     """Training records of the structured family."""
     epochs: Annotated[int, Field(ge=1)] = 100

@@ -157,5 +157,7 @@ def run_build(cmd: Build) -> dict:
             f"{k} {state[k]['seconds']:.0f} s" for k in ("generate", "train", "calibrate", "evaluate")
         )
     )
-    print(f"serve it: snakeloco serve --checkpoint {build.checkpoint}")
+    print(
+        f"serve it: snakeloco serve --checkpoint {build.out}"
+    )  # a build folder is its model (resolve_checkpoint)
     return state

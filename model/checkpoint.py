@@ -54,13 +54,17 @@ multisines are chaotic on this robot), and design on it missed a 3 m / 2 m targe
 
 def resolve_checkpoint(directory: str | Path | None) -> Path:
     """The checkpoint directory meant by ``directory``: None is the default family's, a shipped
-    family's name is its checkpoint (unless a directory of that name exists here), anything else a
-    path."""
+    family's name is its checkpoint (unless a directory of that name exists here), a build's folder
+    (``snakeloco build --out runs/NAME``: its ``build.json`` and ``model/``) its model, anything
+    else a path."""
     if directory is None:
         return SHIPPED[DEFAULT_FAMILY]
     if str(directory) in SHIPPED and not Path(directory).is_dir():
         return SHIPPED[str(directory)]
-    return Path(directory)
+    path = Path(directory)
+    if (path / "build.json").is_file() and (path / "model").is_dir():  # ``app.build``'s folder
+        return path / "model"
+    return path
 
 
 class CheckpointError(ValueError):

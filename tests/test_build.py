@@ -214,14 +214,14 @@ FIVE = DEFAULT_ROBOT.model_copy(update={"name": "five", "n_joints": 5})
 def test_build_quick_goes_from_a_description_to_a_served_five_joint_designer(tmp_path, capsys):
     """A 5-joint robot through ``build --quick`` to a served decode, a 5-column CSV export and its
     replay; a second run skips every stage, other sizes are refused."""
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server import DesignerServer, load_families
     from snakeloco.model import load_pretrained
 
     robot_file, out = tmp_path / "five.yaml", tmp_path / "runs" / "five"
     robot_file.write_text(FIVE.to_yaml())
     main(["build", "--robot", str(robot_file), "--out", str(out), "--quick", "--workers", "2"])
     printed = capsys.readouterr().out
-    assert f"serve it: snakeloco serve --checkpoint {out / 'model'}" in printed
+    assert f"serve it: snakeloco serve --checkpoint {out}" in printed
     state = json.loads((out / "build.json").read_text())
     assert list(state) == ["generate", "train", "calibrate", "evaluate"]
     assert state["generate"]["travel"]["travelling_fraction"] >= 0.25
@@ -229,6 +229,8 @@ def test_build_quick_goes_from_a_description_to_a_served_five_joint_designer(tmp
     assert f["positions"] + f["broken"] == QUICK.positions and sum(f["sectors"].values()) == f["positions"]
     model = load_pretrained(out / "model")
     assert model.robot == FIVE and model.projects and model.config.density is not None
+    models, first = load_families((str(out),))  # `serve --checkpoint runs/five`: the build's model
+    assert first == "five" and models["five"].robot == FIVE
 
     # Served: the tab decodes and replays on the 5-joint robot; its CSV has 5 joint columns and
     # replays when imported again.
@@ -259,6 +261,16 @@ def test_build_quick_goes_from_a_description_to_a_served_five_joint_designer(tmp
     with pytest.raises(SystemExit):
         main(["build", "--robot", str(robot_file), "--out", str(out), "--records", "64"])
     assert "its generate stage was built with other options (heldout, records)" in capsys.readouterr().err
+
+
+def test_a_build_folder_names_its_model(tmp_path):
+    from snakeloco.model.checkpoint import resolve_checkpoint
+
+    out = tmp_path / "runs" / "mine"
+    (out / "model").mkdir(parents=True)
+    assert resolve_checkpoint(out) == out  # not a build's folder until its build.json exists
+    (out / "build.json").write_text("{}")
+    assert resolve_checkpoint(out) == out / "model" and resolve_checkpoint(out / "model") == out / "model"
 
 
 def test_serve_offers_several_checkpoints_in_the_family_dropdown(twelve_checkpoint, tmp_path):
