@@ -100,6 +100,8 @@ def outputs_problem(cmd: Command) -> str | None:
             continue
         if isinstance(cmd, Export) and cmd.format == "html":
             kind = "dir"  # the html export writes a folder
+        if isinstance(cmd, Calibrate) and cmd.physics_head and name == "gaits":
+            kind = "dir"  # the physics head's replays are a folder of chunks
         problem = output_problem(path, kind)
         if problem is not None:
             return f"{flag(name)} {problem}"
@@ -224,11 +226,21 @@ def run_evaluate(cmd: Evaluate) -> dict:
 
 def run_calibrate(cmd: Calibrate) -> dict:
     """Replay prior gaits with a progress bar (none when --gaits reuses them), then fine-tune and save;
-    with --sampler, fit the slider density and the member path head (``model.sampler``)."""
+    with --sampler, fit the slider density and the member path head (``model.sampler``); with
+    --physics-head, the physics head (``model.physics_head``)."""
     from snakeloco.model.calibrate import calibrate
     from snakeloco.model.replays import Fit
     from snakeloco.model.sampler import fit_sampler
 
+    if cmd.physics_head:
+        from snakeloco.model.physics_head import fit_physics_head, replay_count
+
+        pc = cmd.physics_head_config
+        with Progress(replay_count(pc), "replay members on other robots") as progress:
+            fit = Fit(cmd.checkpoint, cmd.data, cmd.out, cmd.gaits, cmd.workers, cmd.backend, progress)
+            return fit_physics_head(fit, pc)
+    if cmd.data is None:
+        raise OptionError("--data is needed: the dataset the checkpoint was trained on")
     sc = cmd.sampler_config
     if cmd.sampler:
         total, label = 0 if sc.density_only else 2 * sc.samples, "replay sampler members"

@@ -19,7 +19,14 @@ from snakeloco.app.bench.options import Bench
 from snakeloco.app.options import Checkpoint, Command, Ensemble, Flat, Json, Seed, Workers
 from snakeloco.model.config import ModelConfig
 from snakeloco.model.design_config import DesignConfig, Target
-from snakeloco.model.options import PRESETS, CalibrateConfig, ConsistencyConfig, SamplerConfig, TrainConfig
+from snakeloco.model.options import (
+    PRESETS,
+    CalibrateConfig,
+    ConsistencyConfig,
+    PhysicsHeadConfig,
+    SamplerConfig,
+    TrainConfig,
+)
 from snakeloco.sim import GenerateConfig
 from snakeloco.sim.backend import BackendConfig
 from snakeloco.sim.consistency import ENSEMBLE_SIZE
@@ -88,10 +95,10 @@ class Evaluate(Command):
 
 
 class Calibrate(Command):
-    """Fine-tune the statistics head and the body decoder on replays of the model's own prior gaits (model/calibrate.py); with --sampler, fit the slider density and, for the structured family, the member path head instead (model/sampler.py)."""
+    """Fine-tune the statistics head and the body decoder on replays of the model's own prior gaits (model/calibrate.py); with --sampler, fit the slider density and, for the structured family, the member path head instead (model/sampler.py); with --physics-head, the path head conditioned on the robot's physics (model/physics_head.py)."""
 
-    data: Path
-    """The dataset .npz the checkpoint was trained on (its training split is mixed in)."""
+    data: Path | None = None
+    """The dataset .npz the checkpoint was trained on (its training split is mixed in); not read by --physics-head."""
     out: Path
     """Directory for the calibrated checkpoint (may be the input checkpoint's own)."""
     checkpoint: Checkpoint = None
@@ -104,6 +111,11 @@ class Calibrate(Command):
     sampler: bool = False
     """Fit the slider density over the training posteriors and (structured family) the member path head on replays of the sampler's members, instead of the statistics calibration."""
     sampler_config: Annotated[SamplerConfig, tyro.conf.arg(name="sampler")] = SamplerConfig()
+    physics_head: bool = False
+    """Fit the member path head conditioned on the physics (friction, masses, servos, slope, latency) on replays of the sampler's members on the default variations and sampled ones, and score it on further sampler positions; written beside the checkpoint's weights (--gaits: the folder of resumable replay chunks, default OUT/physics-gaits)."""
+    physics_head_config: Annotated[PhysicsHeadConfig, tyro.conf.arg(name="physics-head")] = (
+        PhysicsHeadConfig()
+    )
 
 
 class Design(Command):

@@ -187,13 +187,18 @@ class TabReadout:
     readout: Readout | None = None
     variations: tuple[int, dict] | None = None  # (request version, ``sim.robustness`` report) of the gait
 
-    def _variations_line(self) -> str:
-        """The variations' line for the current gait ('' until they are in)."""
-        from snakeloco.sim.robustness import readout_line
+    predicted: tuple[int, dict] | None = None  # (request version, the physics head's report) of the gait
 
+    def _variations_line(self) -> str:
+        """The variations' line for the current gait: the replays' (with how far the physics head's
+        prediction was from them), or the prediction's until they are in ('' without either)."""
+        from snakeloco.sim.robustness import prediction_line, readout_line
+
+        predicted = self.predicted[1] if self.predicted and self.predicted[0] == self.version else None
         if self.variations is None or self.variations[0] != self.version:
-            return ""
-        return readout_line(self.variations[1])
+            return "" if predicted is None else "predicted " + readout_line(predicted)
+        line = readout_line(self.variations[1])
+        return line if predicted is None else f"{line}; {prediction_line(predicted, self.variations[1])}"
 
     def show_readout(self, gait, state: str, body: np.ndarray | None = None, reason: str = "") -> Readout:
         """Say what ``gait`` (a ``DecodedGait``) is and where its paths went: ``state`` simulating,

@@ -24,6 +24,9 @@ SIM_COLOR = (30, 100, 220)
 FAN_COLOR = (150, 150, 150)
 VARIATION_COLOR = (150, 90, 210)
 """The variations fan (violet): the replay on other robots (``sim.variations.DEFAULT_SET``)."""
+PREDICTED_VARIATION_COLOR = (205, 180, 240)
+"""The predicted variations fan (pale violet): where the physics head (``model.physics_head``) says
+the gait ends on those robots, drawn at decode time; the replays then check it."""
 SNAKE_COLOR = (217, 140, 51, 255)
 LAYERS = (
     "Snake",
@@ -81,6 +84,8 @@ class TabScene:
         self._fan_segments: list[np.ndarray] = []  # what those nodes draw (to merge them into one)
         self._fan_drawn = 0  # ensemble members the fan shows
         self.variation_fan: list[viser.LineSegmentsHandle] = []  # one node per batch of variations
+        self.predicted_fan: viser.LineSegmentsHandle | None = None  # the physics head's fan, one node
+        self._predicted_shown = False  # whether it shows the current gait's prediction
         self._sim_drawn = 0  # replay samples the simulated path shows
         self._measured: np.ndarray | None = None  # the re-measured shape drawn
         self.end_spread: float | None = None  # END_SPREAD of the tab's family
@@ -142,6 +147,8 @@ class TabScene:
             node.visible = on["Ensemble fan"] and simulated
         for node in self.variation_fan:
             node.visible = on["Variations fan"] and simulated
+        if self.predicted_fan is not None:
+            self.predicted_fan.visible = on["Variations fan"] and self._predicted_shown
         for frame in self.shape_frames.values():
             frame.visible = on["Joint shapes"]
 
@@ -196,6 +203,8 @@ class TabScene:
         self._sim_drawn = 0
         self._measured = None
         self._cloud("decoded", gait.shape)
+        if self.predicted_fan is not None and self._predicted_shown:  # the last gait's prediction
+            self.predicted_fan.visible = self._predicted_shown = False
 
     @property
     def sim_path(self) -> viser.LineSegmentsHandle | None:
@@ -252,7 +261,7 @@ class TabScene:
                 for node in self.fan:
                     node.remove()
                 self.fan, self._fan_segments = [whole], [segments]
-        for node in (self.gen_path, self.band):
+        for node in (self.gen_path, self.band, self.predicted_fan):
             if node is not None:
                 node.position = (0.0, 0.0, z0)
         if self._measured is not sim.shape:
@@ -306,6 +315,21 @@ class TabScene:
         z0 = float(self.start[0][2])
         name = f"variations/{len(self.variation_fan)}"
         self.variation_fan.append(self._line(name, segments, VARIATION_COLOR, 1.0, "Variations fan", z0))
+
+    def draw_predicted_variations(self, bodies: np.ndarray) -> None:
+        """The physics head's predicted paths of the current gait on the variations (V, 500, 6), at
+        the decoded path's height, as one node of the Variations fan's layer (in place: one node)."""
+        segments = np.concatenate([polyline(path_points(b[::PATH_STEP], 0.0)) for b in bodies])
+        self.predicted_fan = self._redraw_line(
+            self.predicted_fan,
+            "variations/predicted",
+            segments,
+            PREDICTED_VARIATION_COLOR,
+            1.0,
+            "Variations fan",
+            self.link_radius,
+        )
+        self._predicted_shown = True
 
     def draw_snake(self, qpos: np.ndarray, follow: bool = False) -> None:
         """Pose the snake's links as in ``qpos`` (a replay sample), in the start frame; with

@@ -35,6 +35,8 @@ each time; the snake's pose goes every animation frame)."""
 class TabJobs:
     """The jobs of a ``DesignerClient`` (its session, workers, scene, controls and draw lock)."""
 
+    _varied_robots: tuple | None = None  # (the session's robot, its variations of the default set)
+
     def _timing(self, version: int) -> Timing:
         return self._timing_by_version.get(version) or Timing(version, time.perf_counter())
 
@@ -64,6 +66,26 @@ class TabJobs:
             timing.decoded = time.perf_counter()
             self.views_drawn += 1
             self.physics.submit((version, ("gait", decoded)))
+        self._predict_variations(version, decoded)
+
+    def _predict_variations(self, version: int, decoded: DecodedGait) -> None:
+        """Draw the physics head's predicted Variations fan and say its line (a checkpoint with a
+        physics head, a gait that is a family member); the replays check it (``_variations``)."""
+        if not self.show_variations or decoded.member is None or self.model.physics_head is None:
+            return
+        robot = self.session.robot
+        if self._varied_robots is None or self._varied_robots[0] != robot:
+            self._varied_robots = (robot, [v.apply(robot) for v in DEFAULT_SET])
+        bodies = self.model.predict_variation_paths(decoded.member, self._varied_robots[1])
+        report = summarise(decoded.body_ds, DEFAULT_SET, list(bodies), [None] * len(bodies))
+        with self._draw_lock:
+            if not self.is_current(version):
+                return
+            self.predicted = (version, report)
+            with self.client.atomic():
+                self.scene.draw_predicted_variations(bodies)
+                if self.simulated is None:  # a replay's readout says it when it is drawn
+                    self.show_readout(decoded, "streaming" if self.streaming is not None else "simulating")
 
     def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, (kind, *payload) = item

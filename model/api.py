@@ -38,11 +38,16 @@ class GaitModel(MemberDecoding):
         config: CheckpointConfig,
         path: Path | None = None,
         member_head: MemberPathHead | None = None,
+        physics_head: MemberPathHead | None = None,
     ) -> None:
         self.net = net.eval()
         self.config = config
         self.path = path
         self.member_head = member_head
+        self.physics_head = physics_head
+        """The member path head conditioned on the physics (``model.physics_head``), where fitted."""
+        if physics_head is not None and member_head is None:
+            raise ValueError("a physics head extends a member head")
         if (member_head is None) != (config.member_head is None):
             raise ValueError("a member head and its config go together")
         norm = config.normalization.arrays()
@@ -317,7 +322,11 @@ def load_pretrained(path: str | Path | None = None) -> GaitModel:
         CheckpointError: the checkpoint is missing, corrupt or mismatched (the message says which).
     """
     from snakeloco.model.checkpoint import resolve_checkpoint
+    from snakeloco.model.physics_head import load_physics_head
 
     directory = resolve_checkpoint(path)
     net, config = load_checkpoint(directory)
-    return GaitModel(net, config, directory, load_member_head(directory, config))
+    member_head = load_member_head(directory, config)
+    return GaitModel(
+        net, config, directory, member_head, load_physics_head(directory) if member_head else None
+    )

@@ -30,7 +30,7 @@ from snakeloco.model.design_types import FORWARD as FORWARD  # re-exported: the 
 from snakeloco.model.design_types import ROLL as ROLL
 from snakeloco.model.design_types import SIDEWAYS as SIDEWAYS
 from snakeloco.model.design_types import YAW as YAW
-from snakeloco.model.design_types import Candidate, DesignResult, objective, path_end
+from snakeloco.model.design_types import Candidate, DesignResult, FanCost, objective, path_end
 from snakeloco.model.replays import replay_shapes
 from snakeloco.sim.backend import BackendConfig, open_backend
 
@@ -60,9 +60,11 @@ def _evolve(
     generations: int,
     seed: int,
     cancelled: Callable[[], bool] | None,
+    fan: FanCost | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """One CMA-ES run per start, run k minimising ``objective`` for ``targets[k]``; every generation
-    decodes all runs' populations in one batch. Returns each run's (z seen (n, Db), cost (n,))."""
+    """One CMA-ES run per start, run k minimising ``objective`` for ``targets[k]`` (plus ``fan``'s
+    cost, where given); every generation decodes all runs' populations in one batch. Returns each
+    run's (z seen (n, Db), cost (n,))."""
     import cma
 
     runs = [
@@ -80,9 +82,12 @@ def _evolve(
         z = np.concatenate([asked[k] for k in live])
         _, body = model.decode(z)
         ends, prior = path_end(body), prior_cost(model, z, cfg)  # all runs' populations at once
+        fan_ends = fan.ends(z) if fan is not None else None
         for j, k in enumerate(live):
             part = slice(j * cfg.population, (j + 1) * cfg.population)
             cost = objective(ends[part], targets[k], cfg) + prior[part]
+            if fan is not None:
+                cost = cost + fan.cost(fan_ends[part], targets[k])
             runs[k].tell(list(asked[k]), cost.tolist())
             seen[k].append((z[part], cost))
     return [
@@ -125,12 +130,15 @@ def search(
     cfg: DesignConfig,
     cancelled: Callable[[], bool] | None = None,
     screened: tuple[np.ndarray, np.ndarray] | None = None,
+    fan: FanCost | None = None,
 ) -> list[Candidate]:
     """CMA-ES over z_B from ``cfg.starts`` starts; the ``cfg.candidates`` best distinct optima by
     predicted cost. ``cancelled`` is polled every generation (True: stop and return what there is);
-    ``screened``: ``screen_ends`` already computed."""
+    ``screened``: ``screen_ends`` already computed; ``fan``: a predicted variations fan's cost added."""
     screen, ends = screened if screened is not None else screen_ends(model, cfg)
     cost = objective(ends, target, cfg) + prior_cost(model, screen, cfg)
+    if fan is not None:
+        cost = cost + fan.cost(fan.ends(screen), target)
     starts: list[np.ndarray] = []
     for i in np.argsort(cost):  # the best draws that are not next to one already taken
         if all(np.linalg.norm(screen[i] - s) > cfg.sigma0 for s in starts):
@@ -138,7 +146,7 @@ def search(
         if len(starts) == cfg.starts:
             break
     runs = _evolve(
-        model, starts, [target] * len(starts), cfg, cfg.sigma0, cfg.generations, cfg.seed, cancelled
+        model, starts, [target] * len(starts), cfg, cfg.sigma0, cfg.generations, cfg.seed, cancelled, fan
     )
     z_all = np.concatenate([screen, *[z for z, _ in runs]])
     c_all = np.concatenate([cost, *[c for _, c in runs]])
@@ -194,14 +202,23 @@ def refine(
     cfg: DesignConfig,
     rnd: int,
     cancelled: Callable[[], bool] | None = None,
+    fan: FanCost | None = None,
 ) -> list[Candidate]:
     """One new candidate per verified parent: the best of a short CMA-ES run from the parent's z_B
     towards ``corrected(target, parent)`` (the decoded end's error still measured against that
-    corrected target, the candidate's ``cost``)."""
+    corrected target, the candidate's ``cost``; ``fan``'s too)."""
     goals = [corrected(target, p) for p in parents]
     seed = cfg.seed + 1000 * rnd
     runs = _evolve(
-        model, [p.z_b for p in parents], goals, cfg, cfg.refine_sigma, cfg.refine_generations, seed, cancelled
+        model,
+        [p.z_b for p in parents],
+        goals,
+        cfg,
+        cfg.refine_sigma,
+        cfg.refine_generations,
+        seed,
+        cancelled,
+        fan,
     )
     out: list[Candidate] = []
     for (z, cost), parent in zip(runs, parents, strict=True):
@@ -289,13 +306,15 @@ def design(
     cancelled: Callable[[], bool] | None = None,
     on_verify: Callable[[int], None] | None = None,
     robot=None,
+    fan: FanCost | None = None,
 ) -> DesignResult:
     """Search, verify in MuJoCo (on ``runner``, an open backend, or one opened from ``backend``), and
     refine the best verified candidates for what physics did, for up to ``cfg.rounds`` rounds.
     ``cancelled`` is polled between search generations (True: stop; the result is then not meant to
     be used); ``on_verify(round)`` is called when a round's replays start. ``robot``: the
     ``sim.robot.Robot`` the candidates are verified on where a backend is opened here (default: the
-    checkpoint's robot)."""
+    checkpoint's robot). ``fan``: the search also minimises a predicted variations fan's miss
+    (``model.robust_design.PredictedFan``)."""
     cfg = cfg or DesignConfig()
     search_s = physics_s = 0.0
     own = runner is None
@@ -338,12 +357,12 @@ def design(
         for rnd in range(1, cfg.rounds + 1):
             t0 = time.perf_counter()
             if rnd == 1:
-                proposed = search(model, target, cfg, cancelled, screened)
+                proposed = search(model, target, cfg, cancelled, screened, fan)
             else:
                 parents = [c for c in verified if c.simulated is not None][: cfg.candidates]
                 if not parents:
                     break
-                proposed = refine(model, parents, target, cfg, rnd, cancelled)
+                proposed = refine(model, parents, target, cfg, rnd, cancelled, fan)
             search_s += time.perf_counter() - t0
             if (cancelled is not None and cancelled()) or not proposed:
                 break

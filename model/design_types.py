@@ -4,6 +4,7 @@ a candidate gait and what MuJoCo did with it, and a design's result."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -36,6 +37,16 @@ def objective(ends: np.ndarray, target: Target, cfg: DesignConfig) -> np.ndarray
     if target.max_roll is not None:
         cost = cost + cfg.roll_weight * np.maximum(np.abs(ends[:, 3]) - target.max_roll, 0.0)
     return cost
+
+
+class FanCost(Protocol):
+    """A cost the search adds for how a gait fares on other robots, as predicted (no replay)."""
+
+    def ends(self, z_b: np.ndarray) -> np.ndarray:
+        """Where each z_B's gait ends on each robot of the fan: (n, V, 2) forward, sideways (m)."""
+
+    def cost(self, ends: np.ndarray, target: Target) -> np.ndarray:
+        """Those ends' (n, V, 2) cost (m) for ``target``: (n,)."""
 
 
 @dataclass

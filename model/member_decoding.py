@@ -97,6 +97,32 @@ class MemberDecoding:
             body = (head or self.member_head)(x).numpy().astype(np.float64)
         return body * self._body_std + self._body_mean
 
+    def predict_physics_paths(self, members: list[Member], features: np.ndarray) -> np.ndarray:
+        """The body series (B, 500, 6) the physics head predicts for members on robots of physics
+        ``features`` (B, F) (``model.physics_head.physics_features``, relative to ``self.robot``)."""
+        if self.physics_head is None:
+            raise ValueError("this checkpoint has no physics head (calibrate --physics-head fits one)")
+        head_cfg = self.physics_head.cfg
+        features = np.asarray(features, np.float64).reshape(len(members), -1)
+        if features.shape[1] != len(head_cfg.physics):
+            raise ValueError(
+                f"expected {len(head_cfg.physics)} physics features per member, got {features.shape[1]}"
+            )
+        x = member_inputs(members, np.asarray(head_cfg.support), None, head_cfg.inputs, self.robot)
+        x = torch.as_tensor(
+            _finite("physics features", np.concatenate([x, features], axis=1)), dtype=torch.float32
+        )
+        with self._lock, torch.inference_mode():
+            body = self.physics_head(x).numpy().astype(np.float64)
+        return body * self._body_std + self._body_mean
+
+    def predict_variation_paths(self, member: Member, robots: list) -> np.ndarray:
+        """The body series (V, 500, 6) the physics head predicts for one member on each of ``robots``
+        (``sim.robot.Robot``, of this checkpoint's geometry)."""
+        from snakeloco.model.physics_head import physics_features
+
+        return self.predict_physics_paths([member] * len(robots), physics_features(robots, self.robot))
+
     def decode_members(
         self, z_b: np.ndarray, z_j: np.ndarray | None = None, with_stats: bool = True
     ) -> tuple[list[Member], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray] | None]:

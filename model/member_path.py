@@ -62,6 +62,11 @@ class MemberHeadConfig(BaseModel):
     )
     input_std: list[float] = Field(description="(2 S + z_b_dim,) their std, floored at 1e-3.")
     z_b_dim: int = Field(0, ge=0, description="z_B inputs after the coefficients (0: the member alone).")
+    physics: list[str] = Field(
+        default_factory=list,
+        description="Physics inputs after those (``model.physics_head.PHYSICS_FEATURES``; none: the robot "
+        "the checkpoint was trained on).",
+    )
     hidden: int = Field(256, ge=8, description="Width of the hidden layers.")
     layers: int = Field(3, ge=1, description="Hidden layers.")
     steps: int = Field(500, ge=1, description="Body steps predicted (5 Hz over 100 s).")
@@ -226,6 +231,7 @@ def fit_member_head(
     example_weights: tuple[np.ndarray, np.ndarray] | None = None,
     path: HeadPath = "direct",
     body_norm: tuple[np.ndarray, np.ndarray] | None = None,
+    physics: tuple[str, ...] = (),
     log: Callable[[str], None] | None = print,
 ) -> tuple[MemberPathHead, dict]:
     """Fit a head on (inputs (N, I) from ``member_inputs`` with ``input_kind``, normalised body (N,
@@ -238,7 +244,8 @@ def fit_member_head(
     (training, validation), each (N,): every example's whole error is weighted so (``kind_weights``:
     each kind of member counts as much as any other). ``path``: how the
     head draws the plane path (``HeadPath``); a heading head needs ``body_norm``, the (mean, std) (6,)
-    the body series are normalised by. Returns the head and what it scored."""
+    the body series are normalised by. ``physics``: the names of the physics inputs that end each
+    input row (``model.physics_head``). Returns the head and what it scored."""
 
     torch.manual_seed(seed)
     x, y = torch.as_tensor(inputs, dtype=torch.float32), torch.as_tensor(body, dtype=torch.float32)
@@ -250,6 +257,7 @@ def fit_member_head(
         input_mean=x.mean(0).tolist(),
         input_std=x.std(0).clamp_min(1e-3).tolist(),
         z_b_dim=z_b_dim,
+        physics=list(physics),
         hidden=hidden,
         layers=layers,
         steps=y.shape[1],

@@ -234,3 +234,22 @@ class ConsistencyConfig(BaseModel):
         description="The z_k modes replayed: z_k = 0 (what the sliders decode) and z_k sampled at T = 1 "
         "(what Random with a temperature decodes); one of them halves the replays.",
     )
+
+
+class PhysicsHeadConfig(BaseModel):
+    """What ``calibrate --physics-head`` replays and fits (``model.physics_head``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    samples: int = Field(192, ge=2, description="Sampler z_B drawn, each decoded with z_k = 0 and sampled.")
+    seed: int = Field(5000, ge=0, description="Seed of the draws and of the sampled variations.")
+    sampled: int = Field(3, ge=0, description="Combined variations per member besides the default set.")
+    eval_samples: int = Field(
+        256, ge=0, description="Further sampler positions (z_k = 0) replayed on the default set to score it."
+    )
+    eval_seed: int = Field(6000, ge=0, description="Seed of those positions.")
+    chunk: int = Field(8, ge=1, description="Members per resumable chunk of replays.")
+    epochs: int = Field(300, ge=1, description="Epochs of the head.")
+    lr: float = Field(2e-3, gt=0, description="Peak learning rate (Adam, cosine to 1%).")
+    hidden: int = Field(256, ge=8, description="Width of its hidden layers.")
+    val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of the z_B draws held out for the epoch.")

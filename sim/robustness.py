@@ -109,3 +109,30 @@ def readout_line(report: dict) -> str:
     rel = f" ({100 * report['worst_rel']:.0f}%)" if distance >= MIN_DISTANCE else ""
     broken = f"; broke: {', '.join(report['broken'])}" if report["broken"] else ""
     return f"on other robots: ends within {report['worst_end_error_m']:.1f} m{rel}; worst: {report['worst']}{broken}"
+
+
+def prediction_errors(predicted: dict, replayed: dict) -> np.ndarray:
+    """How far each variation's predicted end (a ``summarise`` report of predicted paths) is from
+    its replayed end, over the replay's distance (floored at ``MIN_DISTANCE``): (V,), NaN where the
+    replay broke."""
+    out = []
+    for p, r in zip(predicted["variations"], replayed["variations"], strict=True):
+        if r["failure"] is not None or p["failure"] is not None:
+            out.append(np.nan)
+            continue
+        gap = np.hypot(p["forward"] - r["forward"], p["sideways"] - r["sideways"])
+        out.append(gap / max(float(np.hypot(r["forward"], r["sideways"])), MIN_DISTANCE))
+    return np.array(out)
+
+
+def prediction_line(predicted: dict, replayed: dict) -> str:
+    """'predicted within 6% (median; worst 14%: servo kp x0.5)': how the predicted fan's ends met
+    the replays'."""
+    errors = prediction_errors(predicted, replayed)
+    if not np.isfinite(errors).any():
+        return "no variation replayed to check the prediction"
+    worst = int(np.nanargmax(errors))
+    return (
+        f"predicted within {100 * np.nanmedian(errors):.0f}% (median; worst "
+        f"{100 * errors[worst]:.0f}%: {predicted['variations'][worst]['name']})"
+    )

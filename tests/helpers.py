@@ -51,16 +51,16 @@ BROWSER = [
 chromium is missing."""
 
 
-def connect_headless(srv):
-    """Open a headless viser client on a ``DesignerServer`` and wait for its tab to settle; returns the
-    client (close it) and the tab's ``DesignerClient``."""
+def connect_headless(srv, timeout: float = 60.0):
+    """Open a headless viser client on a ``DesignerServer`` and wait (up to ``timeout`` s) for its tab to
+    settle; returns the client (close it) and the tab's ``DesignerClient``."""
     before = set(srv.clients)
     client = HeadlessClient(srv.port)
     for _ in range(200):
         new = set(srv.clients) - before
         if new:
             designer = srv.clients[new.pop()]
-            assert designer.wait_idle(60)
+            assert designer.wait_idle(timeout)
             return client, designer
         time.sleep(0.05)
     raise AssertionError("the server never registered the client")

@@ -1,0 +1,155 @@
+"""The member path head conditioned on the physics (model/physics_head.py): its inputs, its fit, its
+files, and the predicted Variations fan the designer draws and the replays check."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from snakeloco.model.physics_head import PHYSICS_FEATURES, mirror_features, physics_features
+from snakeloco.sim.robot import DEFAULT_ROBOT
+from snakeloco.sim.robustness import prediction_errors, prediction_line, summarise
+from snakeloco.sim.variations import DEFAULT_SET
+
+
+def test_physics_features_are_zero_on_the_nominal_robot_and_a_mirror_negates_the_slope_to_the_left():
+    robots = [DEFAULT_ROBOT, *(v.apply(DEFAULT_ROBOT) for v in DEFAULT_SET)]
+    f = physics_features(robots, DEFAULT_ROBOT)
+    assert f.shape == (len(robots), len(PHYSICS_FEATURES)) and not f[0].any()
+    named = {v.name: row for v, row in zip(DEFAULT_SET, f[1:], strict=True)}
+    col = {name: i for i, name in enumerate(PHYSICS_FEATURES)}
+    friction = named["floor friction x0.5"]
+    assert friction[col["friction_along"]] == friction[col["friction_across"]] == pytest.approx(math.log(0.5))
+    assert named["latency 30 ms"][col["latency"]] == pytest.approx(0.03)
+    ahead, left = named["5 deg slope uphill ahead"], named["5 deg slope uphill left"]
+    assert ahead[col["slope_ahead"]] == pytest.approx(5) and abs(ahead[col["slope_left"]]) < 1e-12
+    assert left[col["slope_left"]] == pytest.approx(5) and abs(left[col["slope_ahead"]]) < 1e-9
+    # Every variation of the default set is told apart from every other.
+    assert len({tuple(np.round(r, 9)) for r in f}) == len(robots)
+    m = mirror_features(left)
+    assert m[col["slope_left"]] == pytest.approx(-5) and np.array_equal(
+        np.delete(m, col["slope_left"]), np.delete(left, col["slope_left"])
+    )
+
+
+def _straight(end: tuple[float, float]) -> np.ndarray:
+    body = np.zeros((50, 6))
+    body[:, 1], body[:, 2] = np.linspace(0, end[0], 50), np.linspace(0, end[1], 50)
+    return body
+
+
+def test_the_prediction_line_gives_the_median_and_the_worst_gap_over_the_replayed_distance():
+    variations = DEFAULT_SET[:3]
+    replayed = summarise(
+        _straight((4, 0)),
+        variations,
+        [_straight((2, 0)), _straight((4, 0)), _straight((0.1, 0))],
+        [None, None, None],
+    )
+    # Predicted 0.2 m off on the first (10% of 2 m), exact on the second; the third broke.
+    predicted = summarise(
+        _straight((4, 0)), variations, [_straight((2, 0.2)), _straight((4, 0)), _straight((1, 0))], [None] * 3
+    )
+    replayed["variations"][2]["failure"] = "thrown"
+    errors = prediction_errors(predicted, replayed)
+    assert errors[:2] == pytest.approx([0.1, 0.0]) and np.isnan(errors[2])
+    line = prediction_line(predicted, replayed)
+    assert line == f"predicted within 5% (median; worst 10%: {variations[0].name})"
+
+
+@pytest.fixture(scope="module")
+def physics_checkpoint(member_checkpoint, tmp_path_factory):
+    """The tiny structured checkpoint with a physics head fitted on a few replays; the summary and
+    the replays counted on the way."""
+    from snakeloco.model.options import PhysicsHeadConfig
+    from snakeloco.model.physics_head import fit_physics_head
+    from snakeloco.model.replays import Fit
+
+    out = tmp_path_factory.mktemp("physics")
+    cfg = PhysicsHeadConfig(samples=2, sampled=1, eval_samples=1, chunk=2, epochs=3, hidden=16)
+    done: list[int] = []
+    summary = fit_physics_head(
+        Fit(member_checkpoint[0], None, out, workers=2, progress=done.append, log=None), cfg
+    )
+    return out, cfg, summary, sum(done)
+
+
+@pytest.mark.slow
+def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_in_the_designer(
+    member_checkpoint, physics_checkpoint
+):
+    from snakeloco.app.server import DesignerServer
+    from snakeloco.model.api import load_pretrained
+    from snakeloco.model.checkpoint import CheckpointError
+    from snakeloco.model.physics_head import PHYSICS_HEAD_WEIGHTS, fit_physics_head, replay_count
+    from snakeloco.model.replays import Fit
+
+    from helpers import connect_headless
+
+    checkpoint, _ = member_checkpoint
+    out, cfg, summary, done = physics_checkpoint
+    assert done == replay_count(cfg) == 2 * 2 * (1 + len(DEFAULT_SET) + 1) + 1 + len(DEFAULT_SET)
+    assert set(summary["eval"]["by_variation"]) == {"nominal", *(v.name for v in DEFAULT_SET)}
+    assert summary["eval"]["all"]["n"] == len(DEFAULT_SET) - summary["eval"]["broken"]
+    # Again: every chunk is read back, nothing replayed.
+    again: list[int] = []
+    fit_physics_head(Fit(checkpoint, None, out, workers=2, progress=again.append, log=None), cfg)
+    assert sum(again) == 0
+    model = load_pretrained(out)
+    assert model.physics_head is not None and load_pretrained(checkpoint).physics_head is None
+    member = model.decode_members(model.sample_z_b(1, 0))[0][0]
+    paths = model.predict_variation_paths(member, [v.apply(model.robot) for v in DEFAULT_SET])
+    assert paths.shape == (len(DEFAULT_SET), 500, 6) and np.isfinite(paths).all()
+
+    srv = DesignerServer(port=0, checkpoint=out, ensemble=2, workers=2, verbose=False)
+    client, d = connect_headless(srv, timeout=180)  # replay, ensemble and 12 variations on 2 cores
+    try:
+        assert d.predicted[0] == d.version and d.scene.predicted_fan.visible
+        assert d.variations[0] == d.version
+        text = d.controls.readout.content.replace("&#x27;", "'")
+        assert prediction_line(d.predicted[1], d.variations[1]) in text
+    finally:
+        client.close()
+        srv.stop()
+
+    broken = _copy_beside(out)
+    (broken / PHYSICS_HEAD_WEIGHTS).write_bytes(b"not safetensors")
+    with pytest.raises(CheckpointError, match=PHYSICS_HEAD_WEIGHTS):
+        load_pretrained(broken)
+
+
+def _copy_beside(src):
+    """A copy of a checkpoint folder beside it (to break without touching the shared one)."""
+    import shutil
+
+    dst = src.parent / (src.name + "-copy")
+    shutil.copytree(src, dst, dirs_exist_ok=True)
+    return dst
+
+
+@pytest.mark.slow
+def test_robust_design_searches_with_the_predicted_fan_and_reports_it_beside_the_replays(physics_checkpoint):
+    from snakeloco.model.api import load_pretrained
+    from snakeloco.model.design_config import DesignConfig, Target
+    from snakeloco.model.robust_design import PredictedFan, robust_design
+
+    model = load_pretrained(physics_checkpoint[0])
+    fan = PredictedFan(model, [v.apply(model.robot) for v in DEFAULT_SET])
+    z = model.sample_z_b(3, 1)
+    ends = fan.ends(z)
+    assert ends.shape == (3, len(DEFAULT_SET), 2)
+    target = Target(forward=0.5, sideways=0.2)
+    assert fan.cost(ends, target) == pytest.approx(fan.misses(ends, target).max(axis=1))
+    # The fan's ends are the physics head's paths' ends, member by member.
+    member = model.decode_members(z[:1])[0][0]
+    paths = model.predict_variation_paths(member, fan.robots)
+    assert ends[0] == pytest.approx(paths[:, -1, 1:3] - paths[:, 0, 1:3])
+    cfg = DesignConfig(screen=32, starts=2, generations=3, population=6, candidates=1, rounds=1)
+    result = robust_design(model, target, cfg, workers=2)
+    assert result.extra["searched_with"] == "predicted variations fan"
+    for r in result.extra["robust"]:
+        assert r["replayed"] == len(DEFAULT_SET) and r["predicted_worst_m"] >= 0
+    nominal = robust_design(model, target, cfg, workers=2, predicted=False)
+    assert nominal.extra["searched_with"] == "nominal path"
