@@ -86,7 +86,8 @@ def build_design_controls(gui: viser.GuiApi) -> DesignControls:
             False,
             hint="Rank the verified candidates by their worst end over the 12 physics variations (friction, "
             "anisotropy, masses, servo gains, slope, latency), each candidate replayed on every one: "
-            "about 12 times the physics of a design (docs/variations.md)",
+            "about 12 times the physics of a design; with a physics head the search also minimises "
+            "the predicted worst end (docs/variations.md)",
         )
         button = gui.add_button("Design", hint="Search z_B for gaits that end there, verify each in MuJoCo")
         status = gui.add_markdown("Set a target (or click the ground), then press **Design**.")
