@@ -356,7 +356,7 @@ def sector(heading_deg: float) -> str:
 
 def build_figures(report: dict) -> dict:
     """The figures a build is judged by, from ``evaluate``'s report: held-out joint shape and body
-    R², and over the sampler positions decoded vs simulated xy-path R² and final-position error
+    R² (the VAE's reconstruction, and the member path head's path from the gait alone), and over the sampler positions decoded vs simulated xy-path R² and final-position error
     (medians) and the number of end points in each direction sector."""
     c = report.get("consistency", {}).get("zk_zero", {})
     rows = c.get("gaits", [])
@@ -366,7 +366,10 @@ def build_figures(report: dict) -> dict:
             sectors[sector(r["heading_deg"])] += 1
     return {
         "shape_r2": report.get("r2_shape"),
-        "body_r2": report.get("r2_body"),
+        "body_r2": report.get("r2_body"),  # the designer's path of a record's member, from its gait alone
+        "body_r2_reconstruction": report.get(
+            "r2_body_raw", report.get("r2_body")
+        ),  # the VAE's encode -> decode
         "positions": c.get("n_gaits"),
         "broken": c.get("n_broken"),
         "xy_r2_median": c.get("xy_r2"),

@@ -146,7 +146,9 @@ def run_build(cmd: Build) -> dict:
         raise OptionError(str(exc)) from None
     f = state["evaluate"]["figures"]
     print(
-        f"{robot.name}: held-out joint shape R² {f['shape_r2']:.3f}, body R² {f['body_r2']:.3f}; "
+        f"{robot.name}: held-out joint shape R² {f['shape_r2']:.3f}, body R² "
+        f"{f.get('body_r2_reconstruction', f['body_r2']):.3f} (reconstruction; a member's path from its gait "
+        f"alone {f['body_r2']:.3f}); "
         f"{f['positions']} sampler positions replayed: xy-path R² median {f['xy_r2_median']:.3f}, "
         f"final-position error median {100 * f['final_error_median']:.1f}% of the distance; end points "
         + ", ".join(f"{k} {v}" for k, v in f["sectors"].items())
