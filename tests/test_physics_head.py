@@ -153,3 +153,24 @@ def test_robust_design_searches_with_the_predicted_fan_and_reports_it_beside_the
         assert r["replayed"] == len(DEFAULT_SET) and r["predicted_worst_m"] >= 0
     nominal = robust_design(model, target, cfg, workers=2, predicted=False)
     assert nominal.extra["searched_with"] == "nominal path"
+
+
+@pytest.mark.slow
+def test_bench_robust_judges_nominal_and_robust_answers_by_the_same_replayed_worst_case(
+    physics_checkpoint, capsys
+):
+    from snakeloco.app.cli import main
+
+    out = physics_checkpoint[0]
+    args = ["bench", "robust", "--checkpoint", str(out), "--targets", "1", "--reach", "0.3", "0.6"]
+    main([*args, "--candidates", "1", "--rounds", "1", "--workers", "2", "--json"])
+    lines = capsys.readouterr().out.splitlines()
+    r = __import__("json").loads(lines[-1])
+    row = r["rows"][0]
+    assert r["searched_with"] == "predicted variations fan" and 0.3 <= row["distance_m"] <= 0.6
+    assert (
+        row["nominal_worst_rel"] >= row["nominal_error_rel"]
+        and row["robust_worst_rel"] >= row["robust_error_rel"]
+    )
+    assert row["worst_ratio"] == pytest.approx(row["robust_worst_rel"] / row["nominal_worst_rel"])
+    assert any(line.startswith("worst robust / nominal: median") for line in lines)

@@ -142,6 +142,24 @@ class BenchDesign(Command):
     json: Json = False
 
 
+class BenchRobust(Command):
+    """Benchmark robust design (with a physics head: searching with the predicted variations fan) against nominal design on the same uniform targets, each answer's best replayed on every variation of the default set: nominal and worst-case errors, their ratio, the predicted worst beside the replayed one, time to an answer."""
+
+    reach: tuple[float, float] = (2.0, 15.0)
+    """Targets this far away (min max, m), uniform in distance and direction."""
+    checkpoint: Checkpoint = None
+    targets: Annotated[int, Field(ge=1)] = 20
+    candidates: Annotated[int, Field(ge=1)] = 2
+    """Candidates reported per design (robust design verifies twice as many)."""
+    rounds: Annotated[int, Field(ge=1)] = DesignConfig().rounds
+    """Rounds of search and verification per design."""
+    seed: Seed = 1
+    """Seed of the targets and the searches."""
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    json: Json = False
+
+
 class BenchScreen(Command):
     """Benchmark the structured family's screen: records/s of the cheap screen against the full one and against the undulation family, side by side; how often the cheap verdict differs from the full one on a sample."""
 
@@ -172,7 +190,7 @@ class BenchFit(Command):
 
 
 class Bench(Command):
-    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design,screen,fit} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design,robust,screen,fit} --help`."""
 
 
 BENCHES: dict[str, type[Command]] = {
@@ -183,6 +201,7 @@ BENCHES: dict[str, type[Command]] = {
     "tabs": BenchTabs,
     "scale": BenchScale,
     "design": BenchDesign,
+    "robust": BenchRobust,
     "screen": BenchScreen,
     "fit": BenchFit,
 }

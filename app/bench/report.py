@@ -225,6 +225,29 @@ def design(r: dict) -> None:
     )
 
 
+def robust(r: dict) -> None:
+    """Robust design against nominal design on the same targets (``bench/robust.py``)."""
+
+    def pct(f: dict) -> str:
+        return f"median {100 * f['median']:.0f}%, p90 {100 * f['p90']:.0f}%"
+
+    print(
+        f"{r['targets']} targets {r['reach_m'][0]:g}-{r['reach_m'][1]:g} m all round; robust search: {r['searched_with']}"
+    )
+    print(
+        f"nominal design: error {pct(r['nominal_error_rel'])}; worst over the default set {pct(r['nominal_worst_rel'])}"
+    )
+    print(
+        f"robust design : error {pct(r['robust_error_rel'])}; worst over the default set {pct(r['robust_worst_rel'])} "
+        f"(predicted {pct(r['robust_predicted_worst_rel'])})"
+    )
+    print(
+        f"worst robust / nominal: median {r['worst_ratio']['median']:.2f}; halved or better on "
+        f"{100 * r['worst_halved_share']:.0f}% of targets; time to an answer p50 {r['nominal_s']['p50']:.0f} s "
+        f"nominal, {r['robust_s']['p50']:.0f} s robust (p95 {r['nominal_s']['p95']:.0f} / {r['robust_s']['p95']:.0f} s)"
+    )
+
+
 def screen(r: dict) -> None:
     """The structured family's cheap screen against the full one (``bench/screen.py``)."""
     for name, f in r["rates"].items():
