@@ -327,12 +327,17 @@ def load_member_head(directory: str | Path, config: CheckpointConfig) -> MemberP
         raise CheckpointError(
             f"checkpoint {directory}: missing {MEMBER_HEAD_WEIGHTS} (its config has a member head)"
         )
-    state = _read_weights(directory, MEMBER_HEAD_WEIGHTS)
-    head = MemberPathHead(config.member_head)
+    return load_head_weights(directory, MEMBER_HEAD_WEIGHTS, MemberPathHead(config.member_head))
+
+
+def load_head_weights(directory: Path, name: str, head: torch.nn.Module) -> torch.nn.Module:
+    """``head`` with the weights of the checkpoint's file ``name``, frozen, in eval mode; a
+    CheckpointError if the file is corrupt, of another shape than ``head`` or not finite."""
+    state = _read_weights(directory, name)
     expected = head.state_dict()
     if set(state) != set(expected) or any(state[k].shape != expected[k].shape for k in expected):
-        raise CheckpointError(f"checkpoint {directory}: {MEMBER_HEAD_WEIGHTS} does not match its config")
+        raise CheckpointError(f"checkpoint {directory}: {name} does not match its config")
     if any(not torch.isfinite(v).all() for v in state.values()):
-        raise CheckpointError(f"checkpoint {directory}: {MEMBER_HEAD_WEIGHTS} contains NaN or Inf")
+        raise CheckpointError(f"checkpoint {directory}: {name} contains NaN or Inf")
     head.load_state_dict(state)
     return head.requires_grad_(False).eval()

@@ -26,7 +26,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 from safetensors.torch import save_file
 
 from snakeloco.model.member_path import MemberHeadConfig, MemberPathHead, fit_member_head, member_inputs
@@ -225,7 +224,7 @@ def save_physics_head(directory: str | Path, head: MemberPathHead) -> None:
 def load_physics_head(directory: str | Path) -> MemberPathHead | None:
     """The physics head stored beside a checkpoint (None where it has none); a CheckpointError where
     its files are corrupt or disagree."""
-    from snakeloco.model.checkpoint import CheckpointError, _read_weights
+    from snakeloco.model.checkpoint import CheckpointError, load_head_weights
 
     directory = Path(directory)
     if not (directory / PHYSICS_HEAD_CONFIG).is_file():
@@ -239,15 +238,7 @@ def load_physics_head(directory: str | Path) -> MemberPathHead | None:
             f"checkpoint {directory}: {PHYSICS_HEAD_CONFIG} reads physics {cfg.physics}, this version "
             f"{list(PHYSICS_FEATURES)}; fit it again (calibrate --physics-head)"
         )
-    head = MemberPathHead(cfg)
-    state = _read_weights(directory, PHYSICS_HEAD_WEIGHTS)
-    expected = head.state_dict()
-    if set(state) != set(expected) or any(state[k].shape != expected[k].shape for k in expected):
-        raise CheckpointError(f"checkpoint {directory}: {PHYSICS_HEAD_WEIGHTS} does not match its config")
-    if any(not torch.isfinite(v).all() for v in state.values()):
-        raise CheckpointError(f"checkpoint {directory}: {PHYSICS_HEAD_WEIGHTS} contains NaN or Inf")
-    head.load_state_dict(state)
-    return head.requires_grad_(False).eval()
+    return load_head_weights(directory, PHYSICS_HEAD_WEIGHTS, MemberPathHead(cfg))
 
 
 def fit_physics_head(fit, cfg: PhysicsHeadConfig | None = None) -> dict:

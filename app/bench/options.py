@@ -121,43 +121,39 @@ class BenchScale(Command):
     json: Json = False
 
 
-class BenchDesign(Command):
+class _Designs(Command):
+    """What the design benchmarks share: the checkpoint, how many targets, the search's size."""
+
+    checkpoint: Checkpoint = None
+    targets: Annotated[int, Field(ge=1)] = 50
+    """Targets (bench design: every other one also asks for the record's heading change)."""
+    candidates: Annotated[int, Field(ge=1)] = 4
+    """Candidates verified per design round (x4 replays each; robust design verifies twice as many)."""
+    rounds: Annotated[int, Field(ge=1)] = DesignConfig().rounds
+    """Rounds of search and verification per design (bench design's baseline gets as many replays as the design used)."""
+    seed: Seed = 1
+    """Seed of the targets, the searches and the baseline's draws."""
+    workers: Workers = None
+    """Simulation threads (default: all cores)."""
+    json: Json = False
+
+
+class BenchDesign(_Designs):
     """Benchmark inverse design on held-out ends (or uniform targets all round) against random draws of the data with the same physics budget (best of N replays), and its first round against the same on that round's budget: errors, heading, time to an answer."""
 
     data: Path | None = None
     """Held-out dataset (a seed not used in training): its records' ends are the targets."""
     reach: tuple[float, float] | None = None
     """Instead of --data: targets this far away (min max, m), uniform in distance and direction."""
-    checkpoint: Checkpoint = None
-    targets: Annotated[int, Field(ge=1)] = 50
-    """Targets (every other one also asks for the record's heading change)."""
-    candidates: Annotated[int, Field(ge=1)] = 4
-    """Candidates verified per design round (x4 replays each)."""
-    rounds: Annotated[int, Field(ge=1)] = DesignConfig().rounds
-    """Rounds of search and verification per design (the baseline gets as many replays as the design used)."""
-    seed: Seed = 1
-    """Seed of the target choice, the searches and the baseline's draws."""
-    workers: Workers = None
-    """Simulation threads (default: all cores)."""
-    json: Json = False
 
 
-class BenchRobust(Command):
+class BenchRobust(_Designs):
     """Benchmark robust design (with a physics head: searching with the predicted variations fan) against nominal design on the same uniform targets, each answer's best replayed on every variation of the default set: nominal and worst-case errors, their ratio, the predicted worst beside the replayed one, time to an answer."""
 
     reach: tuple[float, float] = (2.0, 15.0)
     """Targets this far away (min max, m), uniform in distance and direction."""
-    checkpoint: Checkpoint = None
     targets: Annotated[int, Field(ge=1)] = 20
     candidates: Annotated[int, Field(ge=1)] = 2
-    """Candidates reported per design (robust design verifies twice as many)."""
-    rounds: Annotated[int, Field(ge=1)] = DesignConfig().rounds
-    """Rounds of search and verification per design."""
-    seed: Seed = 1
-    """Seed of the targets and the searches."""
-    workers: Workers = None
-    """Simulation threads (default: all cores)."""
-    json: Json = False
 
 
 class BenchScreen(Command):
