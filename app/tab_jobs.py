@@ -7,6 +7,7 @@ draws only while that version is still the tab's newest (``is_current``), under 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -57,6 +58,7 @@ class TabJobs:
             timing = self._timing(version)
             timing.started = time.perf_counter()
             decoded = self._decoding.decode(self.session.model.path, latents, self.session.decode)
+            decoded = self._on_session_robot(decoded)
             timing.decode_ms = decoded.decode_ms
         with self._draw_lock:
             if not self.is_current(version):
@@ -67,6 +69,17 @@ class TabJobs:
             self.views_drawn += 1
             self.physics.submit((version, ("gait", decoded)))
         self._predict_variations(version, decoded)
+
+    def _on_session_robot(self, decoded: DecodedGait) -> DecodedGait:
+        """A member's path on the robot the tab replays on, where that is not the checkpoint's and
+        its physics head covers it (a fitted robot: ``serve --robot``); else ``decoded`` as it is."""
+        robot = self.session.robot
+        if decoded.member is None or robot.mjcf_sha256 == self.model.robot.mjcf_sha256:
+            return decoded
+        if not self.model.covers(robot):
+            return decoded
+        body = self.model.predict_variation_paths(decoded.member, [robot])[0]
+        return dataclasses.replace(decoded, body_ds=body)
 
     def _predict_variations(self, version: int, decoded: DecodedGait) -> None:
         """Draw the physics head's predicted Variations fan and say its line (a checkpoint with a

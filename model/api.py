@@ -122,6 +122,12 @@ class GaitModel(MemberDecoding):
             if self.config.mjcf_sha256 == DEFAULT_ROBOT.mjcf_sha256
             else f"robot {self.robot.name} (MJCF sha256 {self.config.mjcf_sha256[:12]})"
         )
+        if self.projects and self.covers(robot):
+            return (
+                f"checkpoint {self.path or ''} was trained on {trained}; replays run on {robot.name} "
+                f"(MJCF sha256 {here[:12]}): the model's path is its physics head's prediction for this "
+                "robot (within the physics it was trained on), its statistics the trained robot's"
+            )
         return (
             f"checkpoint {self.path or ''} was trained on {trained}; replays run on {robot.name} "
             f"(MJCF sha256 {here[:12]}): the MuJoCo path is this robot's, the model's path and "

@@ -116,6 +116,21 @@ class MemberDecoding:
             body = self.physics_head(x).numpy().astype(np.float64)
         return body * self._body_std + self._body_mean
 
+    def covers(self, robot) -> bool:
+        """Whether the physics head predicts paths on ``robot`` (a ``sim.robot.Robot`` of this
+        checkpoint's geometry): every physics feature within the range it was trained on."""
+        from snakeloco.model.physics_head import physics_features
+
+        if self.physics_head is None or robot.n_joints != self.robot.n_joints:
+            return False
+        span = self.physics_head.cfg.summary.get("feature_range")
+        if span is None:
+            return False
+        f = physics_features([robot], self.robot)[0]
+        return bool(
+            np.all(f >= np.asarray(span["low"]) - 1e-9) and np.all(f <= np.asarray(span["high"]) + 1e-9)
+        )
+
     def predict_variation_paths(self, member: Member, robots: list) -> np.ndarray:
         """The body series (V, 500, 6) the physics head predicts for one member on each of ``robots``
         (``sim.robot.Robot``, of this checkpoint's geometry)."""

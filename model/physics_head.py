@@ -305,10 +305,16 @@ def fit_physics_head(fit, cfg: PhysicsHeadConfig | None = None) -> dict:
         physics=PHYSICS_FEATURES,
         log=fit.log,
     )
+    feats = train["features"][tr_rows]
     summary |= {
         "fit_s": time.perf_counter() - t0,
         "config": cfg.model_dump(),
         "broken": int((~train["ok"]).sum()),
+        # The physics it was trained on, per feature (``GaitModel.covers``); mirrored pairs add -slope_left.
+        "feature_range": {
+            "low": np.minimum(feats.min(0), mirror_features(feats).min(0)).tolist(),
+            "high": np.maximum(feats.max(0), mirror_features(feats).max(0)).tolist(),
+        },
     }
     model = GaitModel(model.net, model.config, model.path, model.member_head, physics_head=head)
     summary["validation"] = score(model, train, va_rows, z)

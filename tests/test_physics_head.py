@@ -103,11 +103,26 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     paths = model.predict_variation_paths(member, [v.apply(model.robot) for v in DEFAULT_SET])
     assert paths.shape == (len(DEFAULT_SET), 500, 6) and np.isfinite(paths).all()
 
-    srv = DesignerServer(port=0, checkpoint=out, ensemble=2, workers=2, verbose=False)
+    # A robot inside the physics it was trained on (a fitted robot, say) is covered; far outside, not.
+    from snakeloco.sim.variations import Variation
+
+    slippery = Variation(name="slippery", scale={"friction_along": 0.7, "friction_across": 0.7}).apply(
+        model.robot
+    )
+    icy = Variation(name="icy", scale={"friction_along": 0.05, "friction_across": 0.05}).apply(model.robot)
+    assert model.covers(model.robot) and model.covers(slippery) and not model.covers(icy)
+    assert "physics head's prediction" in model.robot_warning(slippery)
+    assert "physics head" not in model.robot_warning(icy)
+
+    # Served on the covered robot: the model's path is the physics head's for it, the fan its variations'.
+    srv = DesignerServer(port=0, checkpoint=out, ensemble=2, workers=2, verbose=False, robot=slippery)
     client, d = connect_headless(srv, timeout=180)  # replay, ensemble and 12 variations on 2 cores
     try:
         assert d.predicted[0] == d.version and d.scene.predicted_fan.visible
         assert d.variations[0] == d.version
+        on_it = model.predict_variation_paths(d.decoded.member, [slippery])[0]
+        assert np.allclose(d.decoded.body_ds, on_it, atol=1e-5)
+        assert "physics head" in d.controls.readout.content
         text = d.controls.readout.content.replace("&#x27;", "'")
         assert prediction_line(d.predicted[1], d.variations[1]) in text
     finally:
