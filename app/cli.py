@@ -233,7 +233,7 @@ def run_calibrate(cmd: Calibrate) -> dict:
     from snakeloco.model.sampler import fit_sampler
 
     if cmd.physics_head:
-        from snakeloco.model.physics_head import fit_physics_head, replay_count
+        from snakeloco.model.physics_fit import fit_physics_head, replay_count
 
         pc = cmd.physics_head_config
         with Progress(replay_count(pc), "replay members on other robots") as progress:

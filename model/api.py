@@ -24,6 +24,7 @@ from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoin
 from snakeloco.model.member_decoding import MemberDecoding, _finite
 from snakeloco.model.member_path import MemberPathHead
 from snakeloco.model.network import HierarchicalVAE
+from snakeloco.model.physics_head import load_physics_head
 from snakeloco.model.stats import stats_dict
 from snakeloco.model.tracing import Graphs
 from snakeloco.sim.robot import DEFAULT_ROBOT
@@ -328,7 +329,6 @@ def load_pretrained(path: str | Path | None = None) -> GaitModel:
         CheckpointError: the checkpoint is missing, corrupt or mismatched (the message says which).
     """
     from snakeloco.model.checkpoint import resolve_checkpoint
-    from snakeloco.model.physics_head import load_physics_head
 
     directory = resolve_checkpoint(path)
     net, config = load_checkpoint(directory)

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from snakeloco.model.member_path import member_inputs
+from snakeloco.model.physics_head import physics_features
 from snakeloco.sim.members import Member
 from snakeloco.sim.projection import project_many
 
@@ -119,8 +120,6 @@ class MemberDecoding:
     def covers(self, robot) -> bool:
         """Whether the physics head predicts paths on ``robot`` (a ``sim.robot.Robot`` of this
         checkpoint's geometry): every physics feature within the range it was trained on."""
-        from snakeloco.model.physics_head import physics_features
-
         if self.physics_head is None or robot.n_joints != self.robot.n_joints:
             return False
         span = self.physics_head.cfg.summary.get("feature_range")
@@ -134,8 +133,6 @@ class MemberDecoding:
     def predict_variation_paths(self, member: Member, robots: list) -> np.ndarray:
         """The body series (V, 500, 6) the physics head predicts for one member on each of ``robots``
         (``sim.robot.Robot``, of this checkpoint's geometry)."""
-        from snakeloco.model.physics_head import physics_features
-
         return self.predict_physics_paths([member] * len(robots), physics_features(robots, self.robot))
 
     def decode_members(

@@ -9,34 +9,22 @@ sampled, as the designer decodes) on the nominal robot, on every variation of th
 on ``sampled`` combined variations per member (``sim.variations.sampled_set``): physics labels
 it, as it does the member head. It is stored beside a checkpoint's weights
 (``PHYSICS_HEAD_WEIGHTS`` and ``PHYSICS_HEAD_CONFIG``: the head's config, the features and what it
-scored) without changing them.
-
-``snakeloco calibrate --physics-head`` replays and fits (chunked, resumable: ``--gaits DIR`` keeps
-every finished chunk), then scores it on ``eval_samples`` further sampler positions (z_k = 0)
-replayed on the default set: predicted vs replayed end point over the replayed distance, per kind
-and per variation, beside the nominal head's prediction (what the fan would be without the
-physics) and the replays' own command-noise spread.
+scored) without changing them. It is fitted by ``model.physics_fit``.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import time
 from pathlib import Path
 
 import numpy as np
 from safetensors.torch import save_file
 
-from snakeloco.model.member_path import MemberHeadConfig, MemberPathHead, fit_member_head, member_inputs
-from snakeloco.model.options import PhysicsHeadConfig
-from snakeloco.sim.body import mirror_body
+from snakeloco.model.member_path import MemberHeadConfig, MemberPathHead
 from snakeloco.sim.robot import Robot
-from snakeloco.sim.variations import DEFAULT_SET, Variation, sampled_set
 
 PHYSICS_HEAD_WEIGHTS = "physics_head.safetensors"
 PHYSICS_HEAD_CONFIG = "physics_head.json"
-PHYSICS_GAITS = "physics-gaits"
 
 LOG_FIELDS = ("friction_along", "friction_across", "link_mass", "servo_kp", "servo_kv", "joint_damping")
 """Physical fields fed as the log of their ratio to the checkpoint robot's."""
@@ -63,150 +51,6 @@ def mirror_features(features: np.ndarray) -> np.ndarray:
     out = np.array(features, np.float64, copy=True)
     out[..., PHYSICS_FEATURES.index("slope_left")] *= -1
     return out
-
-
-def replay_count(cfg: PhysicsHeadConfig) -> int:
-    """Replays ``fit_physics_head`` runs (chunks already replayed count too)."""
-    return 2 * cfg.samples * (1 + len(DEFAULT_SET) + cfg.sampled) + cfg.eval_samples * (1 + len(DEFAULT_SET))
-
-
-def member_robots(cfg: PhysicsHeadConfig, index: int, sampled: int) -> list[Variation | None]:
-    """The robots member ``index`` is replayed on: the nominal one (None), every variation of the
-    default set, then ``sampled`` combined variations of its own (seeded by the member)."""
-    return [None, *DEFAULT_SET, *sampled_set(sampled, seed=cfg.seed + 7919 * (index + 1))]
-
-
-def simulate_rows(simulator, job: tuple) -> tuple[np.ndarray, list[str | None]]:
-    """A backend job: commands (B, T, J), each on its variation of the simulator's robot (None: the
-    robot itself); the body series at the model's rate (B, 500, 6) and each replay's break reason."""
-    from snakeloco.sim.dataset import BODY_DOWNSAMPLE
-
-    commands, variations = job
-    robots = [simulator.robot if v is None else v.apply(simulator.robot) for v in variations]
-    result = simulator.simulate(commands, robots=robots)
-    return result.body[:, ::BODY_DOWNSAMPLE].astype(np.float32), result.failures
-
-
-def replay_members_on_physics(
-    model, z_b: np.ndarray, modes: tuple, cfg: PhysicsHeadConfig, sampled: int, folder: Path, fit, label: str
-) -> dict[str, np.ndarray]:
-    """Decode z_B (N, Db) in each mode (None: z_k = 0; a temperature: sampled), project, and replay
-    every member on its robots (``member_robots``), ``cfg.chunk`` members per chunk file in
-    ``folder`` (a finished chunk of the same draw is read back, not replayed).
-
-    Returns, one row per replay: member index (into the draws x modes), z_index, mode, the member's
-    commanded shape, the robot's physics features, the variation's name, the body series and ok."""
-    from snakeloco.model.replays import check_same_gaits, load_side_file, save_side_file
-
-    folder.mkdir(parents=True, exist_ok=True)
-    members, modes_of, z_index = [], [], []
-    for mode, temperature in enumerate(modes):
-        z_j = model.joint_latents(z_b, temperature, seed=cfg.seed + 1)
-        found, _, _, _, _ = model.decode_members(z_b, z_j, with_stats=False)
-        members += found
-        modes_of += [mode] * len(found)
-        z_index += list(range(len(found)))
-    shapes = np.stack([m.shape(model.robot) for m in members])
-    runner = fit.open_backend(model.robot)
-    drawn = {"label": label, "samples": len(z_b), "seed": cfg.seed, "sampled": sampled, "modes": len(modes)}
-    parts = []
-    try:
-        starts = list(range(0, len(members), cfg.chunk))
-        todo = []
-        for s in starts:
-            path = folder / f"{label}-{s:05d}.npz"
-            if path.exists():
-                part = load_side_file(
-                    path, PHYSICS_GAITS, drawn | {"start": s}, ["shape", "body"], model.robot
-                )
-                check_same_gaits(path, part["shape"], shapes[part["member"]], "physics-head members")
-                parts.append(part)
-            else:
-                todo.append(s)
-        fit.say(f"{label}: {len(starts) - len(todo)} of {len(starts)} chunks replayed already")
-
-        def chunk_rows(s: int) -> list[tuple[int, Variation | None]]:
-            idx = range(s, min(len(members), s + cfg.chunk))
-            return [(i, v) for i in idx for v in member_robots(cfg, i, sampled)]
-
-        def jobs():
-            for s in todo:
-                rows = chunk_rows(s)
-                yield model.commands(model.member_shapes([members[i] for i, _ in rows])), [v for _, v in rows]
-
-        for k, (body, failures) in runner.map(simulate_rows, jobs()):
-            s = todo[k]
-            rows = chunk_rows(s)
-            robots = [model.robot if v is None else v.apply(model.robot) for _, v in rows]
-            part = {
-                "member": np.array([i for i, _ in rows]),
-                "z_index": np.array([z_index[i] for i, _ in rows]),
-                "mode": np.array([modes_of[i] for i, _ in rows]),
-                "shape": shapes[[i for i, _ in rows]],
-                "features": physics_features(robots, model.robot),
-                "variation": np.array(["nominal" if v is None else v.name for _, v in rows]),
-                "body": body,
-                "ok": np.array([f is None for f in failures]),
-            }
-            save_side_file(folder / f"{label}-{s:05d}.npz", drawn | {"start": s}, model.robot, **part)
-            parts.append(part)
-            if fit.progress is not None:
-                fit.progress(len(rows))
-    finally:
-        runner.close()
-    keys = ("member", "z_index", "mode", "shape", "features", "variation", "body", "ok")
-    parts.sort(key=lambda p: int(np.min(p["member"])))
-    out = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in keys}
-    out["members"] = members
-    return out
-
-
-def head_examples(model, replays: dict, rows: np.ndarray, mirror: bool):
-    """Inputs and normalised bodies of replay ``rows`` (and their mirror images where they are members)."""
-    head_cfg = model.config.member_head
-    members = [replays["members"][i] for i in replays["member"][rows]]
-    feats, body = replays["features"][rows], replays["body"][rows].astype(np.float64)
-    if mirror:
-        images = np.array([model.config.members.mirrors(m.kind) for m in members], bool)
-        members = members + [m.mirrored() for m, k in zip(members, images, strict=True) if k]
-        feats = np.concatenate([feats, mirror_features(feats[images])])
-        body = np.concatenate([body, mirror_body(body[images])])
-    x = member_inputs(members, np.asarray(head_cfg.support), None, head_cfg.inputs, model.robot)
-    x = np.concatenate([x, feats], axis=1)
-    return x, (body - model._body_mean) / model._body_std, members
-
-
-def end_errors(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """|predicted - replayed end point| over the replayed distance (floored at 0.05 m), per path."""
-    p, t = pred[:, -1, 1:3] - pred[:, 0, 1:3], true[:, -1, 1:3] - true[:, 0, 1:3]
-    return np.linalg.norm(p - t, axis=-1) / np.maximum(np.linalg.norm(t, axis=-1), 0.05)
-
-
-def score(model, replays: dict, rows: np.ndarray, z_b: np.ndarray) -> dict:
-    """Predicted (physics head) and nominal-head end errors over replays ``rows``: medians over the
-    varied robots ("all"), per kind of member (varied robots) and per variation (nominal too).
-    ``z_b``: the draws the replays' members were decoded from (for a member head that reads them)."""
-    members = [replays["members"][i] for i in replays["member"][rows]]
-    true = replays["body"][rows].astype(np.float64)
-    pred = model.predict_physics_paths(members, replays["features"][rows])
-    nominal = model.predict_paths(members, np.asarray(z_b)[replays["z_index"][rows]])
-    err, base = end_errors(pred, true), end_errors(nominal, true)
-    kinds = np.array([m.kind for m in members])
-    names = replays["variation"][rows]
-
-    def med(mask):
-        return {
-            "n": int(mask.sum()),
-            "rel_median": float(np.median(err[mask])),
-            "nominal_head_rel_median": float(np.median(base[mask])),
-        }
-
-    varied = names != "nominal"
-    return {
-        "all": med(varied),
-        "by_kind": {k: med(varied & (kinds == k)) for k in sorted(set(kinds.tolist()))},
-        "by_variation": {v: med(names == v) for v in dict.fromkeys(names.tolist())},
-    }
 
 
 def save_physics_head(directory: str | Path, head: MemberPathHead) -> None:
@@ -239,94 +83,3 @@ def load_physics_head(directory: str | Path) -> MemberPathHead | None:
             f"{list(PHYSICS_FEATURES)}; fit it again (calibrate --physics-head)"
         )
     return load_head_weights(directory, PHYSICS_HEAD_WEIGHTS, MemberPathHead(cfg))
-
-
-def fit_physics_head(fit, cfg: PhysicsHeadConfig | None = None) -> dict:
-    """Replay, fit and score the physics head of ``fit.checkpoint``; write it into ``fit.out`` (the
-    checkpoint's own folder, or a copy of it made there). ``fit.gaits_path``: the folder of replay
-    chunks (default: ``fit.out``/physics-gaits). Returns the summary (also in the head's config)."""
-    import shutil
-
-    from snakeloco.model.api import GaitModel, load_pretrained
-    from snakeloco.model.checkpoint import resolve_checkpoint
-    from snakeloco.model.sampler import ZK_TEMPERATURE
-
-    cfg = cfg or PhysicsHeadConfig()
-    t_start = time.perf_counter()
-    model = load_pretrained(fit.checkpoint)
-    if model.member_head is None or not model.projects:
-        raise ValueError(
-            f"checkpoint {model.path}: the physics head extends a member path head; this checkpoint has "
-            "none (calibrate --sampler fits one, on a structured-family checkpoint)"
-        )
-    out = Path(fit.out)
-    source = resolve_checkpoint(fit.checkpoint)
-    if out.resolve() != source.resolve():
-        shutil.copytree(source, out, dirs_exist_ok=True)
-    folder = Path(fit.gaits_path) if fit.gaits_path is not None else out / PHYSICS_GAITS
-    head_cfg = model.config.member_head
-    sampler = model.config.summary.sampler or {}
-    z = model.sample_z_b(cfg.samples, cfg.seed)
-    train = replay_members_on_physics(
-        model, z, (None, ZK_TEMPERATURE), cfg, cfg.sampled, folder, fit, "train"
-    )
-    held = np.random.default_rng(cfg.seed).permutation(cfg.samples)[
-        : max(1, round(cfg.samples * cfg.val_fraction))
-    ]
-    is_val = np.isin(train["z_index"], held)
-    tr_rows, va_rows = np.flatnonzero(train["ok"] & ~is_val), np.flatnonzero(train["ok"] & is_val)
-    x, y, _ = head_examples(model, train, tr_rows, head_cfg.mirrored)
-    vx, vy, _ = head_examples(model, train, va_rows, False)
-
-    def scales(body):
-        from snakeloco.model.member_path import path_scales
-
-        return path_scales(body * model._body_std + model._body_mean)
-
-    floor = sampler.get("xy_floor")
-    t0 = time.perf_counter()
-    head, summary = fit_member_head(
-        x,
-        y,
-        vx,
-        vy,
-        np.asarray(head_cfg.support),
-        input_kind=head_cfg.inputs,
-        mirrored=head_cfg.mirrored,
-        epochs=cfg.epochs,
-        lr=cfg.lr,
-        hidden=cfg.hidden,
-        layers=head_cfg.layers,
-        seed=cfg.seed,
-        xy_scale=None if floor is None else (scales(y), scales(vy)),
-        xy_floor=floor or 0.0,
-        path=head_cfg.path,
-        body_norm=(model._body_mean, model._body_std),
-        physics=PHYSICS_FEATURES,
-        log=fit.log,
-    )
-    feats = train["features"][tr_rows]
-    summary |= {
-        "fit_s": time.perf_counter() - t0,
-        "config": cfg.model_dump(),
-        "broken": int((~train["ok"]).sum()),
-        # The physics it was trained on, per feature (``GaitModel.covers``); mirrored pairs add -slope_left.
-        "feature_range": {
-            "low": np.minimum(feats.min(0), mirror_features(feats).min(0)).tolist(),
-            "high": np.maximum(feats.max(0), mirror_features(feats).max(0)).tolist(),
-        },
-    }
-    model = GaitModel(model.net, model.config, model.path, model.member_head, physics_head=head)
-    summary["validation"] = score(model, train, va_rows, z)
-    head.cfg = head.cfg.model_copy(update={"summary": summary})
-    save_physics_head(out, head)  # usable now; the scoring replays below can take an hour
-    if cfg.eval_samples:
-        z_eval = model.sample_z_b(cfg.eval_samples, cfg.eval_seed)
-        evaluated = replay_members_on_physics(model, z_eval, (None,), cfg, 0, folder, fit, "eval")
-        summary["eval"] = score(model, evaluated, np.flatnonzero(evaluated["ok"]), z_eval)
-        summary["eval"]["broken"] = int((~evaluated["ok"]).sum())
-    summary["wall_time_s"] = time.perf_counter() - t_start
-    head.cfg = head.cfg.model_copy(update={"summary": summary})
-    save_physics_head(out, head)
-    fit.say(f"physics head: {json.dumps(summary.get('eval', summary['validation'])['all'])}; wrote {out}")
-    return summary

@@ -64,7 +64,7 @@ def physics_checkpoint(member_checkpoint, tmp_path_factory):
     """The tiny structured checkpoint with a physics head fitted on a few replays; the summary and
     the replays counted on the way."""
     from snakeloco.model.options import PhysicsHeadConfig
-    from snakeloco.model.physics_head import fit_physics_head
+    from snakeloco.model.physics_fit import fit_physics_head
     from snakeloco.model.replays import Fit
 
     out = tmp_path_factory.mktemp("physics")
@@ -83,7 +83,8 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     from snakeloco.app.server import DesignerServer
     from snakeloco.model.api import load_pretrained
     from snakeloco.model.checkpoint import CheckpointError
-    from snakeloco.model.physics_head import PHYSICS_HEAD_WEIGHTS, fit_physics_head, replay_count
+    from snakeloco.model.physics_fit import fit_physics_head, replay_count
+    from snakeloco.model.physics_head import PHYSICS_HEAD_WEIGHTS
     from snakeloco.model.replays import Fit
 
     from helpers import connect_headless
