@@ -97,8 +97,11 @@ class TabJobs:
             self.predicted = (version, report)
             with self.client.atomic():
                 self.scene.draw_predicted_variations(bodies)
-                if self.simulated is None:  # a replay's readout says it when it is drawn
-                    self.show_readout(decoded, "streaming" if self.streaming is not None else "simulating")
+                if self.simulated is None:  # a finished replay's readout says it when it is drawn
+                    if self.streaming is not None:
+                        self.show_readout(decoded, "streaming", self.streaming.body)
+                    else:
+                        self.show_readout(decoded, "simulating")
 
     def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, (kind, *payload) = item
