@@ -30,11 +30,16 @@ def write_design(cmd) -> dict:
         )
     if warning := model.robot_warning(robot):
         print(f"snakeloco: warning: {warning}", file=sys.stderr)
+    searched, searched_on = model, "the checkpoint's robot"
+    if robot.mjcf_sha256 != model.robot.mjcf_sha256 and model.projects and model.covers(robot):
+        from snakeloco.model.physics_head import OnRobot
+
+        searched, searched_on = OnRobot(model, robot), f"the physics head's paths on {robot.name}"
     if cmd.robust:
         from snakeloco.model.robust_design import robust_design
 
         result = robust_design(
-            model,
+            searched,
             cmd.target,
             cmd.config,
             backend=cmd.backend,
@@ -43,7 +48,9 @@ def write_design(cmd) -> dict:
             score=cmd.robust_score,
         )
     else:
-        result = design(model, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers, robot=robot)
+        result = design(
+            searched, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers, robot=robot
+        )
     robust = result.extra.get("robust")
     cmd.out.mkdir(parents=True, exist_ok=True)
     candidates = []
@@ -75,6 +82,7 @@ def write_design(cmd) -> dict:
         "met": result.met,
         "candidates": candidates,
         "checkpoint": str(model.path),
+        "searched_on": searched_on,
         "search_s": result.search_s,
         "physics_s": result.physics_s,
         "replays": result.replays,

@@ -83,3 +83,23 @@ def load_physics_head(directory: str | Path) -> MemberPathHead | None:
             f"{list(PHYSICS_FEATURES)}; fit it again (calibrate --physics-head)"
         )
     return load_head_weights(directory, PHYSICS_HEAD_WEIGHTS, MemberPathHead(cfg))
+
+
+class OnRobot:
+    """A ``GaitModel`` whose decoded paths are its physics head's prediction on ``robot`` (a fitted
+    robot, say, that ``GaitModel.covers``): what inverse design searches on for that robot. Every
+    other attribute is the model's own."""
+
+    def __init__(self, model, robot: Robot) -> None:
+        if not model.projects or not model.covers(robot):
+            raise ValueError(f"the checkpoint's physics head does not cover {robot.name}")
+        self._model, self.on = model, robot
+        self._features = physics_features([robot], model.robot)
+
+    def __getattr__(self, name: str):
+        return getattr(self._model, name)
+
+    def decode(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The members' shapes (B, J, L, 2) and their paths on ``self.on`` (B, 500, 6)."""
+        members, _, shape, _, _ = self._model.decode_members(z_b, z_j, with_stats=False)
+        return shape, self._model.predict_physics_paths(members, np.repeat(self._features, len(members), 0))

@@ -190,3 +190,46 @@ def test_bench_robust_judges_nominal_and_robust_answers_by_the_same_replayed_wor
     )
     assert row["worst_ratio"] == pytest.approx(row["robust_worst_rel"] / row["nominal_worst_rel"])
     assert any(line.startswith("worst robust / nominal: median") for line in lines)
+
+
+@pytest.mark.slow
+def test_design_on_a_covered_robot_searches_on_the_physics_heads_paths_for_it(
+    physics_checkpoint, tmp_path, capsys
+):
+    from snakeloco.app.cli import main
+    from snakeloco.model.api import load_pretrained
+    from snakeloco.model.physics_head import OnRobot
+    from snakeloco.sim.variations import Variation
+
+    out = physics_checkpoint[0]
+    model = load_pretrained(out)
+    slippery = Variation(name="slippery", scale={"friction_along": 0.7, "friction_across": 0.7}).apply(
+        model.robot
+    )
+    icy = Variation(name="icy", scale={"friction_along": 0.05, "friction_across": 0.05}).apply(model.robot)
+    with pytest.raises(ValueError, match="does not cover"):
+        OnRobot(model, icy)
+    on = OnRobot(model, slippery)
+    z = model.sample_z_b(2, 3)
+    shape, body = on.decode(z)
+    members = model.decode_members(z)[0]
+    assert np.allclose(body[1], model.predict_variation_paths(members[1], [slippery])[0], atol=1e-4)  # batch of 2 vs 1
+    assert np.array_equal(shape, model.decode(z)[0]) and on.z_b_dim == model.z_b_dim
+    (tmp_path / "slippery.yaml").write_text(slippery.to_yaml())
+    quick = "--screen 32 --starts 2 --generations 3 --population 6 --candidates 1 --rounds 1".split()
+    target = [
+        "--forward",
+        "0.4",
+        "--sideways",
+        "0.1",
+        "--checkpoint",
+        str(out),
+        "--robot",
+        str(tmp_path / "slippery.yaml"),
+    ]
+    main(["design", *target, *quick, "--out", str(tmp_path / "d"), "--workers", "2", "--json"])
+    report = __import__("json").loads(capsys.readouterr().out.splitlines()[-1])
+    assert (
+        report["searched_on"] == f"the physics head's paths on {slippery.name}"
+        and report["robot"] == slippery.name
+    )
