@@ -334,5 +334,9 @@ def load_pretrained(path: str | Path | None = None) -> GaitModel:
     net, config = load_checkpoint(directory)
     member_head = load_member_head(directory, config)
     return GaitModel(
-        net, config, directory, member_head, load_physics_head(directory) if member_head else None
+        net,
+        config,
+        directory,
+        member_head,
+        load_physics_head(directory, member_head) if member_head else None,
     )

@@ -62,6 +62,10 @@ class MemberHeadConfig(BaseModel):
     )
     input_std: list[float] = Field(description="(2 S + z_b_dim,) their std, floored at 1e-3.")
     z_b_dim: int = Field(0, ge=0, description="z_B inputs after the coefficients (0: the member alone).")
+    residual: bool = Field(
+        False,
+        description="A correction added to the member head's output (``ResidualHead``), zero at nominal physics.",
+    )
     physics: list[str] = Field(
         default_factory=list,
         description="Physics inputs after those (``model.physics_head.PHYSICS_FEATURES``; none: the robot "
@@ -103,8 +107,15 @@ class MemberPathHead(nn.Module):
             self.register_buffer("body_mean", torch.tensor(cfg.body_mean, dtype=torch.float32))
             self.register_buffer("body_std", torch.tensor(cfg.body_std, dtype=torch.float32))
 
+    def raw(self, x: torch.Tensor) -> torch.Tensor:
+        """The MLP's output (B, T, C), before a heading head draws the path from it."""
+        return self.mlp((x - self.in_mean) / self.in_std).view(-1, self.cfg.steps, self.cfg.channels)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.mlp((x - self.in_mean) / self.in_std).view(-1, self.cfg.steps, self.cfg.channels)
+        return self.draw(self.raw(x))
+
+    def draw(self, y: torch.Tensor) -> torch.Tensor:
+        """The normalised body series from the MLP's output ``y`` (B, T, C)."""
         if self.cfg.path == "direct":
             return y  # (B, T, C)
         # Dead reckoning: step k moves the body by its velocity u_k in its own frame, turned by its
@@ -116,6 +127,23 @@ class MemberPathHead(nn.Module):
         xy = torch.cat([torch.zeros_like(step[:, :1]), torch.cumsum(step[:, :-1], dim=1)], dim=1)
         xy = (xy - self.body_mean[1:3]) / self.body_std[1:3]
         return torch.cat([y[..., :1], xy, y[..., 3:]], dim=-1)
+
+
+class ResidualHead(nn.Module):
+    """A frozen member head plus a correction read from the physics inputs that end each row:
+    ``base`` on the member's inputs, plus ``delta`` on the whole row minus ``delta`` with the
+    physics zeroed, so the nominal robot's path is the member head's own, exactly, and only the
+    physics' effect is learnt (``model.physics_head``)."""
+
+    def __init__(self, base: MemberPathHead, delta: MemberPathHead) -> None:
+        super().__init__()
+        self.base, self.delta = base.requires_grad_(False), delta
+        self.cfg = delta.cfg
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n = x.shape[1] - len(self.cfg.physics)
+        x0 = torch.cat([x[:, :n], torch.zeros_like(x[:, n:])], dim=1)
+        return self.base.draw(self.base.raw(x[:, :n]) + self.delta.raw(x) - self.delta.raw(x0))
 
 
 NAMED_INPUTS = len(KINDS) + 10
@@ -232,6 +260,7 @@ def fit_member_head(
     path: HeadPath = "direct",
     body_norm: tuple[np.ndarray, np.ndarray] | None = None,
     physics: tuple[str, ...] = (),
+    base: MemberPathHead | None = None,
     log: Callable[[str], None] | None = print,
 ) -> tuple[MemberPathHead, dict]:
     """Fit a head on (inputs (N, I) from ``member_inputs`` with ``input_kind``, normalised body (N,
@@ -245,7 +274,9 @@ def fit_member_head(
     each kind of member counts as much as any other). ``path``: how the
     head draws the plane path (``HeadPath``); a heading head needs ``body_norm``, the (mean, std) (6,)
     the body series are normalised by. ``physics``: the names of the physics inputs that end each
-    input row (``model.physics_head``). Returns the head and what it scored."""
+    input row (``model.physics_head``); ``base``: a member head (reading the rows without them) the
+    fitted head corrects (``ResidualHead``; its path drawing is the base's). Returns the head and
+    what it scored."""
 
     torch.manual_seed(seed)
     x, y = torch.as_tensor(inputs, dtype=torch.float32), torch.as_tensor(body, dtype=torch.float32)
@@ -275,7 +306,13 @@ def fit_member_head(
                 "velocity_scale": float(body_frame_velocities(np.asarray(body) * std + mean).std()),
             }
         )
-    head = MemberPathHead(cfg)
+    if base is not None:
+        cfg = cfg.model_copy(
+            update={k: getattr(base.cfg, k) for k in ("path", "body_mean", "body_std", "velocity_scale")}
+            | {"residual": True}
+        )
+    head = MemberPathHead(cfg) if base is None else ResidualHead(base, MemberPathHead(cfg))
+    keep = head if base is None else head.delta
     w = torch.tensor(CHANNEL_WEIGHTS[: y.shape[2]], dtype=torch.float32)
 
     xy = torch.zeros(y.shape[2], dtype=torch.bool)
@@ -302,7 +339,7 @@ def fit_member_head(
 
     best_epoch, history = fit_best(
         head,
-        head,
+        keep,
         len(x),
         lambda idx: loss(head(x[idx]), y[idx], ew[idx], kw[idx]),
         val_loss,

@@ -253,3 +253,8 @@ class PhysicsHeadConfig(BaseModel):
     lr: float = Field(2e-3, gt=0, description="Peak learning rate (Adam, cosine to 1%).")
     hidden: int = Field(256, ge=8, description="Width of its hidden layers.")
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of the z_B draws held out for the epoch.")
+    residual: bool = Field(
+        True,
+        description="Learn a correction of the member head's output that is zero at the nominal physics (the "
+        "nominal path stays the member head's); off, or for a member head that reads z_B: a head of its own.",
+    )

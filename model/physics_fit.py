@@ -236,6 +236,7 @@ def fit_physics_head(fit, cfg: PhysicsHeadConfig | None = None) -> dict:
         path=head_cfg.path,
         body_norm=(model._body_mean, model._body_std),
         physics=PHYSICS_FEATURES,
+        base=model.member_head if cfg.residual and head_cfg.z_b_dim == 0 else None,
         log=fit.log,
     )
     feats = train["features"][tr_rows]

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from safetensors.torch import save_file
 
-from snakeloco.model.member_path import MemberHeadConfig, MemberPathHead
+from snakeloco.model.member_path import MemberHeadConfig, MemberPathHead, ResidualHead
 from snakeloco.sim.robot import Robot
 
 PHYSICS_HEAD_WEIGHTS = "physics_head.safetensors"
@@ -53,10 +53,11 @@ def mirror_features(features: np.ndarray) -> np.ndarray:
     return out
 
 
-def save_physics_head(directory: str | Path, head: MemberPathHead) -> None:
+def save_physics_head(directory: str | Path, head: MemberPathHead | ResidualHead) -> None:
     """Write the head's weights and config beside a checkpoint's (atomically, each file)."""
     directory = Path(directory)
-    state = {k: v.detach().cpu().contiguous() for k, v in head.state_dict().items()}
+    own = head.delta if isinstance(head, ResidualHead) else head  # a residual head's base is the member head
+    state = {k: v.detach().cpu().contiguous() for k, v in own.state_dict().items()}
     tmp = directory / (PHYSICS_HEAD_WEIGHTS + ".tmp")
     save_file(state, str(tmp))
     tmp.replace(directory / PHYSICS_HEAD_WEIGHTS)
@@ -65,9 +66,11 @@ def save_physics_head(directory: str | Path, head: MemberPathHead) -> None:
     tmp.replace(directory / PHYSICS_HEAD_CONFIG)
 
 
-def load_physics_head(directory: str | Path) -> MemberPathHead | None:
-    """The physics head stored beside a checkpoint (None where it has none); a CheckpointError where
-    its files are corrupt or disagree."""
+def load_physics_head(
+    directory: str | Path, base: MemberPathHead | None = None
+) -> MemberPathHead | ResidualHead | None:
+    """The physics head stored beside a checkpoint (None where it has none; a residual one on the
+    checkpoint's member head ``base``); a CheckpointError where its files are corrupt or disagree."""
     from snakeloco.model.checkpoint import CheckpointError, load_head_weights
 
     directory = Path(directory)
@@ -82,7 +85,12 @@ def load_physics_head(directory: str | Path) -> MemberPathHead | None:
             f"checkpoint {directory}: {PHYSICS_HEAD_CONFIG} reads physics {cfg.physics}, this version "
             f"{list(PHYSICS_FEATURES)}; fit it again (calibrate --physics-head)"
         )
-    return load_head_weights(directory, PHYSICS_HEAD_WEIGHTS, MemberPathHead(cfg))
+    own = load_head_weights(directory, PHYSICS_HEAD_WEIGHTS, MemberPathHead(cfg))
+    if not cfg.residual:
+        return own
+    if base is None:
+        raise CheckpointError(f"checkpoint {directory}: its physics head corrects a member head it has not")
+    return ResidualHead(base, own).eval()
 
 
 class OnRobot:

@@ -213,7 +213,9 @@ def test_design_on_a_covered_robot_searches_on_the_physics_heads_paths_for_it(
     z = model.sample_z_b(2, 3)
     shape, body = on.decode(z)
     members = model.decode_members(z)[0]
-    assert np.allclose(body[1], model.predict_variation_paths(members[1], [slippery])[0], atol=1e-4)  # batch of 2 vs 1
+    assert np.allclose(
+        body[1], model.predict_variation_paths(members[1], [slippery])[0], atol=1e-4
+    )  # batch of 2 vs 1
     assert np.array_equal(shape, model.decode(z)[0]) and on.z_b_dim == model.z_b_dim
     (tmp_path / "slippery.yaml").write_text(slippery.to_yaml())
     quick = "--screen 32 --starts 2 --generations 3 --population 6 --candidates 1 --rounds 1".split()
@@ -233,3 +235,52 @@ def test_design_on_a_covered_robot_searches_on_the_physics_heads_paths_for_it(
         report["searched_on"] == f"the physics head's paths on {slippery.name}"
         and report["robot"] == slippery.name
     )
+
+
+def test_a_residual_physics_head_keeps_the_member_heads_path_at_nominal_physics_and_round_trips(tmp_path):
+    import torch
+
+    from snakeloco.model.member_path import MemberHeadConfig, MemberPathHead, ResidualHead, fit_member_head
+    from snakeloco.model.physics_head import load_physics_head, save_physics_head
+
+    rng = np.random.default_rng(0)
+    support = np.ones((2, 1), bool)
+    n_in, n_phys = 4, len(PHYSICS_FEATURES)
+    base_cfg = MemberHeadConfig(
+        support=support.tolist(), input_mean=[0.0] * n_in, input_std=[1.0] * n_in, hidden=8, layers=1, steps=5
+    )
+    torch.manual_seed(0)
+    base = MemberPathHead(base_cfg).requires_grad_(False).eval()
+    before = {k: v.clone() for k, v in base.state_dict().items()}
+    x = rng.standard_normal((24, n_in + n_phys))
+    x[:6, n_in:] = 0.0  # nominal robots
+    y = rng.standard_normal((24, 5, 6))
+    head, _ = fit_member_head(
+        x[:18],
+        y[:18],
+        x[18:],
+        y[18:],
+        support,
+        epochs=2,
+        hidden=8,
+        layers=1,
+        physics=PHYSICS_FEATURES,
+        base=base,
+        log=None,
+    )
+    assert isinstance(head, ResidualHead) and head.cfg.residual
+    assert all(torch.equal(before[k], v) for k, v in base.state_dict().items())  # the member head stays
+    t = torch.as_tensor(x, dtype=torch.float32)
+    with torch.no_grad():
+        at_nominal, on_base = head(t[:6]), base(t[:6, :n_in])
+        varied = head(t[6:])
+    assert torch.allclose(at_nominal, on_base, atol=1e-6)  # zero physics: exactly the member head's path
+    assert not torch.allclose(varied, base(t[6:, :n_in]), atol=1e-6)
+    save_physics_head(tmp_path, head)
+    again = load_physics_head(tmp_path, base)
+    with torch.no_grad():
+        assert torch.equal(again(t), head(t))
+    from snakeloco.model.checkpoint import CheckpointError
+
+    with pytest.raises(CheckpointError, match="corrects a member head"):
+        load_physics_head(tmp_path)
