@@ -90,18 +90,23 @@ def replay_members_on_physics(
                 todo.append(s)
         fit.say(f"{label}: {len(starts) - len(todo)} of {len(starts)} chunks replayed already")
 
-        def chunk_rows(s: int) -> list[tuple[int, Variation | None]]:
-            idx = range(s, min(len(members), s + cfg.chunk))
-            return [(i, v) for i in idx for v in member_robots(cfg, i, sampled)]
+        rows_of = {  # each chunk's (member, variation) rows, in replay order
+            s: [
+                (i, v)
+                for i in range(s, min(len(members), s + cfg.chunk))
+                for v in member_robots(cfg, i, sampled)
+            ]
+            for s in todo
+        }
 
         def jobs():
-            for s in todo:
-                rows = chunk_rows(s)
-                yield model.commands(model.member_shapes([members[i] for i, _ in rows])), [v for _, v in rows]
+            for s in todo:  # each member's own commands, as the designer replays it (no second projection)
+                rows = rows_of[s]
+                yield np.stack([members[i].commands(model.robot) for i, _ in rows]), [v for _, v in rows]
 
         for k, (body, failures) in runner.map(simulate_rows, jobs()):
             s = todo[k]
-            rows = chunk_rows(s)
+            rows = rows_of[s]
             robots = [model.robot if v is None else v.apply(model.robot) for _, v in rows]
             part = {
                 "member": np.array([i for i, _ in rows]),
