@@ -209,6 +209,7 @@ def run_evaluate(cmd: Evaluate) -> dict:
             cmd.replays,
             backend=cmd.backend,
             floor_records=cmd.floor_records,
+            robustness=cmd.robustness,
         )
     print(format_report(report))
     if cmd.report is not None:

@@ -92,6 +92,8 @@ class Evaluate(Command):
     """Consistency replays (.npz): reused when the file exists (it must hold this checkpoint's decodes of the same draw), else written there after replaying; re-scores a recalibrated checkpoint without simulating."""
     floor_records: Annotated[int, Field(ge=0)] = 0
     """Replay this many of the dataset's records with 1e-3 relative command noise and report the body R^2 physics allows beside the model's (0 skips it)."""
+    robustness: Annotated[int, Field(ge=0)] = 0
+    """Also replay the first this many generated gaits of each z_k mode on the default variation set and report, per kind, how far each variation moves the end point against the command noise's move (0 skips it; 12 replays a gait)."""
 
 
 class Calibrate(Command):

@@ -110,4 +110,28 @@ def consistency_lines(consistency: dict) -> list[str]:
         d = c.get("diversity")
         if d:
             lines.append(f"  where the replays went: {_where(d)}")
+        if c.get("robustness"):
+            lines.append("  end-point change on other robots, |d_var - d_nom| / max(|d_nom|, 0.5 m), median:")
+            lines += ["    " + line for line in change_lines(c["robustness"])]
+    return lines
+
+
+def change_lines(table: dict) -> list[str]:
+    """``sim.robustness.change_table`` as a markdown table: a row per replay name, a column per kind."""
+    kinds = list(table)
+    names = list(table[kinds[0]]["median"])
+
+    def cell(kind: str, name: str) -> str:
+        m = table[kind]["median"].get(name)
+        broken = table[kind]["broken"].get(name, 0.0)
+        return ("-" if m is None else f"{m:.2f}") + (f" ({100 * broken:.0f}% broke)" if broken else "")
+
+    lines = ["| variation | " + " | ".join(f"{k} ({table[k]['n']})" for k in kinds) + " |"]
+    lines.append("|---" * (len(kinds) + 1) + "|")
+    lines += [f"| {n} | " + " | ".join(cell(k, n) for k in kinds) + " |" for n in names]
+    lines.append(
+        "| nominal distance (m, median) | "
+        + " | ".join(f"{table[k]['distance_m_median']:.1f}" for k in kinds)
+        + " |"
+    )
     return lines

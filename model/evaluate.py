@@ -130,6 +130,7 @@ def consistency(
     progress=None,
     replays: str | Path | None = None,
     backend: BackendConfig | None = None,
+    robustness: int = 0,
 ) -> dict:
     """Decode ``cfg.prior_samples`` z_B from the sampler (or the N(0, I) prior, ``positions``; z_k = 0 and z_k
     sampled), replay each as an ensemble, score. Per mode also: the share of z_B the density flags
@@ -142,7 +143,9 @@ def consistency(
     hold the same draw of this checkpoint's decodes: ``model.replays``), else written after
     replaying. A calibration that leaves the decoded shapes alone (``snakeloco calibrate``) is
     then re-scored in seconds instead of replaying 2 x prior_samples ensembles. ``backend``: where the
-    replays run (``sim.backend``; default this machine's ``workers`` threads).
+    replays run (``sim.backend``; default this machine's ``workers`` threads). ``robustness``: the
+    first that many gaits of each mode are also replayed on the default variation set
+    (``robustness_by_kind``, under the mode's ``"robustness"``).
     """
     cfg = cfg or ConsistencyConfig()
     n_prior, ensemble, seed, positions = cfg.prior_samples, cfg.ensemble, cfg.seed, cfg.positions
@@ -246,9 +249,57 @@ def consistency(
         }
         if kinds[name] is not None:
             summary["per_kind"] = _per_kind(rows, kinds[name])
+        if robustness > 0:
+            n = min(robustness, n_prior)
+            runner = open_backend(backend, workers, robot=model.robot)
+            try:
+                summary["robustness"] = robustness_by_kind(
+                    model,
+                    decoded[name][0][:n],
+                    kinds[name][:n] if kinds[name] is not None else ["gait"] * n,
+                    sim_bodies[:n],
+                    sim_ok[:n],
+                    runner,
+                )
+            finally:
+                runner.close()
         summary["gaits"] = rows
         report[name] = summary
     return report
+
+
+def robustness_by_kind(
+    model: GaitModel, shapes: np.ndarray, kinds: list[str], ensembles: np.ndarray, ok: np.ndarray, runner, per_job: int = 8
+) -> dict:
+    """How far the default variation set moves generated gaits' end points, per kind, against the
+    noise floor: gaits of ``shapes`` (n, J, L, 2) whose ensembles (n, K, 500, 6) ran already
+    (member 0 the nominal replay, member 1 the first noisy copy: the floor) are replayed on every
+    variation (``per_job`` gaits a backend job); ``sim.robustness.change_table`` of the ends."""
+    from snakeloco.model.physics_fit import simulate_rows
+    from snakeloco.sim.robustness import change_table
+    from snakeloco.sim.variations import DEFAULT_SET
+
+    n, v = len(shapes), len(DEFAULT_SET)
+    floor = f"command noise {ENSEMBLE_NOISE:g}"
+
+    def end(body: np.ndarray) -> np.ndarray:
+        return body[..., -1, 1:3] - body[..., 0, 1:3]
+
+    ends = {"nominal": np.where(ok[:, :1], end(ensembles[:, 0]), np.nan)}
+    if ensembles.shape[1] > 1:
+        ends[floor] = np.where(ok[:, 1:2], end(ensembles[:, 1]), np.nan)
+    varied = np.full((n, v, 2), np.nan)
+    starts = list(range(0, n, per_job))
+    jobs = (
+        (np.repeat(model.commands(shapes[s : s + per_job]), v, axis=0), list(DEFAULT_SET) * len(shapes[s : s + per_job]))
+        for s in starts
+    )
+    for b, (body, failures) in runner.map(simulate_rows, jobs):
+        rows = slice(starts[b], starts[b] + len(failures) // v)
+        ran = np.array([f is None for f in failures]).reshape(-1, v)
+        varied[rows] = np.where(ran[..., None], end(body.astype(np.float64)).reshape(-1, v, 2), np.nan)
+    ends |= {var.name: varied[:, k] for k, var in enumerate(DEFAULT_SET)}
+    return change_table(kinds, ends, floor=floor if floor in ends else None)
 
 
 def _per_kind(rows: list[dict], kinds: list[str]) -> dict:
@@ -307,10 +358,11 @@ def evaluate(
     replays: str | Path | None = None,
     backend: BackendConfig | None = None,
     floor_records: int = 0,
+    robustness: int = 0,
 ) -> dict:
-    """All evaluation figures for a checkpoint on a (held-out) dataset (``replays``, ``backend``:
-    ``consistency``; ``floor_records``: how many of the dataset's records ``physics_floor`` replays,
-    0 none)."""
+    """All evaluation figures for a checkpoint on a (held-out) dataset (``replays``, ``backend``,
+    ``robustness``: ``consistency``; ``floor_records``: how many of the dataset's records
+    ``physics_floor`` replays, 0 none)."""
     cfg = cfg or ConsistencyConfig()
     model = load_pretrained(checkpoint)
     ds = load_dataset(data)
@@ -333,5 +385,5 @@ def evaluate(
         finally:
             runner.close()
     if cfg.prior_samples > 0:
-        out["consistency"] = consistency(model, cfg, workers, progress, replays, backend)
+        out["consistency"] = consistency(model, cfg, workers, progress, replays, backend, robustness)
     return out

@@ -3,9 +3,10 @@
 It replays the sampler's members on their robots (``member_robots``) in chunks (resumable: the
 folder ``--gaits DIR`` keeps every finished chunk, and a run of the same draw reads them back),
 fits the head, saves it, then scores it on ``eval_samples`` further sampler positions (z_k = 0)
-replayed on the default set: predicted vs replayed end point over the replayed distance, per kind
-and per variation, beside the nominal member head's prediction of the same replays (what the fan
-would be without the physics).
+replayed on the default set and once with the ensemble's command noise: predicted vs replayed end
+point over the replayed distance, per kind and per variation, beside the nominal member head's
+prediction of the same replays (what the fan would be without the physics); and how far each
+variation moves the end point, per kind, against the noise's own move (``sim.robustness.change_table``).
 """
 
 from __future__ import annotations
@@ -25,35 +26,61 @@ from snakeloco.model.physics_head import (
     save_physics_head,
 )
 from snakeloco.sim.body import mirror_body
+from snakeloco.sim.consistency import ENSEMBLE_NOISE, perturbed_commands
+from snakeloco.sim.robustness import change_table
 from snakeloco.sim.variations import DEFAULT_SET, Variation, sampled_set
 
 PHYSICS_GAITS = "physics-gaits"
+NOISE = f"command noise {ENSEMBLE_NOISE:g}"
+"""The scoring replays' noise-floor row: the member's commands with the ensemble's relative noise,
+on the robot itself (what physics alone moves)."""
 
 
 def replay_count(cfg: PhysicsHeadConfig) -> int:
     """Replays ``fit_physics_head`` runs (chunks already replayed count too)."""
-    return 2 * cfg.samples * (1 + len(DEFAULT_SET) + cfg.sampled) + cfg.eval_samples * (1 + len(DEFAULT_SET))
+    return 2 * cfg.samples * (1 + len(DEFAULT_SET) + cfg.sampled) + cfg.eval_samples * (2 + len(DEFAULT_SET))
 
 
-def member_robots(cfg: PhysicsHeadConfig, index: int, sampled: int) -> list[Variation | None]:
-    """The robots member ``index`` is replayed on: the nominal one (None), every variation of the
-    default set, then ``sampled`` combined variations of its own (seeded by the member)."""
-    return [None, *DEFAULT_SET, *sampled_set(sampled, seed=cfg.seed + 7919 * (index + 1))]
+Row = Variation | str | None
+"""What a replay runs on: a variation, the robot itself (None) or the robot itself with noisy commands (``NOISE``)."""
+
+
+def member_robots(cfg: PhysicsHeadConfig, index: int, sampled: int, noise: bool = False) -> list[Row]:
+    """The robots member ``index`` is replayed on: the nominal one (None), with ``noise`` the
+    nominal one again with noisy commands (``NOISE``), every variation of the default set, then
+    ``sampled`` combined variations of its own (seeded by the member)."""
+    return [None, *([NOISE] if noise else []), *DEFAULT_SET, *sampled_set(sampled, seed=cfg.seed + 7919 * (index + 1))]
+
+
+def row_robot(robot, row: Row):
+    return row.apply(robot) if isinstance(row, Variation) else robot
+
+
+def row_name(row: Row) -> str:
+    return "nominal" if row is None else row if isinstance(row, str) else row.name
 
 
 def simulate_rows(simulator, job: tuple) -> tuple[np.ndarray, list[str | None]]:
-    """A backend job: commands (B, T, J), each on its variation of the simulator's robot (None: the
-    robot itself); the body series at the model's rate (B, 500, 6) and each replay's break reason."""
+    """A backend job: commands (B, T, J), each on its row's robot (``Row``); the body series at the
+    model's rate (B, 500, 6) and each replay's break reason."""
     from snakeloco.sim.dataset import BODY_DOWNSAMPLE
 
     commands, variations = job
-    robots = [simulator.robot if v is None else v.apply(simulator.robot) for v in variations]
+    robots = [row_robot(simulator.robot, v) for v in variations]
     result = simulator.simulate(commands, robots=robots)
     return result.body[:, ::BODY_DOWNSAMPLE].astype(np.float32), result.failures
 
 
 def replay_members_on_physics(
-    model, z_b: np.ndarray, modes: tuple, cfg: PhysicsHeadConfig, sampled: int, folder: Path, fit, label: str
+    model,
+    z_b: np.ndarray,
+    modes: tuple,
+    cfg: PhysicsHeadConfig,
+    sampled: int,
+    folder: Path,
+    fit,
+    label: str,
+    noise: bool = False,
 ) -> dict[str, np.ndarray]:
     """Decode z_B (N, Db) in each mode (None: z_k = 0; a temperature: sampled), project, and replay
     every member on its robots (``member_robots``), ``cfg.chunk`` members per chunk file in
@@ -74,6 +101,8 @@ def replay_members_on_physics(
     shapes = np.stack([m.shape(model.robot) for m in members])
     runner = fit.open_backend(model.robot)
     drawn = {"label": label, "samples": len(z_b), "seed": cfg.seed, "sampled": sampled, "modes": len(modes)}
+    if noise:
+        drawn["noise"] = ENSEMBLE_NOISE
     parts = []
     try:
         starts = list(range(0, len(members), cfg.chunk))
@@ -94,27 +123,32 @@ def replay_members_on_physics(
             s: [
                 (i, v)
                 for i in range(s, min(len(members), s + cfg.chunk))
-                for v in member_robots(cfg, i, sampled)
+                for v in member_robots(cfg, i, sampled, noise)
             ]
             for s in todo
         }
 
+        def commands(i: int, row: Row) -> np.ndarray:
+            """Member i's own commands, as the designer replays them (no second projection)."""
+            c = members[i].commands(model.robot)
+            return perturbed_commands(c, 2, seed=cfg.seed + i)[1] if row == NOISE else c
+
         def jobs():
-            for s in todo:  # each member's own commands, as the designer replays it (no second projection)
+            for s in todo:
                 rows = rows_of[s]
-                yield np.stack([members[i].commands(model.robot) for i, _ in rows]), [v for _, v in rows]
+                yield np.stack([commands(i, v) for i, v in rows]), [v for _, v in rows]
 
         for k, (body, failures) in runner.map(simulate_rows, jobs()):
             s = todo[k]
             rows = rows_of[s]
-            robots = [model.robot if v is None else v.apply(model.robot) for _, v in rows]
+            robots = [row_robot(model.robot, v) for _, v in rows]
             part = {
                 "member": np.array([i for i, _ in rows]),
                 "z_index": np.array([z_index[i] for i, _ in rows]),
                 "mode": np.array([modes_of[i] for i, _ in rows]),
                 "shape": shapes[[i for i, _ in rows]],
                 "features": physics_features(robots, model.robot),
-                "variation": np.array(["nominal" if v is None else v.name for _, v in rows]),
+                "variation": np.array([row_name(v) for _, v in rows]),
                 "body": body,
                 "ok": np.array([f is None for f in failures]),
             }
@@ -154,7 +188,9 @@ def end_errors(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
 
 def score(model, replays: dict, rows: np.ndarray, z_b: np.ndarray) -> dict:
     """Predicted (physics head) and nominal-head end errors over replays ``rows``: medians over the
-    varied robots ("all"), per kind of member (varied robots) and per variation (nominal too).
+    varied robots ("all"), per kind of member (varied robots) and per variation (nominal and the
+    noise row too); and, where the rows hold each member's nominal replay, how far every variation
+    moves its end point (``robustness``: ``sim.robustness.change_table``, the noise row its floor).
     ``z_b``: the draws the replays' members were decoded from (for a member head that reads them)."""
     members = [replays["members"][i] for i in replays["member"][rows]]
     true = replays["body"][rows].astype(np.float64)
@@ -171,12 +207,30 @@ def score(model, replays: dict, rows: np.ndarray, z_b: np.ndarray) -> dict:
             "nominal_head_rel_median": float(np.median(base[mask])),
         }
 
-    varied = names != "nominal"
+    varied = (names != "nominal") & (names != NOISE)
     return {
         "all": med(varied),
         "by_kind": {k: med(varied & (kinds == k)) for k in sorted(set(kinds.tolist()))},
         "by_variation": {v: med(names == v) for v in dict.fromkeys(names.tolist())},
+        "robustness": robustness_of(replays, rows),
     }
+
+
+def robustness_of(replays: dict, rows: np.ndarray) -> dict | None:
+    """``change_table`` of the replays ``rows`` (a member's broken replays count as NaN); None where
+    no member has its nominal replay among them."""
+    member, names = replays["member"][rows], replays["variation"][rows]
+    index = {m: k for k, m in enumerate(dict.fromkeys(member[names == "nominal"].tolist()))}
+    if not index:
+        return None
+    variations = list(dict.fromkeys(names.tolist()))
+    ends = {v: np.full((len(index), 2), np.nan) for v in variations}
+    body = replays["body"][rows]
+    for r, (m, v) in enumerate(zip(member, names, strict=True)):
+        if m in index and replays["ok"][rows[r]]:
+            ends[v][index[m]] = body[r, -1, 1:3] - body[r, 0, 1:3]
+    kinds = [replays["members"][m].kind for m in index]
+    return change_table(kinds, ends, floor=NOISE if NOISE in ends else None)
 
 
 def fit_physics_head(fit, cfg: PhysicsHeadConfig | None = None) -> dict:
@@ -261,7 +315,7 @@ def fit_physics_head(fit, cfg: PhysicsHeadConfig | None = None) -> dict:
     save_physics_head(out, head)  # usable now; the scoring replays below can take an hour
     if cfg.eval_samples:
         z_eval = model.sample_z_b(cfg.eval_samples, cfg.eval_seed)
-        evaluated = replay_members_on_physics(model, z_eval, (None,), cfg, 0, folder, fit, "eval")
+        evaluated = replay_members_on_physics(model, z_eval, (None,), cfg, 0, folder, fit, "eval", noise=True)
         summary["eval"] = score(model, evaluated, np.flatnonzero(evaluated["ok"]), z_eval)
         summary["eval"]["broken"] = int((~evaluated["ok"]).sum())
     summary["wall_time_s"] = time.perf_counter() - t_start

@@ -136,3 +136,41 @@ def prediction_line(predicted: dict, replayed: dict) -> str:
         f"predicted within {100 * np.nanmedian(errors):.0f}% (median; worst "
         f"{100 * errors[worst]:.0f}%: {predicted['variations'][worst]['name']})"
     )
+
+
+def change_table(kinds: Sequence[str], ends: dict[str, np.ndarray], floor: str | None = None) -> dict:
+    """How far each variation moves many gaits' end points, per kind: the issue's table for sampler
+    positions.
+
+    ``ends``: per replay name, each gait's end point (N, 2) m in its start frame (NaN where that
+    replay broke), ``"nominal"`` among them; ``kinds``: each gait's kind (N,). A gait's change is
+    |end - nominal end| / max(|nominal end|, ``MIN_DISTANCE``), as ``summarise``'s ``rel``. Returns
+    per kind and for ``"all"``: ``n`` (gaits whose nominal replay ran), the median change per
+    replay name (``"median"``), the share of gaits each broke (``"broken"``), and with ``floor`` (the
+    name of the noise replay) ``"times_floor"``: each median over the floor's median.
+    """
+    home = np.asarray(ends["nominal"], np.float64)
+    base = np.maximum(np.linalg.norm(home, axis=-1), MIN_DISTANCE)
+    rel = {
+        name: np.linalg.norm(np.asarray(e, np.float64) - home, axis=-1) / base
+        for name, e in ends.items()
+        if name != "nominal"
+    }
+    kinds = np.asarray(kinds)
+    ran = np.isfinite(home).all(axis=-1)
+    out = {}
+    for kind in ["all", *dict.fromkeys(kinds.tolist())]:
+        mine = ran & ((kinds == kind) if kind != "all" else True)
+        if not mine.any():
+            continue
+        median = {n: float(np.nanmedian(r[mine])) if np.isfinite(r[mine]).any() else None for n, r in rel.items()}
+        row = {
+            "n": int(mine.sum()),
+            "distance_m_median": float(np.median(np.linalg.norm(home[mine], axis=-1))),
+            "median": median,
+            "broken": {n: float(np.mean(~np.isfinite(r[mine]))) for n, r in rel.items()},
+        }
+        if floor is not None and median.get(floor):
+            row["times_floor"] = {n: None if m is None else m / median[floor] for n, m in median.items()}
+        out[kind] = row
+    return out

@@ -83,7 +83,7 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     from snakeloco.app.server import DesignerServer
     from snakeloco.model.api import load_pretrained
     from snakeloco.model.checkpoint import CheckpointError
-    from snakeloco.model.physics_fit import fit_physics_head, replay_count
+    from snakeloco.model.physics_fit import NOISE, fit_physics_head, replay_count
     from snakeloco.model.physics_head import PHYSICS_HEAD_WEIGHTS
     from snakeloco.model.replays import Fit
 
@@ -91,9 +91,14 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
 
     checkpoint, _ = member_checkpoint
     out, cfg, summary, done = physics_checkpoint
-    assert done == replay_count(cfg) == 2 * 2 * (1 + len(DEFAULT_SET) + 1) + 1 + len(DEFAULT_SET)
-    assert set(summary["eval"]["by_variation"]) == {"nominal", *(v.name for v in DEFAULT_SET)}
+    assert done == replay_count(cfg) == 2 * 2 * (1 + len(DEFAULT_SET) + 1) + 2 + len(DEFAULT_SET)
+    names = {"nominal", NOISE, *(v.name for v in DEFAULT_SET)}
+    assert set(summary["eval"]["by_variation"]) == names
     assert summary["eval"]["all"]["n"] == len(DEFAULT_SET) - summary["eval"]["broken"]
+    # How far each variation moved the scored member, against the command noise's own move.
+    table = summary["eval"]["robustness"]
+    assert set(table["all"]["median"]) == names - {"nominal"} and table["all"]["n"] == 1
+    assert table["all"]["times_floor"][NOISE] == 1.0
     # Again: every chunk is read back, nothing replayed.
     again: list[int] = []
     fit_physics_head(Fit(checkpoint, None, out, workers=2, progress=again.append, log=None), cfg)

@@ -15,7 +15,7 @@ from snakeloco.sim.command_rule import CommandRule, expand_commands
 from snakeloco.sim.gaits import PRESETS
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.robot import DEFAULT_ROBOT, MJCF_PATH, Robot, RobotError, load_robot
-from snakeloco.sim.robustness import readout_line, robustness
+from snakeloco.sim.robustness import change_table, readout_line, robustness
 from snakeloco.sim.variations import DEFAULT_SET, PHYSICAL_FIELDS, Variation, sampled_set
 
 
@@ -198,6 +198,23 @@ def test_a_broken_variation_is_reported_not_raised():
     assert rows["servo kp x1e4"]["failure"] and rows["servo kp x1e4"]["end_error_m"] is None
     assert rows["floor friction x2"]["failure"] is None and report["worst"] == "floor friction x2"
     assert report["broken"] == ["servo kp x1e4"] and "broke: servo kp x1e4" in readout_line(report)
+
+
+def test_change_table_per_kind_against_the_noise_floor():
+    """Changes are relative to max(nominal distance, 0.5 m); a broken replay is left out of its
+    median and counted; a gait whose nominal replay broke is left out of its kind."""
+    ends = {
+        "nominal": np.array([[2.0, 0.0], [0.0, 0.1], [np.nan, np.nan], [0.0, 4.0]]),
+        "noise": np.array([[2.02, 0.0], [0.0, 0.11], [0.0, 0.0], [0.0, 4.04]]),
+        "slope": np.array([[1.0, 0.0], [np.nan, np.nan], [1.0, 1.0], [0.0, 2.0]]),
+    }
+    table = change_table(["roll", "turn", "roll", "roll"], ends, floor="noise")
+    roll, turn = table["roll"], table["turn"]
+    assert roll["n"] == 2 and turn["n"] == 1 and table["all"]["n"] == 3
+    assert roll["median"]["slope"] == pytest.approx(0.5) and roll["median"]["noise"] == pytest.approx(0.01)
+    assert roll["times_floor"]["slope"] == pytest.approx(50.0)
+    assert turn["median"]["noise"] == pytest.approx(0.01 / 0.5) and turn["median"]["slope"] is None
+    assert turn["broken"]["slope"] == 1.0 and roll["broken"]["slope"] == 0.0
 
 
 @pytest.mark.slow
