@@ -174,6 +174,13 @@ def run_gait(cmd: Gait) -> str:
     from snakeloco.app.gait_csv import library_gait_csv
     from snakeloco.sim.gaits import library_table
 
+    if cmd.search_robust:
+        from snakeloco.model.robust_library import search_robust
+
+        found = search_robust(cmd.checkpoint, cmd.gaits, cmd.top, log=print)
+        if cmd.json:
+            print(jsonlib.dumps(found))
+        return jsonlib.dumps(found)
     if not cmd.list and cmd.name is None:
         raise OptionError("name a library gait to write (NAME --out FILE.csv), or pass --list")
     if cmd.name is not None and cmd.out is None:

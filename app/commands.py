@@ -150,6 +150,15 @@ class Gait(Command):
     """Destination gait CSV (the format Export CSV writes; Import CSV and snakeloco.sim.physics.replay take it)."""
     list: bool = False
     """Print the library: each gait's parameters and what it was measured to do on this robot."""
+    search_robust: bool = False
+    """Instead: find the most robust library-ready member per kind and direction among those the checkpoint's physics head was trained and scored on (their replays on the default variation set), confirm the best --top of each by replaying them, and print them (model/robust_library.py)."""
+    checkpoint: Checkpoint = None
+    """With --search-robust: a checkpoint with a physics head (snakeloco calibrate --physics-head)."""
+    gaits: Path | None = None
+    """With --search-robust: the physics head's replay folder (default: the checkpoint's physics-gaits)."""
+    top: Annotated[int, Field(ge=1)] = 3
+    """With --search-robust: candidates confirmed per kind and direction."""
+    json: Json = False
 
 
 class Figures(Command):

@@ -81,13 +81,15 @@ def replay_members_on_physics(
     fit,
     label: str,
     noise: bool = False,
+    replay: bool = True,
 ) -> dict[str, np.ndarray]:
     """Decode z_B (N, Db) in each mode (None: z_k = 0; a temperature: sampled), project, and replay
     every member on its robots (``member_robots``), ``cfg.chunk`` members per chunk file in
     ``folder`` (a finished chunk of the same draw is read back, not replayed).
 
     Returns, one row per replay: member index (into the draws x modes), z_index, mode, the member's
-    commanded shape, the robot's physics features, the variation's name, the body series and ok."""
+    commanded shape, the robot's physics features, the variation's name, the body series and ok.
+    ``replay=False``: only the chunks replayed already are read (none: an empty result)."""
     from snakeloco.model.replays import check_same_gaits, load_side_file, save_side_file
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -99,11 +101,10 @@ def replay_members_on_physics(
         modes_of += [mode] * len(found)
         z_index += list(range(len(found)))
     shapes = np.stack([m.shape(model.robot) for m in members])
-    runner = fit.open_backend(model.robot)
     drawn = {"label": label, "samples": len(z_b), "seed": cfg.seed, "sampled": sampled, "modes": len(modes)}
     if noise:
-        drawn["noise"] = ENSEMBLE_NOISE
-    parts = []
+        drawn["noise_row"] = True
+    parts, runner = [], None
     try:
         starts = list(range(0, len(members), cfg.chunk))
         todo = []
@@ -117,7 +118,12 @@ def replay_members_on_physics(
                 parts.append(part)
             else:
                 todo.append(s)
-        fit.say(f"{label}: {len(starts) - len(todo)} of {len(starts)} chunks replayed already")
+        if fit is not None:
+            fit.say(f"{label}: {len(starts) - len(todo)} of {len(starts)} chunks replayed already")
+        if not replay:
+            todo = []
+        elif todo:
+            runner = fit.open_backend(model.robot)
 
         rows_of = {  # each chunk's (member, variation) rows, in replay order
             s: [
@@ -138,7 +144,7 @@ def replay_members_on_physics(
                 rows = rows_of[s]
                 yield np.stack([commands(i, v) for i, v in rows]), [v for _, v in rows]
 
-        for k, (body, failures) in runner.map(simulate_rows, jobs()):
+        for k, (body, failures) in runner.map(simulate_rows, jobs()) if todo else ():
             s = todo[k]
             rows = rows_of[s]
             robots = [row_robot(model.robot, v) for _, v in rows]
@@ -157,9 +163,12 @@ def replay_members_on_physics(
             if fit.progress is not None:
                 fit.progress(len(rows))
     finally:
-        runner.close()
+        if runner is not None:
+            runner.close()
     keys = ("member", "z_index", "mode", "shape", "features", "variation", "body", "ok")
     parts.sort(key=lambda p: int(np.min(p["member"])))
+    if not parts:
+        return {"members": members, **{k: np.zeros(0) for k in keys}}
     out = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in keys}
     out["members"] = members
     return out

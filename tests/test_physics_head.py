@@ -289,3 +289,41 @@ def test_a_residual_physics_head_keeps_the_member_heads_path_at_nominal_physics_
 
     with pytest.raises(CheckpointError, match="corrects a member head"):
         load_physics_head(tmp_path)
+
+
+@pytest.mark.slow
+def test_the_robust_library_search_ranks_the_physics_heads_members_by_their_replayed_worst_case(
+    physics_checkpoint, monkeypatch, capsys
+):
+    """``gait --search-robust``: every member the head was trained and scored on, its worst case
+    read from its replays on the default set; the chosen gait per sector confirmed by replaying it."""
+    from snakeloco.model import robust_library
+    from snakeloco.model.physics_fit import PHYSICS_GAITS
+    from snakeloco.sim.robustness import robustness
+
+    out, cfg, _, _ = physics_checkpoint
+    found = robust_library.candidates(out)
+    assert len(found) == 2 * cfg.samples + cfg.eval_samples  # none of the tiny draws broke
+    assert {c["draw"] for c in found} == {"train", "eval"}
+    one = found[0]  # its worst case at 5 Hz is what the library's 20 Hz replays say, to the last 0.15 s
+    again = robustness(one["member"].commands(), DEFAULT_SET, robot=None)
+    assert one["worst"] == again["worst"] and one["worst_rel"] == pytest.approx(again["worst_rel"], rel=0.05, abs=0.01)
+    named = robust_library.candidates(out, out / PHYSICS_GAITS)  # the folder named: the same rows
+    assert [(c["kind"], c["worst_rel"]) for c in named] == [(c["kind"], c["worst_rel"]) for c in found]
+    # The tiny family steers and travels little: let every member stand for the library here.
+    monkeypatch.setattr(robust_library, "MIN_TRAVEL", 0.0)
+    monkeypatch.setattr(robust_library, "MAX_SPREAD", np.inf)
+    monkeypatch.setattr(
+        robust_library, "candidates", lambda *a: [c | {"pure": True} for c in found]
+    )
+    result = robust_library.search_robust(out, top=1, workers=2, log=None)
+    sectors = {(c["kind"], c["sector"]) for c in found}
+    assert result["candidates"] == len(found) and len(result["chosen"]) == len(sectors)
+    for name, entry in result["chosen"].items():
+        best = min(
+            (c for c in found if (c["kind"], c["sector"]) == (entry["kind"], entry["sector"])),
+            key=lambda c: c["worst_rel"],
+        )
+        assert name == f"robust-{entry['kind']}-{entry['sector']}"
+        assert entry["gait"] == best["member"].wave.model_dump()
+        assert entry["worst"]["variation"] in {v.name for v in DEFAULT_SET}

@@ -1,0 +1,150 @@
+"""The most robust members found, per kind and direction: ``snakeloco gait --search-robust``.
+
+Candidates are the sampler's members a physics head was trained and scored on (``model.physics_fit``):
+each was replayed on the nominal robot and on every variation of the default set, so its worst case
+is known without replaying. Only members the library can hold are considered (one gait-equation
+wave: no steering, no curving wave). Each is put in a sector by where its nominal replay went
+(forward, left, backward, right of its start heading; a turning gait by the way it turns) and, where
+it travels at least ``MIN_TRAVEL`` m (turning gaits: any), ranked by its worst relative end change
+over the set, read from the replays at the model's 5 Hz. The ``top`` of each sector are then
+confirmed as the library measures its gaits: ``sim.gaits.measure_gait`` (a 4-member ensemble) and
+``sim.robustness.robustness`` at 20 Hz; the first whose ensemble spread is at most ``MAX_SPREAD``
+and whose confirmed worst case is the smallest is the sector's gait.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from snakeloco.sim.robustness import MIN_DISTANCE
+from snakeloco.sim.variations import DEFAULT_SET
+
+MIN_TRAVEL = 2.0
+"""Metres a candidate must travel in 100 s to stand for its direction (turning gaits excepted)."""
+MAX_SPREAD = 0.1
+"""The library's own bar: where 0.1%-noisy replays end, over the distance (``sim.gaits``)."""
+SECTORS = ("forward", "left", "backward", "right")
+
+
+def sector(forward: float, sideways: float, net_yaw: float, kind: str) -> str:
+    """Where a replay went: the quarter of its start frame it ended in (turning gaits: the way they turn)."""
+    if kind == "turn":
+        return "clockwise" if net_yaw < 0 else "counter-clockwise"
+    heading = np.degrees(np.arctan2(sideways, forward))
+    return SECTORS[int(((heading + 45.0) % 360.0) // 90.0)]
+
+
+def candidates(checkpoint: str | Path | None, folder: str | Path | None = None) -> list[dict]:
+    """Every member with its nominal and default-set replays in the physics head's replay folder
+    (default: the checkpoint's ``physics-gaits``): kind, member, sector, distance (m) and worst
+    relative end change (5 Hz), the library-ready ones (``pure``) marked."""
+    from snakeloco.model.api import load_pretrained
+    from snakeloco.model.checkpoint import resolve_checkpoint
+    from snakeloco.model.options import PhysicsHeadConfig
+    from snakeloco.model.physics_fit import PHYSICS_GAITS, replay_members_on_physics
+    from snakeloco.model.sampler import ZK_TEMPERATURE
+
+    model = load_pretrained(checkpoint)
+    if model.physics_head is None:
+        raise ValueError(
+            f"checkpoint {model.path}: no physics head, so no members replayed on the variations "
+            "(snakeloco calibrate --physics-head fits one and keeps its replays)"
+        )
+    cfg = PhysicsHeadConfig(**model.physics_head.cfg.summary["config"])
+    folder = Path(folder) if folder is not None else resolve_checkpoint(checkpoint) / PHYSICS_GAITS
+    draws = [
+        (model.sample_z_b(cfg.samples, cfg.seed), (None, ZK_TEMPERATURE), cfg.sampled, "train", False),
+        (model.sample_z_b(cfg.eval_samples, cfg.eval_seed), (None,), 0, "eval", True),
+    ]
+    names = [v.name for v in DEFAULT_SET]
+    out = []
+    for z, modes, sampled, label, noise in draws:
+        if not len(z):
+            continue
+        r = replay_members_on_physics(model, z, modes, cfg, sampled, folder, None, label, noise, replay=False)
+        for i in np.unique(r["member"]).astype(int):
+            mine = np.flatnonzero(r["member"] == i)
+            ends = {
+                str(r["variation"][k]): r["body"][k, -1, 1:3] - r["body"][k, 0, 1:3] if r["ok"][k] else None
+                for k in mine
+            }
+            home = ends.get("nominal")
+            if home is None or any(n not in ends for n in names):
+                continue
+            base = max(float(np.hypot(*home)), MIN_DISTANCE)
+            rel = [np.inf if ends[n] is None else float(np.hypot(*(ends[n] - home))) / base for n in names]
+            member = r["members"][i]
+            nominal = mine[list(r["variation"][mine]).index("nominal")]
+            net_yaw = float(r["body"][nominal, -1, 5] - r["body"][nominal, 0, 5])
+            out.append(
+                {
+                    "draw": label,
+                    "member": member,
+                    "kind": member.kind,
+                    "pure": member.curve is None and member.steering_amplitude == 0.0,
+                    "sector": sector(*home, net_yaw, member.kind),
+                    "distance_m": float(np.hypot(*home)),
+                    "worst_rel": max(rel),
+                    "worst": names[int(np.argmax(rel))],
+                }
+            )
+    return out
+
+
+def search_robust(checkpoint=None, folder=None, top: int = 3, workers: int | None = None, log=print) -> dict:
+    """The most robust library-ready member per kind and sector (module docstring): per sector the
+    chosen gait's equation, measured figures and confirmed worst case, with how many candidates it
+    was chosen from and the library's gait of its kind for comparison."""
+    from snakeloco.sim.gaits import PRESETS, measure_gait
+    from snakeloco.sim.physics import Simulator
+    from snakeloco.sim.results import SimulationError
+    from snakeloco.sim.robustness import robustness
+
+    log = log or (lambda line: None)
+    found = candidates(checkpoint, folder)
+    pool = [c for c in found if c["pure"] and (c["kind"] == "turn" or c["distance_m"] >= MIN_TRAVEL)]
+    log(f"{len(found)} members replayed on the default set, {len(pool)} library-ready that travel")
+    simulator = Simulator(workers)
+    chosen = {}
+    try:
+        for key in sorted({(c["kind"], c["sector"]) for c in pool}):
+            ranked = sorted((c for c in pool if (c["kind"], c["sector"]) == key), key=lambda c: c["worst_rel"])
+            confirmed = []
+            for c in ranked[:top]:
+                gait = c["member"].wave
+                try:
+                    figures = measure_gait(gait, simulator)
+                except SimulationError:
+                    continue
+                report = robustness(gait.commands(), DEFAULT_SET, simulator)
+                if figures.spread <= MAX_SPREAD and report["worst_rel"] is not None:
+                    confirmed.append((report["worst_rel"], c, figures, report))
+            if not confirmed:
+                log(f"{key[0]} {key[1]}: none of {len(ranked[:top])} confirmed (spread or a broken replay)")
+                continue
+            worst_rel, c, figures, report = min(confirmed, key=lambda x: x[0])
+            library = PRESETS[c["kind"]].worst.rel if c["kind"] in PRESETS else None
+            chosen[f"robust-{c['kind']}-{key[1]}"] = {
+                "kind": c["kind"],
+                "sector": key[1],
+                "gait": c["member"].wave.model_dump(),
+                "describe": c["member"].describe(),
+                "measured": figures.model_dump(),
+                "worst": {
+                    "end_error_m": report["worst_end_error_m"],
+                    "rel": worst_rel,
+                    "variation": report["worst"],
+                },
+                "worst_rel_5hz": c["worst_rel"],
+                "candidates": len(ranked),
+                "library_worst_rel": library,
+            }
+            log(
+                f"{key[0]} {key[1]}: worst {100 * worst_rel:.0f}% ({report['worst']}) of "
+                f"{figures.displacement:.1f} m, from {len(ranked)} candidates"
+            )
+    finally:
+        simulator.close()
+    return {"candidates": len(found), "library_ready": len(pool), "chosen": chosen}
