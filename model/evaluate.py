@@ -269,7 +269,13 @@ def consistency(
 
 
 def robustness_by_kind(
-    model: GaitModel, shapes: np.ndarray, kinds: list[str], ensembles: np.ndarray, ok: np.ndarray, runner, per_job: int = 8
+    model: GaitModel,
+    shapes: np.ndarray,
+    kinds: list[str],
+    ensembles: np.ndarray,
+    ok: np.ndarray,
+    runner,
+    per_job: int = 8,
 ) -> dict:
     """How far the default variation set moves generated gaits' end points, per kind, against the
     noise floor: gaits of ``shapes`` (n, J, L, 2) whose ensembles (n, K, 500, 6) ran already
@@ -291,7 +297,10 @@ def robustness_by_kind(
     varied = np.full((n, v, 2), np.nan)
     starts = list(range(0, n, per_job))
     jobs = (
-        (np.repeat(model.commands(shapes[s : s + per_job]), v, axis=0), list(DEFAULT_SET) * len(shapes[s : s + per_job]))
+        (
+            np.repeat(model.commands(shapes[s : s + per_job]), v, axis=0),
+            list(DEFAULT_SET) * len(shapes[s : s + per_job]),
+        )
         for s in starts
     )
     for b, (body, failures) in runner.map(simulate_rows, jobs):

@@ -49,7 +49,12 @@ def member_robots(cfg: PhysicsHeadConfig, index: int, sampled: int, noise: bool 
     """The robots member ``index`` is replayed on: the nominal one (None), with ``noise`` the
     nominal one again with noisy commands (``NOISE``), every variation of the default set, then
     ``sampled`` combined variations of its own (seeded by the member)."""
-    return [None, *([NOISE] if noise else []), *DEFAULT_SET, *sampled_set(sampled, seed=cfg.seed + 7919 * (index + 1))]
+    return [
+        None,
+        *([NOISE] if noise else []),
+        *DEFAULT_SET,
+        *sampled_set(sampled, seed=cfg.seed + 7919 * (index + 1)),
+    ]
 
 
 def row_robot(robot, row: Row):

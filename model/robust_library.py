@@ -110,7 +110,9 @@ def search_robust(checkpoint=None, folder=None, top: int = 3, workers: int | Non
     chosen = {}
     try:
         for key in sorted({(c["kind"], c["sector"]) for c in pool}):
-            ranked = sorted((c for c in pool if (c["kind"], c["sector"]) == key), key=lambda c: c["worst_rel"])
+            ranked = sorted(
+                (c for c in pool if (c["kind"], c["sector"]) == key), key=lambda c: c["worst_rel"]
+            )
             confirmed = []
             for c in ranked[:top]:
                 gait = c["member"].wave

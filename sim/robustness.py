@@ -163,7 +163,9 @@ def change_table(kinds: Sequence[str], ends: dict[str, np.ndarray], floor: str |
         mine = ran & ((kinds == kind) if kind != "all" else True)
         if not mine.any():
             continue
-        median = {n: float(np.nanmedian(r[mine])) if np.isfinite(r[mine]).any() else None for n, r in rel.items()}
+        median = {
+            n: float(np.nanmedian(r[mine])) if np.isfinite(r[mine]).any() else None for n, r in rel.items()
+        }
         row = {
             "n": int(mine.sum()),
             "distance_m_median": float(np.median(np.linalg.norm(home[mine], axis=-1))),

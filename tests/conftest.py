@@ -70,3 +70,15 @@ def member_checkpoint(tmp_path_factory):
     cfg = SamplerConfig(samples=4, epochs=3, hidden=16, head_sees_z_b=True)  # the shipped head: member alone
     fit_sampler(Fit(trained, data, out, workers=2, log=None), cfg)
     return out, data
+
+
+@pytest.fixture
+def server(checkpoint):
+    """A designer on the tiny checkpoint on a free port (no variation replays), stopped after the test."""
+    from snakeloco.app.server import DesignerServer
+
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False, variations=False
+    )
+    yield srv
+    srv.stop()

@@ -302,3 +302,53 @@ def test_reconstruction_reports_a_bin_the_data_do_not_excite_as_such(checkpoint,
     report |= {"stats_median_rel_err": {}, "mmd_zb": 0.0, "mmd_zb_null95": 0.0, "active_units_zb": 1}
     report |= {"active_units_zj": 1, "inter_intra_ratio": 1.0}
     assert "Hz not excited" in format_report(report)
+
+
+@pytest.mark.slow
+def test_evaluate_reports_each_member_kind_of_the_sampler_gaits(member_checkpoint):
+    from snakeloco.app.evaluate_report import consistency_lines
+    from snakeloco.model import load_pretrained
+    from snakeloco.model.evaluate import ConsistencyConfig, consistency
+
+    m = load_pretrained(member_checkpoint[0])
+    report = consistency(m, ConsistencyConfig(prior_samples=3, ensemble=2, seed=4), workers=2)
+    for mode in report.values():  # the undulation family: one kind, every draw of it
+        kind = mode["per_kind"]["undulate"]
+        assert set(mode["per_kind"]) == {"undulate"} and kind["n_drawn"] == 3
+        assert kind["n_gaits"] == mode["n_gaits"] and kind["xy_r2"] == pytest.approx(
+            np.median([g["xy_r2"] for g in mode["gaits"]])
+        )
+        assert sum(kind["diversity"]["heading_quadrants"].values()) == kind["n_gaits"]
+    assert (
+        sum(line.startswith("  kind undulate: 3 gaits (of 3 drawn)") for line in consistency_lines(report))
+        == 2
+    )
+
+
+@pytest.mark.slow
+def test_evaluate_reports_how_far_each_variation_moves_the_sampler_gaits(member_checkpoint):
+    """``evaluate --robustness N``: the first N gaits replayed on the default set, per kind, against
+    the ensemble's first noisy copy; each median as ``sim.robustness`` reports the gaits one by one."""
+    from snakeloco.app.evaluate_report import consistency_lines
+    from snakeloco.model import load_pretrained
+    from snakeloco.model.evaluate import ConsistencyConfig, consistency
+    from snakeloco.sim.robustness import robustness
+    from snakeloco.sim.variations import DEFAULT_SET
+
+    m = load_pretrained(member_checkpoint[0])
+    cfg = ConsistencyConfig(prior_samples=3, ensemble=2, seed=4, zk_modes=("zk_zero",))
+    table = consistency(m, cfg, workers=2, robustness=2)["zk_zero"]["robustness"]
+    floor = "command noise 0.001"
+    assert set(table) == {"all", "undulate"} and table["all"]["n"] == 2
+    assert list(table["all"]["median"]) == [floor, *(v.name for v in DEFAULT_SET)]
+    assert table["all"]["times_floor"][floor] == 1.0
+    members = m.decode_members(m.sample_z_b(3, 4))[0][:2]
+    one_by_one = [robustness(x.commands(m.robot), DEFAULT_SET[:2], robot=m.robot) for x in members]
+    for k, v in enumerate(DEFAULT_SET[:2]):  # the body at 5 Hz ends 0.15 s before the 20 Hz one
+        want = np.median([r["variations"][k]["rel"] for r in one_by_one])
+        assert table["all"]["median"][v.name] == pytest.approx(want, rel=0.05, abs=0.01)
+    lines = consistency_lines({"zk_zero": {**_EMPTY_MODE, "robustness": table}})
+    assert any(line.strip().startswith("| floor friction x0.5 |") for line in lines)
+
+
+_EMPTY_MODE = {"n_gaits": 0, "n_broken": 0, "final_inside_fraction": 0.0}

@@ -307,15 +307,15 @@ def test_the_robust_library_search_ranks_the_physics_heads_members_by_their_repl
     assert {c["draw"] for c in found} == {"train", "eval"}
     one = found[0]  # its worst case at 5 Hz is what the library's 20 Hz replays say, to the last 0.15 s
     again = robustness(one["member"].commands(), DEFAULT_SET, robot=None)
-    assert one["worst"] == again["worst"] and one["worst_rel"] == pytest.approx(again["worst_rel"], rel=0.05, abs=0.01)
+    assert one["worst"] == again["worst"] and one["worst_rel"] == pytest.approx(
+        again["worst_rel"], rel=0.05, abs=0.01
+    )
     named = robust_library.candidates(out, out / PHYSICS_GAITS)  # the folder named: the same rows
     assert [(c["kind"], c["worst_rel"]) for c in named] == [(c["kind"], c["worst_rel"]) for c in found]
     # The tiny family steers and travels little: let every member stand for the library here.
     monkeypatch.setattr(robust_library, "MIN_TRAVEL", 0.0)
     monkeypatch.setattr(robust_library, "MAX_SPREAD", np.inf)
-    monkeypatch.setattr(
-        robust_library, "candidates", lambda *a: [c | {"pure": True} for c in found]
-    )
+    monkeypatch.setattr(robust_library, "candidates", lambda *a: [c | {"pure": True} for c in found])
     result = robust_library.search_robust(out, top=1, workers=2, log=None)
     sectors = {(c["kind"], c["sector"]) for c in found}
     assert result["candidates"] == len(found) and len(result["chosen"]) == len(sectors)
