@@ -9,9 +9,10 @@ Search space: a field that scales (friction, gains, masses ...) is searched as a
 value in [1/``bound``, ``bound``] on a log scale; ``slope_deg`` in [0, 10] deg,
 ``slope_direction_deg`` in [-180, 180], ``latency`` in [0, 0.1] s.
 
-Loss of one run: RMS distance of the replayed from the measured body position at the measured times,
-over max(measured distance, 0.5 m), plus ``yaw_weight`` x RMS heading error (rad), plus RMS joint
-error (rad) where joints were measured; the loss is the mean over runs. A replay that breaks costs
+Loss of one run: odometry increments (``FitConfig.loss``; or the RMS distance of the replayed from
+the measured body position at the measured times over max(measured distance, 0.5 m)), plus
+``yaw_weight`` x the heading error (rad), plus ``joint_weight`` x the RMS joint-angle error (rad)
+where joints were measured; the loss is the mean over runs. A replay that breaks costs
 ``BROKEN_LOSS``.
 
 Uncertainty: around the optimum the loss is probed at +/-15% of each field (others fixed); its
@@ -70,6 +71,9 @@ class FitConfig(BaseModel):
     a path's heading errors pile up)."""
     window_s: float = Field(5.0, gt=0)
     """Window of the increments (s)."""
+    joint_weight: float = Field(1.0, ge=0)
+    """Weight of the RMS joint-angle error (rad) where a run has measured joint angles: how the
+    servos tracked their commands, which the servo fields set and a path alone hardly shows."""
     min_tolerance: float = Field(0.003, gt=0)
     """Smallest loss rise the uncertainty is measured against (0.3% of the distance)."""
 
@@ -150,8 +154,9 @@ class RobotFit:
                 )
         return np.array(out)
 
-    def replay(self, robots: Sequence[Robot]) -> list[list[np.ndarray | None]]:
-        """Body series (samples, 6) of every run on every robot ([robot][run]; None where it broke)."""
+    def replay(self, robots: Sequence[Robot]) -> list[list[tuple[np.ndarray, np.ndarray] | None]]:
+        """Body series (samples, 6) and joint angles (samples, J) of every run on every robot
+        ([robot][run]; None where it broke)."""
         cmds = np.stack([c for _ in robots for c, _ in self.pairs])
         rows = [r for r in robots for _ in self.pairs]
         result = self.sim.simulate(cmds, samples=self.samples, robots=rows)
@@ -160,15 +165,25 @@ class RobotFit:
         self.replays += len(rows)
         n = len(self.pairs)
         return [
-            [None if result.failures[i * n + j] else result.body[i * n + j] for j in range(n)]
+            [
+                None if result.failures[i * n + j] else (result.body[i * n + j], result.joint_angles[i * n + j])
+                for j in range(n)
+            ]
             for i in range(len(robots))
         ]
 
-    def run_loss(self, body: np.ndarray | None, run: MeasuredRun, joints: np.ndarray | None = None) -> float:
-        if body is None:
+    def run_loss(self, replayed: tuple[np.ndarray, np.ndarray] | None, run: MeasuredRun) -> float:
+        """The loss of one run's replay (body, joint angles); ``BROKEN_LOSS`` where it broke."""
+        if replayed is None:
             return BROKEN_LOSS
-        if self.cfg.loss == "increments":
-            return self.increment_loss(body, run)
+        body, joints = replayed
+        loss = self.increment_loss(body, run) if self.cfg.loss == "increments" else self.path_loss(body, run)
+        if run.joints is not None and self.cfg.joint_weight > 0:
+            loss += self.cfg.joint_weight * joint_rms(joints, run)
+        return loss
+
+    def path_loss(self, body: np.ndarray, run: MeasuredRun) -> float:
+        """RMS distance of the replayed from the measured path over the distance, plus the heading's."""
         t = np.arange(len(body)) / RECORD.sample_rate
         seen = run.times <= t[-1]
         times, measured = run.times[seen], run.xy[seen]
@@ -218,23 +233,34 @@ class RobotFit:
     def path_errors(self, robot: Robot) -> list[dict]:
         """Per run: RMS path error and end-point error (m) of ``robot``'s replay against the run."""
         out = []
-        for body, (_, run) in zip(self.replay([robot])[0], self.pairs, strict=True):
-            if body is None:
+        for replayed, (_, run) in zip(self.replay([robot])[0], self.pairs, strict=True):
+            if replayed is None:
                 out.append({"run": run.source, "rms_m": None, "end_m": None, "broke": True})
                 continue
+            body, joints = replayed
             t = np.arange(len(body)) / RECORD.sample_rate
             xy = np.stack([np.interp(run.times, t, body[:, k]) for k in (1, 2)], axis=1)
             err = np.hypot(*(xy - run.xy).T)
-            out.append(
-                {
-                    "run": run.source,
-                    "rms_m": float(np.sqrt(np.mean(err**2))),
-                    "end_m": float(err[-1]),
-                    "distance_m": run.distance,
-                    "end_rel": float(err[-1] / max(run.distance, 0.5)),
-                }
-            )
+            row = {
+                "run": run.source,
+                "rms_m": float(np.sqrt(np.mean(err**2))),
+                "end_m": float(err[-1]),
+                "distance_m": run.distance,
+                "end_rel": float(err[-1] / max(run.distance, 0.5)),
+            }
+            if run.joints is not None:
+                row["joint_rms_rad"] = joint_rms(joints, run)
+            out.append(row)
         return out
+
+
+def joint_rms(joints: np.ndarray, run: MeasuredRun) -> float:
+    """RMS difference (rad) of replayed joint angles (samples, J) at the record's rate from the run's
+    measured ones, over the run's times the replay covers."""
+    t = np.arange(len(joints)) / RECORD.sample_rate
+    seen = run.times <= t[-1]
+    replayed = np.stack([np.interp(run.times[seen], t, joints[:, k]) for k in range(joints.shape[1])], axis=1)
+    return float(np.sqrt(np.mean((replayed - run.joints[seen]) ** 2)))
 
 
 def fit_robot(

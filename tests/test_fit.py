@@ -20,21 +20,28 @@ QUICK = FitConfig(params=("friction_across", "servo_kp"), popsize=6, generations
 """A fit small enough for a test: two fields, 40 s runs."""
 
 
-def measured_text(robot: Robot, gait: str, seconds: float = 40.0, seed: int = 0, noise: bool = True) -> str:
+def measured_text(
+    robot: Robot, gait: str, seconds: float = 40.0, seed: int = 0, noise: bool = True, joints: bool = False
+) -> str:
     """A synthetic measured run: ``gait`` replayed on ``robot``, sampled at 50 Hz with 1 mm and 0.5 deg
-    noise, in a world frame of its own (shifted and turned, as a motion-capture frame is)."""
-    body = Simulator(workers=1, robot=robot).replay(PRESETS[gait].gait.commands()).body
+    noise, in a world frame of its own (shifted and turned, as a motion-capture frame is); with
+    ``joints`` the servos' joint angles too (0.5 deg noise)."""
+    replayed = Simulator(workers=1, robot=robot).replay(PRESETS[gait].gait.commands())
+    body = replayed.body
     rng = np.random.default_rng(seed)
     t = np.arange(0, seconds, 0.02)
     ts = np.arange(len(body)) / 20
     xy = np.stack([np.interp(t, ts, body[:, k]) for k in (1, 2)], axis=1)
     yaw = np.interp(t, ts, body[:, 5])
+    angles = np.stack([np.interp(t, ts, a) for a in replayed.joint_angles.T], axis=1) if joints else None
     if noise:
         xy += rng.normal(0, 0.001, xy.shape)
         yaw += rng.normal(0, np.radians(0.5), yaw.shape)
+        if joints:
+            angles += rng.normal(0, np.radians(0.5), angles.shape)
     turn = 0.7  # the world frame: turned and shifted
     rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
-    return write_measured_run(t, xy @ rot.T + [3.0, -1.0], yaw + turn, gait=f"{gait}.csv")
+    return write_measured_run(t, xy @ rot.T + [3.0, -1.0], yaw + turn, gait=f"{gait}.csv", joints=angles)
 
 
 def test_a_measured_run_is_read_in_its_start_frame():
@@ -100,6 +107,35 @@ def test_a_perturbed_robot_is_recovered_and_noise_alone_stays_within_the_uncerta
     for name, p in report["params"].items():
         assert p["low"] <= getattr(DEFAULT_ROBOT, name) <= p["high"], (name, p)
     sim.close()
+
+
+def test_measured_joint_angles_enter_the_loss_and_their_error_is_reported():
+    """The servos' tracking: on a robot with softer servos the replayed joint angles lag the
+    measured ones less than the nominal robot's do; a run without joints is scored on its path alone."""
+    from snakeloco.sim.fit import RobotFit
+
+    soft = Robot(servo_kp=30 * 0.6)
+    with_joints = read_measured_run(measured_text(soft, "roll", seconds=10.0, joints=True), "run.csv", 8)
+    without = read_measured_run(measured_text(soft, "roll", seconds=10.0), "run.csv", 8)
+    commands = PRESETS["roll"].gait.commands()
+    cfg = FitConfig(params=("servo_kp",))
+    sim = Simulator(workers=2)
+    try:
+        fit = RobotFit([(commands, with_joints)], DEFAULT_ROBOT, cfg, sim)
+        fit.set_horizon(10.0)
+        nominal, right = fit.replay([DEFAULT_ROBOT, soft])
+        joint_error = [fit.run_loss(r[0], with_joints) - fit.run_loss(r[0], without) for r in (nominal, right)]
+        # kp x0.6: 1.2 deg RMS of tracking beside the 0.5 deg noise; the right servos: the noise alone.
+        assert joint_error[0] > 2 * joint_error[1] > 0
+        assert joint_error[1] == pytest.approx(np.radians(0.5), rel=0.1)
+        errors = fit.path_errors(soft)
+        assert errors[0]["joint_rms_rad"] == pytest.approx(joint_error[1], rel=1e-9)
+        no_joints = FitConfig(params=("servo_kp",), joint_weight=0.0)
+        plain = RobotFit([(commands, with_joints)], DEFAULT_ROBOT, no_joints, sim)
+        plain.set_horizon(10.0)
+        assert plain.run_loss(nominal[0], with_joints) == pytest.approx(fit.run_loss(nominal[0], without))
+    finally:
+        sim.close()
 
 
 @pytest.mark.slow
