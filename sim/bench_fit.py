@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from snakeloco.sim.fit import FitConfig, fit_robot
-from snakeloco.sim.gaits import PRESETS, GaitEquation
+from snakeloco.sim.gaits import BASE_GAITS, PRESETS, GaitEquation
 from snakeloco.sim.measured import MeasuredRun
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.robot import DEFAULT_ROBOT, Robot, robot_from_dict
@@ -44,22 +44,29 @@ def perturbed_robots(n: int, seed: int) -> list[Robot]:
     return out
 
 
-def synthetic_run(body: np.ndarray, rng: np.random.Generator, source: str) -> MeasuredRun:
-    """A measured run of a replay's body series (T, 6) at 20 Hz: ``RATE_HZ`` with the noise above."""
+def synthetic_run(
+    body: np.ndarray, rng: np.random.Generator, source: str, joints: np.ndarray | None = None
+) -> MeasuredRun:
+    """A measured run of a replay's body series (T, 6) at 20 Hz: ``RATE_HZ`` with the noise above;
+    with ``joints`` (T, J) the servos' measured angles too (``NOISE_DEG`` noise)."""
     ts = np.arange(len(body)) / 20.0
     t = np.arange(0.0, ts[-1], 1.0 / RATE_HZ)
     xy = np.stack([np.interp(t, ts, body[:, k]) for k in (1, 2)], axis=1) + rng.normal(
         0, NOISE_M, (len(t), 2)
     )
     yaw = np.interp(t, ts, body[:, 5]) + rng.normal(0, np.radians(NOISE_DEG), len(t))
-    return MeasuredRun(t, xy - xy[0], yaw - yaw[0], None, None, source)
+    angles = None
+    if joints is not None:
+        angles = np.stack([np.interp(t, ts, a) for a in joints.T], axis=1)
+        angles += rng.normal(0, np.radians(NOISE_DEG), angles.shape)
+    return MeasuredRun(t, xy - xy[0], yaw - yaw[0], angles, None, source)
 
 
 def single_runs(truth: Robot, simulator, generations: int, seed: int = 0) -> dict:
     """What one run determines: each library gait's run alone, fitted; per gait, each field's error
     and whether the fit calls it determined."""
     rng = np.random.default_rng(seed + 99)
-    names = list(PRESETS)
+    names = list(BASE_GAITS)
     result = simulator.simulate(
         np.stack([PRESETS[g].gait.commands() for g in names]), robots=[truth] * len(names)
     )
@@ -86,8 +93,14 @@ def single_runs(truth: Robot, simulator, generations: int, seed: int = 0) -> dic
 
 
 def bench_fit(
-    robots: int = 6, seed: int = 0, generations: int = 30, workers: int | None = None, single: bool = False
+    robots: int = 6,
+    seed: int = 0,
+    generations: int = 30,
+    workers: int | None = None,
+    single: bool = False,
+    joints: bool = False,
 ) -> dict:
+    """The benchmark (module docstring); ``joints``: the runs measure the servos' joint angles too."""
     simulator = Simulator(workers)
     rows = []
     if single:
@@ -107,7 +120,8 @@ def bench_fit(
             held = [g.commands() for g in HELD_OUT.values()]
             result = simulator.simulate(np.stack(cmds + held), robots=[truth] * (len(cmds) + len(held)))
             pairs = [
-                (c, synthetic_run(b, rng, g)) for c, b, g in zip(cmds, result.body, FIT_GAITS, strict=False)
+                (c, synthetic_run(b, rng, g, a if joints else None))
+                for c, b, a, g in zip(cmds, result.body, result.joint_angles, FIT_GAITS, strict=False)
             ]
             t0 = time.perf_counter()
             report = fit_robot(pairs, DEFAULT_ROBOT, FitConfig(generations=generations, seed=seed), simulator)
@@ -155,6 +169,7 @@ def bench_fit(
     determined = [(p["error_rel"]) for r in rows for p in r["params"].values() if p["determined"]]
     return {
         "robots": rows,
+        "joints": joints,
         "workers": simulator.workers,
         "determined_within_15pct": int(sum(abs(e) <= 0.15 for e in determined)),
         "determined": len(determined),

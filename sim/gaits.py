@@ -246,6 +246,9 @@ _LIBRARY = (
         (9.652, 15.05, "5 deg slope uphill left"),
     ),
 )
+BASE_GAITS = ("sidewind", "undulate", "roll", "turn")
+"""The library's first four, one per kind, found by the grid search of docs/gaits.md (the runs that
+``fit-robot`` advises and ``bench fit`` measures with)."""
 PRESETS: dict[str, GaitPreset] = {
     name: GaitPreset(
         gait=gait,

@@ -124,12 +124,13 @@ def test_measured_joint_angles_enter_the_loss_and_their_error_is_reported():
         fit = RobotFit([(commands, with_joints)], DEFAULT_ROBOT, cfg, sim)
         fit.set_horizon(10.0)
         nominal, right = fit.replay([DEFAULT_ROBOT, soft])
-        joint_error = [fit.run_loss(r[0], with_joints) - fit.run_loss(r[0], without) for r in (nominal, right)]
-        # kp x0.6: 1.2 deg RMS of tracking beside the 0.5 deg noise; the right servos: the noise alone.
-        assert joint_error[0] > 2 * joint_error[1] > 0
-        assert joint_error[1] == pytest.approx(np.radians(0.5), rel=0.1)
+        extra = [fit.run_loss(r[0], with_joints) - fit.run_loss(r[0], without) for r in (nominal, right)]
+        # kp x0.6: ~1.2 deg RMS of tracking misfit beyond the run's 0.5 deg noise; the right servos
+        # track as measured: what is left is the noise, which the loss takes out.
+        assert extra[0] > 5 * extra[1] >= 0 and extra[0] > cfg.joint_weight * np.radians(0.8)
+        assert fit.noise[id(with_joints)] == pytest.approx(np.radians(0.5), rel=0.05)
         errors = fit.path_errors(soft)
-        assert errors[0]["joint_rms_rad"] == pytest.approx(joint_error[1], rel=1e-9)
+        assert errors[0]["joint_rms_rad"] == pytest.approx(np.radians(0.5), rel=0.1)
         no_joints = FitConfig(params=("servo_kp",), joint_weight=0.0)
         plain = RobotFit([(commands, with_joints)], DEFAULT_ROBOT, no_joints, sim)
         plain.set_horizon(10.0)

@@ -182,6 +182,8 @@ class BenchFit(Command):
     """Simulation threads (default: all cores)."""
     single: bool = False
     """Instead: what one run determines (each library gait's run fitted alone, on the first robot)."""
+    joints: bool = False
+    """The synthetic runs measure the servos' joint angles too (0.5 deg noise), as a robot whose servos report their positions."""
     json: Json = False
 
 

@@ -290,7 +290,8 @@ def fit(r: dict) -> None:
         )
         print(f"{row['robot']}: {fields}; held out: {held}; {row['seconds']:.0f} s")
     print(
-        f"determined fields within 15% of the truth: {r['determined_within_15pct']} of {r['determined']}; held-out end "
+        ("runs with measured joint angles; " if r.get("joints") else "runs of the body's path alone; ")
+        + f"determined fields within 15% of the truth: {r['determined_within_15pct']} of {r['determined']}; held-out end "
         f"error median {100 * r['held_out_fitted_rel_median']:.1f}% fitted vs {100 * r['held_out_nominal_rel_median']:.0f}% "
         f"nominal; fit time median {r['seconds_median']:.0f} s ({r['workers']} threads)"
     )
