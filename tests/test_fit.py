@@ -195,3 +195,19 @@ def test_the_designer_fits_a_measured_run_and_replays_on_the_fitted_robot(checkp
     finally:
         client.close()
         srv.stop()
+
+
+@pytest.mark.slow
+def test_bench_fit_with_joint_angles_reports_every_field_and_the_held_out_gaits(capsys):
+    """``bench fit --joints`` on one robot and one generation: the figures are there and consistent
+    (it measures the fit; tests above check the fit itself)."""
+    main(["bench", "fit", "--robots", "1", "--generations", "1", "--joints", "--workers", "2", "--json"])
+    out = capsys.readouterr().out.splitlines()
+    result = json.loads(out[-1])
+    assert result["joints"] is True and any(line.startswith("runs with measured joint angles") for line in out)
+    (row,) = result["robots"]
+    assert set(row["params"]) == {"friction_along", "friction_across", "servo_kp"}
+    for name, p in row["params"].items():
+        assert p["error_rel"] == pytest.approx(p["fitted"] / row["truth"][name] - 1)
+    assert set(row["held_out"]) == {"turn", "slow undulation"}
+    assert result["determined"] == sum(p["determined"] for p in row["params"].values())
