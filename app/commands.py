@@ -252,6 +252,8 @@ class FitRobot(Command):
     """The robot description to start from (default: the paper's robot)."""
     generations: Annotated[int, Field(ge=1, le=500)] = 30
     """CMA-ES generations (8 candidates each, every run replayed)."""
+    joint_weight: Annotated[float, Field(ge=0)] = 10.0
+    """Weight of the measured joint angles' RMS misfit (rad, beyond their noise) beside the path's relative error, where runs have joint columns (0: the path alone)."""
     seed: Seed = 0
     workers: Workers = None
     """Simulation threads (default: all cores)."""

@@ -112,7 +112,9 @@ def fit_from_files(cmd, robot: Robot) -> dict:
     if bad:
         raise OptionError(f"--params {' '.join(bad)}: fit physical fields only: {', '.join(PHYSICAL_FIELDS)}")
     pairs = read_pairs(cmd.measured, cmd.gait, robot)
-    cfg = FitConfig(params=tuple(cmd.params), generations=cmd.generations, seed=cmd.seed)
+    cfg = FitConfig(
+        params=tuple(cmd.params), generations=cmd.generations, seed=cmd.seed, joint_weight=cmd.joint_weight
+    )
     simulator = Simulator(workers=cmd.workers, robot=robot)
     try:
         with tqdm(total=cfg.generations, desc="fit", unit="generation") as bar:

@@ -169,7 +169,9 @@ class RobotFit:
         n = len(self.pairs)
         return [
             [
-                None if result.failures[i * n + j] else (result.body[i * n + j], result.joint_angles[i * n + j])
+                None
+                if result.failures[i * n + j]
+                else (result.body[i * n + j], result.joint_angles[i * n + j])
                 for j in range(n)
             ]
             for i in range(len(robots))

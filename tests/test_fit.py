@@ -204,7 +204,9 @@ def test_bench_fit_with_joint_angles_reports_every_field_and_the_held_out_gaits(
     main(["bench", "fit", "--robots", "1", "--generations", "1", "--joints", "--workers", "2", "--json"])
     out = capsys.readouterr().out.splitlines()
     result = json.loads(out[-1])
-    assert result["joints"] is True and any(line.startswith("runs with measured joint angles") for line in out)
+    assert result["joints"] is True and any(
+        line.startswith("runs with measured joint angles") for line in out
+    )
     (row,) = result["robots"]
     assert set(row["params"]) == {"friction_along", "friction_across", "servo_kp"}
     for name, p in row["params"].items():
