@@ -15,7 +15,7 @@ the measured body position at the measured times over max(measured distance, 0.5
 beyond the run's own measurement noise where joints were measured; the loss is the mean over runs. A replay that breaks costs
 ``BROKEN_LOSS``.
 
-Uncertainty: around the optimum the loss is probed at +/-15% of each field (others fixed); its
+Uncertainty (``sim.fit_uncertainty``): around the optimum the loss is probed at +/-15% of each field (others fixed); its
 slope gives the half-width in which the loss rises by ``tolerance`` (the larger of the optimum's own
 loss, i.e. doubling the misfit, and ``min_tolerance``): what the runs cannot tell apart. A field whose half-width is
 over 15% (or whose loss does not rise) is *not determined* by these runs; the report names the
@@ -33,15 +33,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.sim.excitation import RECORD
+from snakeloco.sim.fit_uncertainty import ADDITIVE, FitCancelled, most_sensitive_gait, uncertainty
 from snakeloco.sim.measured import MeasuredRun, MeasuredRunError
 from snakeloco.sim.robot import Robot, robot_from_dict
 from snakeloco.sim.variations import PHYSICAL_FIELDS
 
-ADDITIVE = {"slope_deg": (0.0, 10.0), "slope_direction_deg": (-180.0, 180.0), "latency": (0.0, 0.1)}
-"""Fields searched on a linear range (they start at 0, where a factor means nothing)."""
 BROKEN_LOSS = 100.0
-PROBE = math.log(1.15)
-"""Log step of the uncertainty probe (15%)."""
 
 
 class FitConfig(BaseModel):
@@ -110,10 +107,6 @@ def check_pairs(pairs: Sequence[tuple[np.ndarray, MeasuredRun]], robot: Robot) -
             raise MeasuredRunError(
                 f"{run.source}: the run goes on to {run.times[-1]:g} s; the replay covers the {RECORD.duration:g} s record"
             )
-
-
-class FitCancelled(Exception):
-    """The fit's replays were dropped (a designer tab moved on): there is no result."""
 
 
 class RobotFit:
@@ -344,86 +337,3 @@ def fit_robot(
     finally:
         if own:
             simulator.close()
-
-
-def uncertainty(
-    fit: RobotFit, x: np.ndarray, loss: float, spread: np.ndarray | None = None
-) -> dict[str, dict]:
-    """Each field's fitted value, the interval in which the loss rises by at most the tolerance (at
-    least twice the search's final spread ``spread``, in search coordinates), and whether the runs
-    determine it (module docstring)."""
-    cfg = fit.cfg
-    tolerance = max(loss, cfg.min_tolerance)
-    probes, steps = [], []
-    for i, name in enumerate(cfg.params):
-        if name in ADDITIVE:
-            lo, hi = ADDITIVE[name]
-            h = 0.15 * 2 / (hi - lo) * max(1.0, 0.1 * (hi - lo))  # 15% of a tenth of the range, in x
-        else:
-            h = PROBE / math.log(cfg.bound)
-        steps.append(h)
-        for sign in (1, -1):
-            xp = x.copy()
-            xp[i] += sign * h
-            probes.append(fit.robot(xp))
-    around = fit.losses(probes)
-    fitted = fit.robot(x)
-    out = {}
-    for i, name in enumerate(cfg.params):
-        up, down = around[2 * i], around[2 * i + 1]
-        # An RMS path error grows in proportion to a small change (a V, not a parabola): its slope
-        # over the probe's step gives the change that raises the loss by the tolerance.
-        slope = (up + down - 2 * loss) / (2 * steps[i])
-        half = tolerance / slope if slope > 0 else math.inf  # in x
-        if spread is not None:
-            half = max(half, 2 * float(spread[i]))
-        value = float(getattr(fitted, name))
-        if name in ADDITIVE:
-            lo_r, hi_r = ADDITIVE[name]
-            width = half * (hi_r - lo_r) / 2
-            low, high = value - width, value + width
-            rel = width / max(abs(value), 1e-9) if math.isfinite(width) else math.inf
-            determined = math.isfinite(width) and width <= 0.15 * (hi_r - lo_r) / 10
-        else:
-            factor = cfg.bound**half if math.isfinite(half) else math.inf
-            low, high = value / factor, value * factor
-            rel = factor - 1
-            determined = rel <= 0.15
-        out[name] = {
-            "start": float(getattr(fit.start, name)),
-            "fitted": value,
-            "low": low,
-            "high": high,
-            "rel_uncertainty": rel,
-            "determined": bool(determined),
-            "loss_rise": [float(up - loss), float(down - loss)],
-        }
-    return out
-
-
-def most_sensitive_gait(robot: Robot, name: str, simulator) -> dict:
-    """The library gait whose 100 s end point moves most when ``name`` doubles (or, for a field that
-    starts at 0, moves to a tenth of its range) on ``robot``: the run that would determine it."""
-    from snakeloco.sim.gaits import BASE_GAITS, PRESETS
-
-    values = robot.model_dump()
-    if name in ADDITIVE:
-        lo, hi = ADDITIVE[name]
-        values[name] += 0.1 * (hi - lo)
-    else:
-        values[name] *= 2
-    changed = robot_from_dict(values, f"{robot.name} with {name} changed")
-    names = list(BASE_GAITS)
-    cmds = np.stack([PRESETS[n].gait.commands() for n in names for _ in range(2)])
-    result = simulator.simulate(cmds, robots=[r for _ in names for r in (robot, changed)])
-    if result is None:
-        raise FitCancelled
-    best = {"gait": None, "end_change_rel": 0.0}
-    for i, n in enumerate(names):
-        if result.failures[2 * i] or result.failures[2 * i + 1]:
-            continue
-        a, b = result.body[2 * i, -1, 1:3], result.body[2 * i + 1, -1, 1:3]
-        rel = float(np.hypot(*(a - b)) / max(np.hypot(*a), 0.5))
-        if rel > best["end_change_rel"]:
-            best = {"gait": n, "end_change_rel": rel}
-    return best
