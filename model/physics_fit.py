@@ -270,8 +270,6 @@ def fit_physics_head(fit, cfg: PhysicsHeadConfig | None = None) -> dict:
     if out.resolve() != source.resolve():
         shutil.copytree(source, out, dirs_exist_ok=True)
     folder = Path(fit.gaits_path) if fit.gaits_path is not None else out / PHYSICS_GAITS
-    head_cfg = model.config.member_head
-    sampler = model.config.summary.sampler or {}
     z = model.sample_z_b(cfg.samples, cfg.seed)
     train = replay_members_on_physics(
         model, z, (None, ZK_TEMPERATURE), cfg, cfg.sampled, folder, fit, "train"
@@ -281,6 +279,50 @@ def fit_physics_head(fit, cfg: PhysicsHeadConfig | None = None) -> dict:
     ]
     is_val = np.isin(train["z_index"], held)
     tr_rows, va_rows = np.flatnonzero(train["ok"] & ~is_val), np.flatnonzero(train["ok"] & is_val)
+    head = fitted_already(out, model, cfg)
+    if head is not None:  # an interrupted scoring: the head of these replays and this config is saved
+        fit.say("physics head: fitted already on these replays with this config; scoring it")
+        summary = dict(head.cfg.summary)
+    else:
+        head, summary = _fit(model, train, tr_rows, va_rows, z, cfg, fit)
+        save_physics_head(out, head)  # usable now; the scoring replays below can take an hour
+    model = GaitModel(model.net, model.config, model.path, model.member_head, physics_head=head)
+    if cfg.eval_samples:
+        z_eval = model.sample_z_b(cfg.eval_samples, cfg.eval_seed)
+        evaluated = replay_members_on_physics(model, z_eval, (None,), cfg, 0, folder, fit, "eval", noise=True)
+        summary["eval"] = score(model, evaluated, np.flatnonzero(evaluated["ok"]), z_eval)
+        summary["eval"]["broken"] = int((~evaluated["ok"]).sum())
+    summary["wall_time_s"] = summary.get("wall_time_s", 0.0) + time.perf_counter() - t_start
+    head.cfg = head.cfg.model_copy(update={"summary": summary})
+    save_physics_head(out, head)
+    fit.say(f"physics head: {json.dumps(summary.get('eval', summary['validation'])['all'])}; wrote {out}")
+    return summary
+
+
+def fitted_already(out: Path, model, cfg: PhysicsHeadConfig):
+    """The physics head saved in ``out`` when it was fitted with ``cfg`` (its summary's config and
+    validation: the fit finished) on this checkpoint's member head; None otherwise. Its replays are
+    the chunks ``replay_members_on_physics`` has just checked against this checkpoint's decodes, and
+    the fit is seeded: fitting again would give the same head."""
+    from snakeloco.model.checkpoint import CheckpointError
+    from snakeloco.model.physics_head import load_physics_head
+
+    try:
+        head = load_physics_head(out, model.member_head)
+    except CheckpointError:
+        return None
+    if head is None or "validation" not in head.cfg.summary:
+        return None
+    same = json.loads(json.dumps(head.cfg.summary.get("config"))) == json.loads(cfg.model_dump_json())
+    return head if same else None
+
+
+def _fit(model, train: dict, tr_rows: np.ndarray, va_rows: np.ndarray, z: np.ndarray, cfg, fit):
+    """Fit the head on replays ``tr_rows``, validate on ``va_rows``: the head and its summary."""
+    from snakeloco.model.api import GaitModel
+
+    head_cfg = model.config.member_head
+    sampler = model.config.summary.sampler or {}
     x, y, _ = head_examples(model, train, tr_rows, head_cfg.mirrored)
     vx, vy, _ = head_examples(model, train, va_rows, False)
 
@@ -323,17 +365,7 @@ def fit_physics_head(fit, cfg: PhysicsHeadConfig | None = None) -> dict:
             "high": np.maximum(feats.max(0), mirror_features(feats).max(0)).tolist(),
         },
     }
-    model = GaitModel(model.net, model.config, model.path, model.member_head, physics_head=head)
-    summary["validation"] = score(model, train, va_rows, z)
+    scored = GaitModel(model.net, model.config, model.path, model.member_head, physics_head=head)
+    summary["validation"] = score(scored, train, va_rows, z)
     head.cfg = head.cfg.model_copy(update={"summary": summary})
-    save_physics_head(out, head)  # usable now; the scoring replays below can take an hour
-    if cfg.eval_samples:
-        z_eval = model.sample_z_b(cfg.eval_samples, cfg.eval_seed)
-        evaluated = replay_members_on_physics(model, z_eval, (None,), cfg, 0, folder, fit, "eval", noise=True)
-        summary["eval"] = score(model, evaluated, np.flatnonzero(evaluated["ok"]), z_eval)
-        summary["eval"]["broken"] = int((~evaluated["ok"]).sum())
-    summary["wall_time_s"] = time.perf_counter() - t_start
-    head.cfg = head.cfg.model_copy(update={"summary": summary})
-    save_physics_head(out, head)
-    fit.say(f"physics head: {json.dumps(summary.get('eval', summary['validation'])['all'])}; wrote {out}")
-    return summary
+    return head, summary

@@ -101,8 +101,9 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     assert table["all"]["times_floor"][NOISE] == 1.0
     # Again: every chunk is read back, nothing replayed.
     again: list[int] = []
-    fit_physics_head(Fit(checkpoint, None, out, workers=2, progress=again.append, log=None), cfg)
+    resumed = fit_physics_head(Fit(checkpoint, None, out, workers=2, progress=again.append, log=None), cfg)
     assert sum(again) == 0
+    assert resumed["fit_s"] == summary["fit_s"] and resumed["eval"]["all"] == summary["eval"]["all"]  # not refitted
     model = load_pretrained(out)
     assert model.physics_head is not None and load_pretrained(checkpoint).physics_head is None
     member = model.decode_members(model.sample_z_b(1, 0))[0][0]
