@@ -177,7 +177,7 @@ def run_gait(cmd: Gait) -> str:
     if cmd.search_robust:
         from snakeloco.model.robust_library import search_robust
 
-        found = search_robust(cmd.checkpoint, cmd.gaits, cmd.top, log=print)
+        found = search_robust(cmd.checkpoint, cmd.gaits, cmd.top, cmd.workers, print, cmd.draws)
         if cmd.json:
             print(jsonlib.dumps(found))
         return jsonlib.dumps(found)

@@ -158,6 +158,10 @@ class Gait(Command):
     """With --search-robust: the physics head's replay folder (default: the checkpoint's physics-gaits)."""
     top: Annotated[int, Field(ge=1)] = 3
     """With --search-robust: candidates confirmed per kind and direction."""
+    draws: tuple[Literal["train", "eval"], ...] = ("train", "eval")
+    """With --search-robust: the physics head's draws of members to search (trained on, scored on)."""
+    workers: Workers = None
+    """With --search-robust: simulation threads of the confirming replays (default: all cores)."""
     json: Json = False
 
 

@@ -36,10 +36,16 @@ def sector(forward: float, sideways: float, net_yaw: float, kind: str) -> str:
     return SECTORS[int(((heading + 45.0) % 360.0) // 90.0)]
 
 
-def candidates(checkpoint: str | Path | None, folder: str | Path | None = None) -> list[dict]:
-    """Every member with its nominal and default-set replays in the physics head's replay folder
-    (default: the checkpoint's ``physics-gaits``): kind, member, sector, distance (m) and worst
-    relative end change (5 Hz), the library-ready ones (``pure``) marked."""
+DRAWS = ("train", "eval")
+"""The physics head's two draws of members: the ones it was trained on, the ones it was scored on."""
+
+
+def candidates(
+    checkpoint: str | Path | None, folder: str | Path | None = None, draws: tuple[str, ...] = DRAWS
+) -> list[dict]:
+    """Every member of ``draws`` with its nominal and default-set replays in the physics head's
+    replay folder (default: the checkpoint's ``physics-gaits``): kind, member, sector, distance (m)
+    and worst relative end change (5 Hz), the library-ready ones (``pure``) marked."""
     from snakeloco.model.api import load_pretrained
     from snakeloco.model.checkpoint import resolve_checkpoint
     from snakeloco.model.options import PhysicsHeadConfig
@@ -54,14 +60,14 @@ def candidates(checkpoint: str | Path | None, folder: str | Path | None = None) 
         )
     cfg = PhysicsHeadConfig(**model.physics_head.cfg.summary["config"])
     folder = Path(folder) if folder is not None else resolve_checkpoint(checkpoint) / PHYSICS_GAITS
-    draws = [
+    plan = [
         (model.sample_z_b(cfg.samples, cfg.seed), (None, ZK_TEMPERATURE), cfg.sampled, "train", False),
         (model.sample_z_b(cfg.eval_samples, cfg.eval_seed), (None,), 0, "eval", True),
     ]
     names = [v.name for v in DEFAULT_SET]
     out = []
-    for z, modes, sampled, label, noise in draws:
-        if not len(z):
+    for z, modes, sampled, label, noise in plan:
+        if not len(z) or label not in draws:
             continue
         r = replay_members_on_physics(model, z, modes, cfg, sampled, folder, None, label, noise, replay=False)
         for i in np.unique(r["member"]).astype(int):
@@ -93,7 +99,14 @@ def candidates(checkpoint: str | Path | None, folder: str | Path | None = None) 
     return out
 
 
-def search_robust(checkpoint=None, folder=None, top: int = 3, workers: int | None = None, log=print) -> dict:
+def search_robust(
+    checkpoint=None,
+    folder=None,
+    top: int = 3,
+    workers: int | None = None,
+    log=print,
+    draws: tuple[str, ...] = DRAWS,
+) -> dict:
     """The most robust library-ready member per kind and sector (module docstring): per sector the
     chosen gait's equation, measured figures and confirmed worst case, with how many candidates it
     was chosen from and the library's gait of its kind for comparison."""
@@ -103,7 +116,7 @@ def search_robust(checkpoint=None, folder=None, top: int = 3, workers: int | Non
     from snakeloco.sim.robustness import robustness
 
     log = log or (lambda line: None)
-    found = candidates(checkpoint, folder)
+    found = candidates(checkpoint, folder, draws)
     pool = [c for c in found if c["pure"] and (c["kind"] == "turn" or c["distance_m"] >= MIN_TRAVEL)]
     log(f"{len(found)} members replayed on the default set, {len(pool)} library-ready that travel")
     simulator = Simulator(workers)
@@ -149,4 +162,4 @@ def search_robust(checkpoint=None, folder=None, top: int = 3, workers: int | Non
             )
     finally:
         simulator.close()
-    return {"candidates": len(found), "library_ready": len(pool), "chosen": chosen}
+    return {"candidates": len(found), "draws": list(draws), "library_ready": len(pool), "chosen": chosen}

@@ -103,7 +103,9 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     again: list[int] = []
     resumed = fit_physics_head(Fit(checkpoint, None, out, workers=2, progress=again.append, log=None), cfg)
     assert sum(again) == 0
-    assert resumed["fit_s"] == summary["fit_s"] and resumed["eval"]["all"] == summary["eval"]["all"]  # not refitted
+    assert (
+        resumed["fit_s"] == summary["fit_s"] and resumed["eval"]["all"] == summary["eval"]["all"]
+    )  # not refitted
     model = load_pretrained(out)
     assert model.physics_head is not None and load_pretrained(checkpoint).physics_head is None
     member = model.decode_members(model.sample_z_b(1, 0))[0][0]
