@@ -9,7 +9,8 @@ it travels at least ``MIN_TRAVEL`` m (turning gaits: any), ranked by its worst r
 over the set, read from the replays at the model's 5 Hz. The ``top`` of each sector are then
 confirmed as the library measures its gaits: ``sim.gaits.measure_gait`` (a 4-member ensemble) and
 ``sim.robustness.robustness`` at 20 Hz; the first whose ensemble spread is at most ``MAX_SPREAD``
-and whose confirmed worst case is the smallest is the sector's gait.
+and whose confirmed worst case is the smallest is the sector's gait; the library (``sim.gaits``)
+takes it where that worst case is below the library's first gait of its kind (``beats_library``).
 """
 
 from __future__ import annotations
@@ -155,6 +156,8 @@ def search_robust(
                 "worst_rel_5hz": c["worst_rel"],
                 "candidates": len(ranked),
                 "library_worst_rel": library,
+                # The library takes it only where it moves less than the library's gait of its kind.
+                "beats_library": library is None or worst_rel < library,
             }
             log(
                 f"{key[0]} {key[1]}: worst {100 * worst_rel:.0f}% ({report['worst']}) of "
