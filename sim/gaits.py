@@ -20,6 +20,8 @@ this robot (docs/gaits.md says how, with the figures each preset reproduces).
 from __future__ import annotations
 
 import functools
+import json
+from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -213,169 +215,23 @@ def measure_gait(gait: GaitEquation, simulator, ensemble: int = 4, seed: int = 0
     return gait_figures(result.body[ok])
 
 
-_LIBRARY = (
-    # name, gait, what it is for, measured: displacement (m), straightness, heading (deg), net roll
-    # (rad), net yaw (rad), spread; worst case over the default variation set: end error (m),
-    # relative, which variation
-    (
-        "sidewind",
-        GaitEquation(a_pitch=0.4, a_yaw=0.7, nu_pitch=0.8, nu_yaw=0.8, delta=0.7854, frequency=0.93),
-        "sidewinding: the fastest straight non-rolling gait of the search that physics predicts to 5%; travels sideways",
-        (23.96, 0.8557, 93.38, -0.1552, 1.349, 0.016),
-        (35.77, 1.493, "link masses x1.5"),
-    ),
-    (
-        "undulate",
-        GaitEquation(a_yaw=0.7, nu_yaw=0.7, frequency=0.93),
-        "lateral undulation (yaw wave only): the fastest forward gait found",
-        (32.63, 0.8098, 0.02802, 0.00253, 0.2155, 0.06386),
-        (53.85, 1.65, "5 deg slope uphill ahead"),
-    ),
-    (
-        "roll",
-        GaitEquation(a_pitch=0.35, a_yaw=0.35, nu_pitch=0.71, nu_yaw=0.71, delta=1.5708, frequency=0.52),
-        "lateral rolling: rolls over and over and moves sideways, the straightest gait found",
-        (8.444, 0.9718, -95.12, 326.6, -0.6007, 0.01082),
-        (3.004, 0.3558, "5 deg slope uphill left"),
-    ),
-    (
-        "turn",
-        GaitEquation(a_pitch=0.12, a_yaw=0.95, nu_pitch=1.95, nu_yaw=-0.66, delta=-1.9, frequency=0.52),
-        "turning in place (clockwise): the largest heading change found without rolling",
-        (0.6414, 0.02623, -157.3, -0.01751, -40.12, 0.03566),
-        (9.652, 15.05, "5 deg slope uphill left"),
-    ),
-    # The most robust members found per kind and direction (``gait --search-robust``, docs/gaits.md):
-    # each ends where its name says in its start frame and moves least over the default variation set.
-    (
-        "robust-roll-right",
-        GaitEquation(
-            a_pitch=0.24848257036947033,
-            a_yaw=0.24848257036947033,
-            nu_pitch=0.71,
-            nu_yaw=0.71,
-            delta=1.5708,
-            frequency=0.29,
-        ),
-        "rolling, pitch 0.25 rad / 0.71 rad/module, yaw 0.25 rad / 0.71 rad/module, offset 1.57 rad at 0.29 Hz; ends right of its start: the most robust of 23 such members over the default variation set",
-        (4.664, 0.9955, -93.46, 182.2, 0.06915, 0.08141),
-        (0.9995, 0.2143, "5 deg slope uphill ahead"),
-    ),
-    (
-        "robust-sidewind-backward",
-        GaitEquation(
-            a_pitch=0.319396802819524,
-            a_yaw=0.558944404934167,
-            nu_pitch=0.8,
-            nu_yaw=0.8,
-            delta=-2.0878787115357005,
-            frequency=0.52,
-        ),
-        "sidewinding, pitch 0.32 rad / 0.80 rad/module, yaw 0.56 rad / 0.80 rad/module, offset -2.09 rad at 0.52 Hz; ends behind its start: the most robust of 21 such members over the default variation set",
-        (10.37, 0.7713, -95.37, -0.05645, -1.735, 0.008063),
-        (8.341, 0.804, "servo kp x2"),
-    ),
-    (
-        "robust-sidewind-forward",
-        GaitEquation(
-            a_pitch=0.3212430420423042,
-            a_yaw=0.5621753235740322,
-            nu_pitch=0.8,
-            nu_yaw=0.8,
-            delta=0.4742902243410007,
-            frequency=0.52,
-        ),
-        "sidewinding, pitch 0.32 rad / 0.80 rad/module, yaw 0.56 rad / 0.80 rad/module, offset 0.47 rad at 0.52 Hz; ends ahead of its start: the most robust of 25 such members over the default variation set",
-        (7.013, 0.5749, 94.6, -0.05082, -2.013, 0.0327),
-        (6.529, 0.9309, "link masses x1.5"),
-    ),
-    (
-        "robust-sidewind-left",
-        GaitEquation(
-            a_pitch=0.15042878413707342,
-            a_yaw=0.26325037223987846,
-            nu_pitch=0.8,
-            nu_yaw=0.8,
-            delta=1.0068690805476197,
-            frequency=0.52,
-        ),
-        "sidewinding, pitch 0.15 rad / 0.80 rad/module, yaw 0.26 rad / 0.80 rad/module, offset 1.01 rad at 0.52 Hz; ends left of its start: the most robust of 59 such members over the default variation set",
-        (5.3, 0.8136, 93.54, -0.01528, 0.165, 0.01048),
-        (2.659, 0.5017, "floor friction x0.5"),
-    ),
-    (
-        "robust-sidewind-right",
-        GaitEquation(
-            a_pitch=0.18530618208553112,
-            a_yaw=0.3242858186496794,
-            nu_pitch=0.8,
-            nu_yaw=0.8,
-            delta=-2.3790704502271156,
-            frequency=0.52,
-        ),
-        "sidewinding, pitch 0.19 rad / 0.80 rad/module, yaw 0.32 rad / 0.80 rad/module, offset -2.38 rad at 0.52 Hz; ends right of its start: the most robust of 45 such members over the default variation set",
-        (5.862, 0.7452, -93.06, 0.03778, -0.1556, 0.0335),
-        (2.973, 0.5072, "servo kp x0.5"),
-    ),
-    (
-        "robust-turn-clockwise",
-        GaitEquation(
-            a_pitch=0.06169135427801947,
-            a_yaw=0.4883898880343208,
-            nu_pitch=1.95,
-            nu_yaw=-0.66,
-            delta=-1.9,
-            frequency=0.29,
-        ),
-        "turning, pitch 0.06 rad / 1.95 rad/module, yaw 0.49 rad / -0.66 rad/module, offset -1.90 rad at 0.29 Hz; turns clockwise: the most robust of 12 such members over the default variation set",
-        (0.7861, 0.1013, 15.54, -0.008894, -10.01, 0.01442),
-        (4.516, 5.745, "5 deg slope uphill ahead"),
-    ),
-    (
-        "robust-turn-counter-clockwise",
-        GaitEquation(
-            a_pitch=0.09813025898602998,
-            a_yaw=0.7768645503060706,
-            nu_pitch=1.95,
-            nu_yaw=-0.66,
-            delta=1.2415926535897932,
-            frequency=0.29,
-        ),
-        "turning, pitch 0.10 rad / 1.95 rad/module, yaw 0.78 rad / -0.66 rad/module, offset 1.24 rad at 0.29 Hz; turns counter-clockwise: the most robust of 13 such members over the default variation set",
-        (0.8238, 0.06951, 164, 0.01034, 15.54, 0.02449),
-        (4.205, 5.105, "5 deg slope uphill left"),
-    ),
-    (
-        "robust-undulate-backward",
-        GaitEquation(a_yaw=0.7, nu_yaw=-0.7, delta=3.141592653589793, frequency=0.29),
-        "undulation, wave to the head (backward), 0.70 rad, 0.70 rad/module, mirrored at 0.29 Hz; ends behind its start: the most robust of 41 such members over the default variation set",
-        (11.43, 0.8674, 180, -0.0002625, 0.03733, 0.03154),
-        (8.267, 0.7233, "5 deg slope uphill ahead"),
-    ),
-    (
-        "robust-undulate-forward",
-        GaitEquation(a_yaw=0.5218364754109519, nu_yaw=0.7, frequency=0.52),
-        "undulation, wave to the tail (forward), 0.52 rad, 0.70 rad/module at 0.52 Hz; ends ahead of its start: the most robust of 22 such members over the default variation set",
-        (15.6, 0.8606, -0.03332, 0.00179, 0.0926, 0.08725),
-        (15.8, 1.013, "5 deg slope uphill ahead"),
-    ),
-)
+LIBRARY_FILE = Path(__file__).with_name("library.json")
+"""The library's gaits as data: name, gait equation, what it is for, measured figures (displacement m,
+straightness, heading deg, net roll and yaw rad, spread) and worst case over the default variation
+set (end error m, relative, which variation)."""
+
+
 BASE_GAITS = ("sidewind", "undulate", "roll", "turn")
 """The library's first four, one per kind, found by the grid search of docs/gaits.md (the runs that
 ``fit-robot`` advises and ``bench fit`` measures with)."""
 PRESETS: dict[str, GaitPreset] = {
-    name: GaitPreset(
-        gait=gait,
-        about=about,
-        measured=GaitFigures(**dict(zip(GaitFigures.model_fields, m, strict=True))),
-        worst=WorstCase(**dict(zip(WorstCase.model_fields, w, strict=True))),
-    )
-    for name, gait, about, m, w in _LIBRARY
+    entry.pop("name"): GaitPreset.model_validate(entry) for entry in json.loads(LIBRARY_FILE.read_text())
 }
 """The library: gait-equation gaits tuned on this robot, each with the figures it was measured to
 give (``measure_gait``: a 4-member ensemble, seed 0, MuJoCo 4.0.0) and its worst case over the
-default variation set (``sim.robustness``, MuJoCo 4.0.1). docs/gaits.md has the search that found
-them and how each was chosen."""
+default variation set (``sim.robustness``, MuJoCo 4.0.1): the four of ``BASE_GAITS``, then the most
+robust members found per kind and direction (``gait --search-robust``). docs/gaits.md has the
+searches that found them and how each was chosen."""
 
 
 def library_table() -> str:
