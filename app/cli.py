@@ -175,9 +175,11 @@ def run_gait(cmd: Gait) -> str:
     from snakeloco.sim.gaits import library_table
 
     if cmd.search_robust:
-        from snakeloco.model.robust_library import search_robust
+        from snakeloco.model.robust_library import search_robust, write_library
 
         found = search_robust(cmd.checkpoint, cmd.gaits, cmd.top, cmd.workers, print, cmd.draws)
+        if cmd.write_library:
+            print(f"wrote {', '.join(write_library(found)) or 'no gait'} into the library")
         if cmd.json:
             print(jsonlib.dumps(found))
         return jsonlib.dumps(found)

@@ -162,6 +162,8 @@ class Gait(Command):
     """With --search-robust: the physics head's draws of members to search (trained on, scored on)."""
     workers: Workers = None
     """With --search-robust: simulation threads of the confirming replays (default: all cores)."""
+    write_library: bool = False
+    """With --search-robust: write the gaits found that move less than the library's gait of their kind into the library (sim/library.json), replacing its robust-* gaits."""
     json: Json = False
 
 

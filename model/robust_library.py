@@ -166,3 +166,44 @@ def search_robust(
     finally:
         simulator.close()
     return {"candidates": len(found), "draws": list(draws), "library_ready": len(pool), "chosen": chosen}
+
+
+def write_library(found: dict, path: str | Path | None = None) -> list[str]:
+    """Put the chosen gaits that beat the library's gait of their kind (``search_robust``'s result)
+    into the library file (default ``sim.gaits.LIBRARY_FILE``), replacing the robust ones it held;
+    the names written."""
+    import json
+
+    from snakeloco.sim.gaits import LIBRARY_FILE, GaitPreset
+
+    path = Path(path) if path is not None else LIBRARY_FILE
+    kept = [e for e in json.loads(path.read_text()) if not e["name"].startswith("robust-")]
+    added = []
+    for name, c in found["chosen"].items():
+        if not c["beats_library"]:
+            continue
+        preset = GaitPreset(
+            gait=c["gait"],
+            about=f"{c['describe']}; {_where(c['sector'])}: the most robust of {c['candidates']} such "
+            "members over the default variation set",
+            measured=_figures(c["measured"]),
+            worst=_figures(c["worst"]),
+        )
+        kept.append({"name": name, **preset.model_dump()})
+        added.append(name)
+    path.write_text(json.dumps(kept, indent=1) + "\n")
+    return added
+
+
+def _figures(values: dict) -> dict:
+    """Measured figures to 4 significant digits, as the library keeps them (a replay on another CPU
+    differs by more)."""
+    return {k: float(f"{v:.4g}") if isinstance(v, float) else v for k, v in values.items()}
+
+
+def _where(sector: str) -> str:
+    if sector in ("clockwise", "counter-clockwise"):
+        return f"turns {sector}"
+    return {"forward": "ends ahead of its start", "backward": "ends behind its start"}.get(
+        sector, f"ends {sector} of its start"
+    )

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from pydantic import ValidationError
@@ -129,3 +131,36 @@ def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
     finally:
         client.close()
         srv.stop()
+
+
+def test_search_robust_writes_only_the_gaits_that_beat_the_library_into_it(tmp_path):
+    """``gait --search-robust --write-library``: the robust-* gaits are replaced by the found ones
+    that move less than the library's gait of their kind; the first four stay; figures to 4 digits."""
+    from snakeloco.model.robust_library import write_library
+    from snakeloco.sim.gaits import BASE_GAITS, LIBRARY_FILE, GaitPreset
+
+    library = tmp_path / "library.json"
+    library.write_text(LIBRARY_FILE.read_text())
+    roll = PRESETS["roll"]
+    chosen = {
+        name: {
+            "gait": roll.gait.model_dump(),
+            "describe": "rolling",
+            "sector": sector,
+            "candidates": 7,
+            "measured": roll.measured.model_dump() | {"displacement": 8.123456},
+            "worst": {"end_error_m": 1.0, "rel": rel, "variation": "servo kp x2"},
+            "beats_library": rel < roll.worst.rel,
+        }
+        for name, sector, rel in (("robust-roll-right", "right", 0.2), ("robust-roll-left", "left", 5.0))
+    }
+    assert write_library({"chosen": chosen}, library) == ["robust-roll-right"]
+    entries = json.loads(library.read_text())
+    names = [e["name"] for e in entries]
+    assert names[: len(BASE_GAITS)] == list(BASE_GAITS) and names[len(BASE_GAITS) :] == ["robust-roll-right"]
+    written = GaitPreset.model_validate({k: v for k, v in entries[-1].items() if k != "name"})
+    assert written.measured.displacement == 8.123 and written.worst.rel == 0.2
+    assert (
+        written.about
+        == "rolling; ends right of its start: the most robust of 7 such members over the default variation set"
+    )
