@@ -281,12 +281,12 @@ def robustness_by_kind(
     noise floor: gaits of ``shapes`` (n, J, L, 2) whose ensembles (n, K, 500, 6) ran already
     (member 0 the nominal replay, member 1 the first noisy copy: the floor) are replayed on every
     variation (``per_job`` gaits a backend job); ``sim.robustness.change_table`` of the ends."""
+    from snakeloco.model.physics_fit import NOISE as floor
     from snakeloco.model.physics_fit import simulate_rows
     from snakeloco.sim.robustness import change_table
     from snakeloco.sim.variations import DEFAULT_SET
 
     n, v = len(shapes), len(DEFAULT_SET)
-    floor = f"command noise {ENSEMBLE_NOISE:g}"
 
     def end(body: np.ndarray) -> np.ndarray:
         return body[..., -1, 1:3] - body[..., 0, 1:3]
