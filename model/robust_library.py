@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.sim.robustness import MIN_DISTANCE
+from snakeloco.sim.robustness import relative_change
 from snakeloco.sim.variations import DEFAULT_SET
 
 MIN_TRAVEL = 2.0
@@ -80,8 +80,7 @@ def candidates(
             home = ends.get("nominal")
             if home is None or any(n not in ends for n in names):
                 continue
-            base = max(float(np.hypot(*home)), MIN_DISTANCE)
-            rel = [np.inf if ends[n] is None else float(np.hypot(*(ends[n] - home))) / base for n in names]
+            rel = [np.inf if ends[n] is None else float(relative_change(ends[n], home)) for n in names]
             member = r["members"][i]
             nominal = mine[list(r["variation"][mine]).index("nominal")]
             net_yaw = float(r["body"][nominal, -1, 5] - r["body"][nominal, 0, 5])

@@ -25,6 +25,14 @@ MIN_DISTANCE = 0.5
 """Metres: below this nominal distance the relative error is taken against 0.5 m."""
 
 
+def relative_change(end, reference) -> np.ndarray:
+    """|end - reference| / max(|reference|, ``MIN_DISTANCE``) over the last axis (x, y): how far an end
+    point moved, relative to the distance the reference travelled (a gait that barely moves is
+    judged against half a metre)."""
+    end, reference = np.asarray(end, np.float64), np.asarray(reference, np.float64)
+    return np.linalg.norm(end - reference, axis=-1) / np.maximum(np.linalg.norm(reference, axis=-1), MIN_DISTANCE)
+
+
 def end_point(body: np.ndarray) -> dict[str, float]:
     """Where a body series (T, 6) ends: forward, sideways (m) and heading change (deg, left +)."""
     return {
@@ -72,7 +80,6 @@ def summarise(
     and failure (None: it ran cleanly), in the order of ``variations``."""
     home = end_point(nominal)
     home_xy = np.array([home["forward"], home["sideways"]])
-    base = max(float(np.hypot(*home_xy)), MIN_DISTANCE)
     rows = []
     for v, body, failure in zip(variations, bodies, failures, strict=True):
         row: dict = {"name": v.name, "params": v.params()}
@@ -80,8 +87,9 @@ def summarise(
             row.update(forward=None, sideways=None, heading_deg=None, end_error_m=None, rel=None)
         else:
             end = end_point(body)
-            err = float(np.hypot(end["forward"] - home_xy[0], end["sideways"] - home_xy[1]))
-            row.update(end, end_error_m=err, rel=err / base)
+            xy = np.array([end["forward"], end["sideways"]])
+            err = float(np.hypot(*(xy - home_xy)))
+            row.update(end, end_error_m=err, rel=float(relative_change(xy, home_xy)))
         row["failure"] = failure
         rows.append(row)
     scored = [r for r in rows if r["failure"] is None]
@@ -120,8 +128,7 @@ def prediction_errors(predicted: dict, replayed: dict) -> np.ndarray:
         if r["failure"] is not None or p["failure"] is not None:
             out.append(np.nan)
             continue
-        gap = np.hypot(p["forward"] - r["forward"], p["sideways"] - r["sideways"])
-        out.append(gap / max(float(np.hypot(r["forward"], r["sideways"])), MIN_DISTANCE))
+        out.append(relative_change([p["forward"], p["sideways"]], [r["forward"], r["sideways"]]))
     return np.array(out)
 
 
@@ -150,12 +157,7 @@ def change_table(kinds: Sequence[str], ends: dict[str, np.ndarray], floor: str |
     name of the noise replay) ``"times_floor"``: each median over the floor's median.
     """
     home = np.asarray(ends["nominal"], np.float64)
-    base = np.maximum(np.linalg.norm(home, axis=-1), MIN_DISTANCE)
-    rel = {
-        name: np.linalg.norm(np.asarray(e, np.float64) - home, axis=-1) / base
-        for name, e in ends.items()
-        if name != "nominal"
-    }
+    rel = {name: relative_change(e, home) for name, e in ends.items() if name != "nominal"}
     kinds = np.asarray(kinds)
     ran = np.isfinite(home).all(axis=-1)
     out = {}
