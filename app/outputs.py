@@ -7,33 +7,22 @@ import os
 import tempfile
 from pathlib import Path
 
-from snakeloco.app.commands import (
-    Calibrate,
-    Design,
-    Evaluate,
-    Export,
-    Figures,
-    FitRobot,
-    Gait,
-    Generate,
-    RobotMjcf,
-    Train,
-)
+from snakeloco.app import commands as c
 from snakeloco.app.options import Command, flag
 
 # What each command writes: "dir" (a directory it fills) or "file"; a "file" that already exists
 # where the option is also an input (--replays, --gaits: reused when present) is not written.
 OUTPUTS: dict[type, dict[str, str]] = {
-    Generate: {"out": "file"},
-    Design: {"out": "dir"},
-    Gait: {"out": "file"},
-    Train: {"out": "dir"},
-    Evaluate: {"report": "file", "replays": "file"},
-    Calibrate: {"out": "dir", "gaits": "file"},
-    Figures: {"out": "dir"},
-    RobotMjcf: {"out": "file"},
-    Export: {"out": "file"},
-    FitRobot: {"out": "file"},
+    c.Generate: {"out": "file"},
+    c.Design: {"out": "dir"},
+    c.Gait: {"out": "file"},
+    c.Train: {"out": "dir"},
+    c.Evaluate: {"report": "file", "replays": "file"},
+    c.Calibrate: {"out": "dir", "gaits": "file"},
+    c.Figures: {"out": "dir"},
+    c.RobotMjcf: {"out": "file"},
+    c.Export: {"out": "file"},
+    c.FitRobot: {"out": "file"},
 }
 REUSED_WHEN_PRESENT = {"replays", "gaits"}
 
@@ -70,9 +59,9 @@ def outputs_problem(cmd: Command) -> str | None:
         path = getattr(cmd, name)
         if path is None or (name in REUSED_WHEN_PRESENT and Path(path).is_file()):
             continue
-        if isinstance(cmd, Export) and cmd.format == "html":
+        if isinstance(cmd, c.Export) and cmd.format == "html":
             kind = "dir"  # the html export writes a folder
-        if isinstance(cmd, Calibrate) and cmd.physics_head and name == "gaits":
+        if isinstance(cmd, c.Calibrate) and cmd.physics_head and name == "gaits":
             kind = "dir"  # the physics head's replays are a folder of chunks
         problem = output_problem(path, kind)
         if problem is not None:
