@@ -212,4 +212,9 @@ def test_bench_fit_with_joint_angles_reports_every_field_and_the_held_out_gaits(
     for name, p in row["params"].items():
         assert p["error_rel"] == pytest.approx(p["fitted"] / row["truth"][name] - 1)
     assert set(row["held_out"]) == {"turn", "slow undulation"}
+    # The floor: robots 3% off the truth do not replay its ends (a zero would say they were not applied).
+    assert all(h["near_rel"] > 0 for h in row["held_out"].values())
+    assert result["held_out_near_rel_median"] == pytest.approx(
+        np.median([h["near_rel"] for h in row["held_out"].values()])
+    )
     assert result["determined"] == sum(p["determined"] for p in row["params"].values())

@@ -285,7 +285,7 @@ def fit(r: dict) -> None:
             for name, p in row["params"].items()
         )
         held = ", ".join(
-            f"{name} {100 * h['fitted_rel']:.1f}% (nominal {100 * h['nominal_rel']:.0f}%)"
+            f"{name} {100 * h['fitted_rel']:.1f}% (nominal {100 * h['nominal_rel']:.0f}%, +-3% of the truth {100 * h['near_rel']:.0f}%)"
             for name, h in row["held_out"].items()
         )
         print(f"{row['robot']}: {fields}; held out: {held}; {row['seconds']:.0f} s")
@@ -293,5 +293,5 @@ def fit(r: dict) -> None:
         ("runs with measured joint angles; " if r.get("joints") else "runs of the body's path alone; ")
         + f"determined fields within 15% of the truth: {r['determined_within_15pct']} of {r['determined']}; held-out end "
         f"error median {100 * r['held_out_fitted_rel_median']:.1f}% fitted vs {100 * r['held_out_nominal_rel_median']:.0f}% "
-        f"nominal; fit time median {r['seconds_median']:.0f} s ({r['workers']} threads)"
+        f"nominal, {100 * r['held_out_near_rel_median']:.1f}% with every field within 3% of the truth; fit time median {r['seconds_median']:.0f} s ({r['workers']} threads)"
     )
