@@ -30,7 +30,7 @@ from snakeloco.model.design_types import FORWARD as FORWARD  # re-exported: the 
 from snakeloco.model.design_types import ROLL as ROLL
 from snakeloco.model.design_types import SIDEWAYS as SIDEWAYS
 from snakeloco.model.design_types import YAW as YAW
-from snakeloco.model.design_types import Candidate, DesignResult, FanCost, objective, path_end
+from snakeloco.model.design_types import Candidate, DesignResult, FanCost, fan_cost, objective, path_end
 from snakeloco.model.replays import replay_shapes
 from snakeloco.sim.backend import BackendConfig, open_backend
 
@@ -85,9 +85,10 @@ def _evolve(
         fan_ends = fan.ends(z) if fan is not None else None
         for j, k in enumerate(live):
             part = slice(j * cfg.population, (j + 1) * cfg.population)
-            cost = objective(ends[part], targets[k], cfg) + prior[part]
+            miss = objective(ends[part], targets[k], cfg)
+            cost = miss + prior[part]
             if fan is not None:
-                cost = cost + fan.cost(fan_ends[part], targets[k])
+                cost = cost + fan_cost(fan, fan_ends[part], targets[k], miss, cfg)
             runs[k].tell(list(asked[k]), cost.tolist())
             seen[k].append((z[part], cost))
     return [
@@ -136,9 +137,10 @@ def search(
     predicted cost. ``cancelled`` is polled every generation (True: stop and return what there is);
     ``screened``: ``screen_ends`` already computed; ``fan``: a predicted variations fan's cost added."""
     screen, ends = screened if screened is not None else screen_ends(model, cfg)
-    cost = objective(ends, target, cfg) + prior_cost(model, screen, cfg)
+    miss = objective(ends, target, cfg)
+    cost = miss + prior_cost(model, screen, cfg)
     if fan is not None:
-        cost = cost + fan.cost(fan.ends(screen), target)
+        cost = cost + fan_cost(fan, fan.ends(screen), target, miss, cfg)
     starts: list[np.ndarray] = []
     for i in np.argsort(cost):  # the best draws that are not next to one already taken
         if all(np.linalg.norm(screen[i] - s) > cfg.sigma0 for s in starts):

@@ -5,7 +5,8 @@ each verified candidate is replayed on every variation of the default set (``sim
 batch of varied models per candidate, on the same backend) and the candidates are ranked again by
 their *worst-case* error: the largest distance from the target of the nominal replay's and every
 variation's end (a variation that breaks the simulation counts as missing by its nominal error plus
-the target's distance). Every reported candidate's worst case was replayed: none is ranked on a
+the target's distance), those that meet the target on the nominal robot first. Every reported
+candidate's worst case was replayed: none is ranked on a
 prediction. The report gives each candidate's nominal error, its worst and p90 errors over the set
 and which variation is worst.
 
@@ -124,11 +125,12 @@ def robust_design(
     predicted: bool = True,
 ) -> DesignResult:
     """Design for ``target`` (twice the candidates; searching with the physics head's predicted fan
-    over ``variations`` where the checkpoint has one and ``predicted``), then rank the verified
-    candidates by their ``score`` ("worst" or "p90") error over ``variations`` (every one
-    replayed). ``met``: the best one's nominal and worst-case errors both within the tolerance.
-    ``runner``: an open backend to replay on (the designer's turns; left open), else one opened
-    here; ``cancelled`` and ``on_verify`` as ``design``'s."""
+        over ``variations`` where the checkpoint has one and ``predicted``), then rank the verified
+        candidates by their ``score`` ("worst" or "p90") error over ``variations`` (every one
+        replayed), those whose nominal error is within the tolerance first. ``met``: the best one's
+    nominal and worst-case errors both within the tolerance.
+        ``runner``: an open backend to replay on (the designer's turns; left open), else one opened
+        here; ``cancelled`` and ``on_verify`` as ``design``'s."""
     cfg = cfg or DesignConfig()
     wide = cfg.model_copy(update={"candidates": min(2 * cfg.candidates, 32)})
     own = runner is None
@@ -147,7 +149,11 @@ def robust_design(
         if own:
             runner.close()
     key = "worst_m" if score == "worst" else "p90_m"
-    order = sorted(range(len(verified)), key=lambda i: scores[i][key])[: cfg.candidates]
+    # Those that reach the target on the nominal robot first: robustness is not bought with the
+    # nominal error.
+    order = sorted(
+        range(len(verified)), key=lambda i: (verified[i].error_m > result.tolerance_m, scores[i][key])
+    )[: cfg.candidates]
     ranked = [verified[i] for i in order]
     robust = [scores[i] for i in order]
     if fan is not None and ranked:  # what the search expected of each, beside what the replays said
