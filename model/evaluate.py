@@ -7,6 +7,7 @@ body path is scored beside the ensemble's spread (``sim.consistency``).
 
 from __future__ import annotations
 
+from contextlib import ExitStack, closing
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from snakeloco.model.metrics import median_interval, mmd_null_quantile, mmd_nump
 from snakeloco.model.options import PRIOR_SAMPLES as PRIOR_SAMPLES  # re-exported
 from snakeloco.model.options import ZK_MODES, ConsistencyConfig
 from snakeloco.model.replays import check_same_gaits, load_side_file, replay_shapes, save_side_file
+from snakeloco.model.robust_library import robustness_by_kind
 from snakeloco.model.stats import median_relative_errors
 from snakeloco.sim import BODY_CHANNELS, BODY_RATE, load_dataset
 from snakeloco.sim.backend import BackendConfig, open_backend
@@ -196,119 +198,82 @@ def consistency(
             arrays = {f"{name}/{k}": v for name, r in stored.items() for k, v in r.items()}
             save_side_file(replays, drawn, model.robot, **arrays)
     report = {}
-    for name, (_, bodies, stats) in decoded.items():
-        sim_bodies, sim_ok = stored[name]["bodies"], stored[name]["ok"]
-        rows, broken = [], 0
-        broken_in = np.zeros(len(names), np.int64)
-        for i in range(n_prior):
-            ok = sim_ok[i]
-            if not ok[0] or ok.sum() < 2:  # its own replay broke, or no spread is left
-                broken += 1
-                broken_in[component[i]] += 1
-                continue
-            # As the designer does: perturbed members that broke leave the ensemble (counted).
-            predicted = {k: float(v[i]) for k, v in stats.items()}
-            row = compare(bodies[i], sim_bodies[i][ok].astype(np.float64), BODY_RATE, predicted)
-            row["ensemble_broken"] = float((~ok).sum())
-            row["component"] = float(component[i])
-            row["off_data"] = float(off_data[i])
-            if kinds[name] is not None:
-                row["kind"] = float(KINDS.index(kinds[name][i]))
-            rows.append(row)
-        keys = [
-            k
-            for k in (rows[0] if rows else {})
-            if k not in ("heading_deg", "rolls", "component", "off_data", "kind")
-        ]
-        summary = {k: float(np.median([r[k] for r in rows])) for k in keys}
-        summary["diversity"] = diversity(rows)
-        for k in PREDICTABLE:  # how far another draw of gaits could move the medians that are judged
-            for part in ("err", "floor"):
-                if rows:
-                    summary[f"{k}_{part}_ci90"] = list(
-                        median_interval([r[f"{k}_{part}"] for r in rows], seed=seed)
-                    )
-        summary["final_inside_fraction"] = float(np.mean([r["final_inside"] for r in rows])) if rows else 0.0
-        summary["n_gaits"] = len(rows)
-        summary["n_broken"] = broken
-        summary["broken_replay_fraction"] = float((~sim_ok).sum()) / float(n_prior * ensemble)
-        summary["n_gaits_with_a_broken_member"] = int(broken + sum(r["ensemble_broken"] > 0 for r in rows))
-        summary["positions"] = positions
-        summary["off_data_fraction"] = float(off_data.mean())
-        summary["per_component"] = {
-            c_name: {
-                "n_gaits": len(mine),
-                "n_broken": int(broken_in[c]),
-                **{
-                    k: float(np.median([r[k] for r in mine])) if mine else float("nan")
-                    for k in ("xy_r2", "final_error_rel", "final_spread")
-                },
+    with ExitStack() as stack:  # one backend for every mode's variation replays
+        robust_runner = (
+            stack.enter_context(closing(open_backend(backend, workers, robot=model.robot)))
+            if robustness > 0
+            else None
+        )
+        for name, (_, bodies, stats) in decoded.items():
+            sim_bodies, sim_ok = stored[name]["bodies"], stored[name]["ok"]
+            rows, broken = [], 0
+            broken_in = np.zeros(len(names), np.int64)
+            for i in range(n_prior):
+                ok = sim_ok[i]
+                if not ok[0] or ok.sum() < 2:  # its own replay broke, or no spread is left
+                    broken += 1
+                    broken_in[component[i]] += 1
+                    continue
+                # As the designer does: perturbed members that broke leave the ensemble (counted).
+                predicted = {k: float(v[i]) for k, v in stats.items()}
+                row = compare(bodies[i], sim_bodies[i][ok].astype(np.float64), BODY_RATE, predicted)
+                row["ensemble_broken"] = float((~ok).sum())
+                row["component"] = float(component[i])
+                row["off_data"] = float(off_data[i])
+                if kinds[name] is not None:
+                    row["kind"] = float(KINDS.index(kinds[name][i]))
+                rows.append(row)
+            keys = [
+                k
+                for k in (rows[0] if rows else {})
+                if k not in ("heading_deg", "rolls", "component", "off_data", "kind")
+            ]
+            summary = {k: float(np.median([r[k] for r in rows])) for k in keys}
+            summary["diversity"] = diversity(rows)
+            for k in PREDICTABLE:  # how far another draw of gaits could move the medians that are judged
+                for part in ("err", "floor"):
+                    if rows:
+                        summary[f"{k}_{part}_ci90"] = list(
+                            median_interval([r[f"{k}_{part}"] for r in rows], seed=seed)
+                        )
+            summary["final_inside_fraction"] = (
+                float(np.mean([r["final_inside"] for r in rows])) if rows else 0.0
+            )
+            summary["n_gaits"] = len(rows)
+            summary["n_broken"] = broken
+            summary["broken_replay_fraction"] = float((~sim_ok).sum()) / float(n_prior * ensemble)
+            summary["n_gaits_with_a_broken_member"] = int(
+                broken + sum(r["ensemble_broken"] > 0 for r in rows)
+            )
+            summary["positions"] = positions
+            summary["off_data_fraction"] = float(off_data.mean())
+            summary["per_component"] = {
+                c_name: {
+                    "n_gaits": len(mine),
+                    "n_broken": int(broken_in[c]),
+                    **{
+                        k: float(np.median([r[k] for r in mine])) if mine else float("nan")
+                        for k in ("xy_r2", "final_error_rel", "final_spread")
+                    },
+                }
+                for c, c_name in enumerate(names)
+                for mine in [[r for r in rows if r["component"] == c]]
             }
-            for c, c_name in enumerate(names)
-            for mine in [[r for r in rows if r["component"] == c]]
-        }
-        if kinds[name] is not None:
-            summary["per_kind"] = _per_kind(rows, kinds[name])
-        if robustness > 0:
-            n = min(robustness, n_prior)
-            runner = open_backend(backend, workers, robot=model.robot)
-            try:
+            if kinds[name] is not None:
+                summary["per_kind"] = _per_kind(rows, kinds[name])
+            if robust_runner is not None:
+                n = min(robustness, n_prior)
                 summary["robustness"] = robustness_by_kind(
                     model,
                     decoded[name][0][:n],
                     kinds[name][:n] if kinds[name] is not None else ["gait"] * n,
                     sim_bodies[:n],
                     sim_ok[:n],
-                    runner,
+                    robust_runner,
                 )
-            finally:
-                runner.close()
-        summary["gaits"] = rows
-        report[name] = summary
+            summary["gaits"] = rows
+            report[name] = summary
     return report
-
-
-def robustness_by_kind(
-    model: GaitModel,
-    shapes: np.ndarray,
-    kinds: list[str],
-    ensembles: np.ndarray,
-    ok: np.ndarray,
-    runner,
-    per_job: int = 8,
-) -> dict:
-    """How far the default variation set moves generated gaits' end points, per kind, against the
-    noise floor: gaits of ``shapes`` (n, J, L, 2) whose ensembles (n, K, 500, 6) ran already
-    (member 0 the nominal replay, member 1 the first noisy copy: the floor) are replayed on every
-    variation (``per_job`` gaits a backend job); ``sim.robustness.change_table`` of the ends."""
-    from snakeloco.model.physics_fit import NOISE as floor
-    from snakeloco.model.physics_fit import simulate_rows
-    from snakeloco.sim.robustness import change_table
-    from snakeloco.sim.variations import DEFAULT_SET
-
-    n, v = len(shapes), len(DEFAULT_SET)
-
-    def end(body: np.ndarray) -> np.ndarray:
-        return body[..., -1, 1:3] - body[..., 0, 1:3]
-
-    ends = {"nominal": np.where(ok[:, :1], end(ensembles[:, 0]), np.nan)}
-    if ensembles.shape[1] > 1:
-        ends[floor] = np.where(ok[:, 1:2], end(ensembles[:, 1]), np.nan)
-    varied = np.full((n, v, 2), np.nan)
-    starts = list(range(0, n, per_job))
-    jobs = (
-        (
-            np.repeat(model.commands(shapes[s : s + per_job]), v, axis=0),
-            list(DEFAULT_SET) * len(shapes[s : s + per_job]),
-        )
-        for s in starts
-    )
-    for b, (body, failures) in runner.map(simulate_rows, jobs):
-        rows = slice(starts[b], starts[b] + len(failures) // v)
-        ran = np.array([f is None for f in failures]).reshape(-1, v)
-        varied[rows] = np.where(ran[..., None], end(body.astype(np.float64)).reshape(-1, v, 2), np.nan)
-    ends |= {var.name: varied[:, k] for k, var in enumerate(DEFAULT_SET)}
-    return change_table(kinds, ends, floor=floor if floor in ends else None)
 
 
 def _per_kind(rows: list[dict], kinds: list[str]) -> dict:

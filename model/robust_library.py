@@ -11,16 +11,23 @@ confirmed as the library measures its gaits: ``sim.gaits.measure_gait`` (a 4-mem
 ``sim.robustness.robustness`` at 20 Hz; the first whose ensemble spread is at most ``MAX_SPREAD``
 and whose confirmed worst case is the smallest is the sector's gait; the library (``sim.gaits``)
 takes it where that worst case is below the library's first gait of its kind (``beats_library``).
+
+``robustness_by_kind`` is the same question for gaits the model generates (``evaluate
+--robustness``): how far the default set moves their ends, per kind, against the noise floor.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from snakeloco.sim.robustness import relative_change
 from snakeloco.sim.variations import DEFAULT_SET
+
+if TYPE_CHECKING:
+    from snakeloco.model.api import GaitModel
 
 MIN_TRAVEL = 2.0
 """Metres a candidate must travel in 100 s to stand for its direction (turning gaits excepted)."""
@@ -206,3 +213,46 @@ def _where(sector: str) -> str:
     return {"forward": "ends ahead of its start", "backward": "ends behind its start"}.get(
         sector, f"ends {sector} of its start"
     )
+
+
+def robustness_by_kind(
+    model: GaitModel,
+    shapes: np.ndarray,
+    kinds: list[str],
+    ensembles: np.ndarray,
+    ok: np.ndarray,
+    runner,
+    per_job: int = 8,
+) -> dict:
+    """How far the default variation set moves generated gaits' end points, per kind, against the
+    noise floor: gaits of ``shapes`` (n, J, L, 2) whose ensembles (n, K, 500, 6) ran already
+    (member 0 the nominal replay, member 1 the first noisy copy: the floor) are replayed on every
+    variation (``per_job`` gaits a backend job); ``sim.robustness.change_table`` of the ends."""
+    from snakeloco.model.physics_fit import NOISE as floor
+    from snakeloco.model.physics_fit import simulate_rows
+    from snakeloco.sim.robustness import change_table
+    from snakeloco.sim.variations import DEFAULT_SET
+
+    n, v = len(shapes), len(DEFAULT_SET)
+
+    def end(body: np.ndarray) -> np.ndarray:
+        return body[..., -1, 1:3] - body[..., 0, 1:3]
+
+    ends = {"nominal": np.where(ok[:, :1], end(ensembles[:, 0]), np.nan)}
+    if ensembles.shape[1] > 1:
+        ends[floor] = np.where(ok[:, 1:2], end(ensembles[:, 1]), np.nan)
+    varied = np.full((n, v, 2), np.nan)
+    starts = list(range(0, n, per_job))
+    jobs = (
+        (
+            np.repeat(model.commands(shapes[s : s + per_job]), v, axis=0),
+            list(DEFAULT_SET) * len(shapes[s : s + per_job]),
+        )
+        for s in starts
+    )
+    for b, (body, failures) in runner.map(simulate_rows, jobs):
+        rows = slice(starts[b], starts[b] + len(failures) // v)
+        ran = np.array([f is None for f in failures]).reshape(-1, v)
+        varied[rows] = np.where(ran[..., None], end(body.astype(np.float64)).reshape(-1, v, 2), np.nan)
+    ends |= {var.name: varied[:, k] for k, var in enumerate(DEFAULT_SET)}
+    return change_table(kinds, ends, floor=floor if floor in ends else None)
