@@ -140,6 +140,17 @@ def test_a_checkpoint_stores_its_robot_and_says_when_replayed_on_another(twelve_
 
 
 @pytest.mark.slow
+def test_bench_design_replays_on_the_checkpoints_robot(twelve_checkpoint, capsys):
+    """``bench design`` on a 12-joint checkpoint: its replays run on that robot (they ran on the
+    default 8-joint one, and the first verification failed on the command shape)."""
+    path, _ = twelve_checkpoint
+    args = ["bench", "design", "--checkpoint", str(path), "--targets", "1", "--reach", "0.3", "0.5"]
+    main([*args, "--candidates", "1", "--rounds", "1", "--workers", "2", "--json"])
+    r = json.loads(capsys.readouterr().out.splitlines()[-1])
+    assert r["targets"] == 1 and r["design"]["error_rel_median"] >= 0 and r["checkpoint"] == str(path)
+
+
+@pytest.mark.slow
 def test_the_designer_switches_to_a_family_of_another_robot(member_checkpoint, twelve_checkpoint):
     from snakeloco.app.server import DesignerServer
 

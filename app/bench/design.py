@@ -108,7 +108,7 @@ def bench_design(
         candidates=candidates, seed=seed, rounds=rounds, reach_check=False
     )  # the search itself
     goals = _targets(data, targets, seed) if reach is None else _uniform_targets(targets, reach, seed)
-    runner = open_backend(None, workers)
+    runner = open_backend(None, workers, robot=model.robot)  # the checkpoint's robot, not the default
     designed, first, baseline, baseline_first = [], [], [], []
     seconds, search_s, physics_s, budgets = [], [], [], []
     try:
