@@ -30,7 +30,9 @@ def relative_change(end, reference) -> np.ndarray:
     point moved, relative to the distance the reference travelled (a gait that barely moves is
     judged against half a metre)."""
     end, reference = np.asarray(end, np.float64), np.asarray(reference, np.float64)
-    return np.linalg.norm(end - reference, axis=-1) / np.maximum(np.linalg.norm(reference, axis=-1), MIN_DISTANCE)
+    return np.linalg.norm(end - reference, axis=-1) / np.maximum(
+        np.linalg.norm(reference, axis=-1), MIN_DISTANCE
+    )
 
 
 def end_point(body: np.ndarray) -> dict[str, float]:
