@@ -6,9 +6,8 @@ batch of varied models per candidate, on the same backend) and the candidates ar
 their *worst-case* error: the largest distance from the target of the nominal replay's and every
 variation's end (a variation that breaks the simulation counts as missing by its nominal error plus
 the target's distance), those that meet the target on the nominal robot first. Every reported
-candidate's worst case was replayed: none is ranked on a
-prediction. The report gives each candidate's nominal error, its worst and p90 errors over the set
-and which variation is worst.
+candidate's worst case was replayed: none is ranked on a prediction. The report gives each
+candidate's nominal error, its worst and p90 errors over the set and which variation is worst.
 
 With a checkpoint that has a physics head (``model.physics_head``), the search itself minimises
 the predicted worst (or p90) miss over the variations beside the nominal one (``PredictedFan``:
@@ -125,12 +124,12 @@ def robust_design(
     predicted: bool = True,
 ) -> DesignResult:
     """Design for ``target`` (twice the candidates; searching with the physics head's predicted fan
-        over ``variations`` where the checkpoint has one and ``predicted``), then rank the verified
-        candidates by their ``score`` ("worst" or "p90") error over ``variations`` (every one
-        replayed), those whose nominal error is within the tolerance first. ``met``: the best one's
-    nominal and worst-case errors both within the tolerance.
-        ``runner``: an open backend to replay on (the designer's turns; left open), else one opened
-        here; ``cancelled`` and ``on_verify`` as ``design``'s."""
+    over ``variations`` where the checkpoint has one and ``predicted``), then rank the verified
+    candidates by their ``score`` ("worst" or "p90") error over ``variations`` (every one
+    replayed), those whose nominal error is within the tolerance first. ``met``: the best one's
+    nominal and worst-case errors both within the tolerance. ``runner``: an open backend to replay
+    on (the designer's turns; left open), else one opened here; ``cancelled`` and ``on_verify`` as
+    ``design``'s."""
     cfg = cfg or DesignConfig()
     wide = cfg.model_copy(update={"candidates": min(2 * cfg.candidates, 32)})
     own = runner is None

@@ -231,7 +231,6 @@ def robustness_by_kind(
     from snakeloco.model.physics_fit import NOISE as floor
     from snakeloco.model.physics_fit import simulate_rows
     from snakeloco.sim.robustness import change_table
-    from snakeloco.sim.variations import DEFAULT_SET
 
     n, v = len(shapes), len(DEFAULT_SET)
 
