@@ -11,7 +11,7 @@ import pytest
 from snakeloco.app.cli import main
 from snakeloco.app.gait_csv import library_gait_csv
 from snakeloco.sim.fit import FitConfig, fit_robot
-from snakeloco.sim.gaits import PRESETS
+from snakeloco.sim.gaits import BASE_GAITS, PRESETS
 from snakeloco.sim.measured import MeasuredRunError, read_measured_run, write_measured_run
 from snakeloco.sim.physics import Simulator
 from snakeloco.sim.robot import DEFAULT_ROBOT, Robot, load_robot
@@ -205,16 +205,49 @@ def test_bench_fit_with_joint_angles_reports_every_field_and_the_held_out_gaits(
     out = capsys.readouterr().out.splitlines()
     result = json.loads(out[-1])
     assert result["joints"] is True and any(
-        line.startswith("runs with measured joint angles") for line in out
+        line.startswith("fitted runs turn, sidewind, undulate, with measured joint angles") for line in out
     )
     (row,) = result["robots"]
     assert set(row["params"]) == {"friction_along", "friction_across", "servo_kp"}
     for name, p in row["params"].items():
         assert p["error_rel"] == pytest.approx(p["fitted"] / row["truth"][name] - 1)
-    assert set(row["held_out"]) == {"turn", "slow undulation"}
+    # Every library gait the fit did not see is held out, and a slow undulation.
+    assert set(row["held_out"]) == (set(PRESETS) - {"turn", "sidewind", "undulate"}) | {"slow undulation"}
+    assert set(result["held_out_per_gait"]) == set(row["held_out"])
     # The floor: robots 3% off the truth do not replay its ends (a zero would say they were not applied).
     assert all(h["near_rel"] > 0 for h in row["held_out"].values())
     assert result["held_out_near_rel_median"] == pytest.approx(
         np.median([h["near_rel"] for h in row["held_out"].values()])
     )
     assert result["determined"] == sum(p["determined"] for p in row["params"].values())
+
+
+@pytest.mark.slow
+def test_bench_fit_single_runs_table_every_gait_on_every_robot(capsys):
+    """``bench fit --single``: each library gait's run fitted alone, a row per robot, with joint
+    angles measured when asked (what one run determines, docs/calibration.md)."""
+    main(
+        [
+            "bench",
+            "fit",
+            "--single",
+            "--robots",
+            "2",
+            "--generations",
+            "1",
+            "--joints",
+            "--workers",
+            "2",
+            "--json",
+        ]
+    )
+    out = capsys.readouterr().out.splitlines()
+    result = json.loads(out[-1])
+    assert result["joints"] is True and len(result["truths"]) == 2
+    assert set(result["single_runs"]) == set(BASE_GAITS)
+    for gait, rows in result["single_runs"].items():
+        assert len(rows) == 2
+        assert any(line.startswith(f"{gait} alone, per robot: friction_along") for line in out)
+        for row, truth in zip(rows, result["truths"], strict=True):
+            assert set(row) == set(truth) == {"friction_along", "friction_across", "servo_kp"}
+            assert all(p["rel_uncertainty"] > 0 for p in row.values())

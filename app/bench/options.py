@@ -181,9 +181,11 @@ class BenchFit(Command):
     workers: Workers = None
     """Simulation threads (default: all cores)."""
     single: bool = False
-    """Instead: what one run determines (each library gait's run fitted alone, on the first robot)."""
+    """Instead: what one run determines (each library gait's run fitted alone, on each of --robots robots)."""
     joints: bool = False
     """The synthetic runs measure the servos' joint angles too (0.5 deg noise), as a robot whose servos report their positions."""
+    gaits: tuple[str, ...] = ("turn", "sidewind", "undulate")
+    """Library gaits whose runs are fitted (``sim.bench_fit.FIT_GAITS``); every other library gait and a slow undulation are held out."""
     json: Json = False
 
 

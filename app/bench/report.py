@@ -272,25 +272,35 @@ def screen(r: dict) -> None:
 def fit(r: dict) -> None:
     """Robots of known physics fitted from synthetic runs (``sim/bench_fit.py``)."""
     if "single_runs" in r:
-        for gait, fields in r["single_runs"].items():
-            said = ", ".join(
-                f"{p} {100 * v['error_rel']:+.0f}% ({'determined' if v['determined'] else 'not'})"
-                for p, v in fields.items()
+        for gait, rows in r["single_runs"].items():
+            said = "; ".join(
+                f"{p} "
+                + ", ".join(
+                    f"{100 * row[p]['error_rel']:+.0f}%{' (det.)' if row[p]['determined'] else ''}"
+                    for row in rows
+                )
+                for p in rows[0]
             )
-            print(f"{gait} alone: {said}")
+            print(f"{gait} alone, per robot: {said}")
         return
     for row in r["robots"]:
         fields = ", ".join(
             f"{name} {100 * p['error_rel']:+.0f}% ({'determined' if p['determined'] else 'not determined'})"
             for name, p in row["params"].items()
         )
-        held = ", ".join(
-            f"{name} {100 * h['fitted_rel']:.1f}% (nominal {100 * h['nominal_rel']:.0f}%, +-3% of the truth {100 * h['near_rel']:.0f}%)"
-            for name, h in row["held_out"].items()
+        held = np.median([[h["fitted_rel"], h["nominal_rel"]] for h in row["held_out"].values()], axis=0)
+        print(
+            f"{row['robot']}: {fields}; {len(row['held_out'])} held-out gaits' end error median "
+            f"{100 * held[0]:.1f}% (nominal {100 * held[1]:.0f}%); {row['seconds']:.0f} s"
         )
-        print(f"{row['robot']}: {fields}; held out: {held}; {row['seconds']:.0f} s")
+    for name, h in r["held_out_per_gait"].items():
+        print(
+            f"  held out {name}: {100 * h['fitted_rel']:.1f}% fitted, {100 * h['nominal_rel']:.0f}% nominal, "
+            f"{100 * h['near_rel']:.1f}% with every field within 3% of the truth (medians over the robots)"
+        )
     print(
-        ("runs with measured joint angles; " if r.get("joints") else "runs of the body's path alone; ")
+        f"fitted runs {', '.join(r['fit_gaits'])}, "
+        + ("with measured joint angles; " if r.get("joints") else "the body's path alone; ")
         + f"determined fields within 15% of the truth: {r['determined_within_15pct']} of {r['determined']}; held-out end "
         f"error median {100 * r['held_out_fitted_rel_median']:.1f}% fitted vs {100 * r['held_out_nominal_rel_median']:.0f}% "
         f"nominal, {100 * r['held_out_near_rel_median']:.1f}% with every field within 3% of the truth; fit time median {r['seconds_median']:.0f} s ({r['workers']} threads)"
