@@ -247,7 +247,7 @@ class FitRobot(Command):
     """Fit the robot's physics (friction, servo gains, ...) to measured runs of gaits on the real robot, so that replays match where it went; writes the fitted robot description (YAML) and a plot."""
 
     measured: tuple[Path, ...]
-    """Measured runs, one CSV each: time_s,x,y,yaw[,joint_1..] (docs/calibration.md)."""
+    """Measured runs, one CSV each: time_s,x,y,yaw[,joint_1..] (docs/calibration.md). Runs of the library's turn, sidewind and undulate gaits determine friction and servo kp best, the turn above all."""
     gait: tuple[Path, ...] = ()
     """The gait CSV each run ran, in the same order (default: the '# gait:' line of each run, beside it)."""
     out: Path
