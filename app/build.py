@@ -323,11 +323,16 @@ class Build:
                 progress,
                 self.out / "replays.npz",
                 backend=self.backend,
+                floor_records=FLOOR_RECORDS,
             )
         (self.out / "evaluation.json").write_text(json.dumps(report, indent=1))
         return {"figures": build_figures(report)}
 
 
+FLOOR_RECORDS = 96
+"""Held-out records replayed with command noise (``model.evaluate.physics_floor``): which body channels
+physics itself repeats, the ones a body R^2 can judge a model by (a planar snake's vertical, roll
+and pitch are contact jitter)."""
 SAMPLER_SEED = 1000
 """Seed of the sampler's slider positions (``SamplerConfig.seed``'s default)."""
 RECIPE = {
@@ -370,6 +375,10 @@ def build_figures(report: dict) -> dict:
         "body_r2_reconstruction": report.get(
             "r2_body_raw", report.get("r2_body")
         ),  # the VAE's encode -> decode
+        # over the channels physics repeats (``model.evaluate.repeated_channels``), where measured
+        "body_channels_repeated": report.get("body_channels_repeated"),
+        "body_r2_repeated": report.get("r2_body_repeated"),
+        "body_r2_reconstruction_repeated": report.get("r2_body_raw_repeated"),
         "positions": c.get("n_gaits"),
         "broken": c.get("n_broken"),
         "xy_r2_median": c.get("xy_r2"),

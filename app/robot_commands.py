@@ -148,8 +148,9 @@ def run_build(cmd: Build) -> dict:
     print(
         f"{robot.name}: held-out joint shape R² {f['shape_r2']:.3f}, body R² "
         f"{f.get('body_r2_reconstruction', f['body_r2']):.3f} (reconstruction; a member's path from its gait "
-        f"alone {f['body_r2']:.3f}); "
-        f"{f['positions']} sampler positions replayed: xy-path R² median {f['xy_r2_median']:.3f}, "
+        f"alone {f['body_r2']:.3f})"
+        + repeated_line(f)
+        + f"; {f['positions']} sampler positions replayed: xy-path R² median {f['xy_r2_median']:.3f}, "
         f"final-position error median {100 * f['final_error_median']:.1f}% of the distance; end points "
         + ", ".join(f"{k} {v}" for k, v in f["sectors"].items())
     )
@@ -163,3 +164,15 @@ def run_build(cmd: Build) -> dict:
         f"serve it: snakeloco serve --checkpoint {build.out}"
     )  # a build folder is its model (resolve_checkpoint)
     return state
+
+
+def repeated_line(f: dict) -> str:
+    """Where some body channels are not repeated by physics itself (a planar snake's vertical, roll
+    and pitch): the body R² over those that are, named."""
+    keep = f.get("body_channels_repeated")
+    if not keep or len(keep) == 6 or f.get("body_r2_reconstruction_repeated") is None:
+        return ""
+    return (
+        f", over the channels physics repeats ({', '.join(keep)}) {f['body_r2_reconstruction_repeated']:.3f} "
+        f"(from the gait alone {f['body_r2_repeated']:.3f})"
+    )

@@ -323,6 +323,27 @@ def physics_floor(commands: np.ndarray, body_ds: np.ndarray, runner, seed: int =
     }
 
 
+REPEATED = 0.5
+"""A body channel physics repeats: its replays under the ensemble's 0.1% command noise reach an R^2
+of at least this against the record (``physics_floor``). A planar snake's vertical, roll and pitch
+channels are contact jitter (std 0.06 mm, 0.002 and 0.0005 rad) that no replay repeats: no model can
+learn them, and averaged in they say nothing of the model."""
+
+
+def repeated_channels(report: dict) -> dict:
+    """Body R^2 over the channels physics repeats (``REPEATED``), from a report with ``physics_floor``'s
+    figures: the mean of their standardised R^2, which is ``r2_overall`` over them. ``r2_body_raw``:
+    the VAE's reconstruction; ``r2_body``: a member's path from its gait alone."""
+    floor = report["r2_body_floor_per_channel"]
+    keep = [c for c in BODY_CHANNELS if floor[c] >= REPEATED]
+    out: dict = {"body_channels_repeated": keep}
+    for key in ("r2_body", "r2_body_raw"):
+        per = report.get(f"{key}_per_channel")
+        if per is not None and keep:
+            out[f"{key}_repeated"] = float(np.mean([per[c] for c in keep]))
+    return out
+
+
 def evaluate(
     checkpoint: str | Path | None,
     data: str | Path,
@@ -358,6 +379,7 @@ def evaluate(
             out.update(physics_floor(ds.commands[:n].astype(np.float64), body_ds[:n], runner, cfg.seed))
         finally:
             runner.close()
+        out.update(repeated_channels(out))
     if cfg.prior_samples > 0:
         out["consistency"] = consistency(model, cfg, workers, progress, replays, backend, robustness)
     return out

@@ -11,6 +11,7 @@ import pytest
 from snakeloco.app.build import QUICK, Build, BuildError, build_figures, sector
 from snakeloco.app.cli import main
 from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
+from snakeloco.app.robot_commands import repeated_line
 from snakeloco.sim import GenerateConfig, load_dataset
 from snakeloco.sim.gaits import PRESETS, layout
 from snakeloco.sim.generate import generate_dataset
@@ -215,6 +216,12 @@ def test_build_figures_and_sectors():
     }
     f = build_figures(report)
     assert f["sectors"] == {"forward": 1, "left": 0, "backward": 0, "right": 1} and f["shape_r2"] == 0.99
+    assert f["body_channels_repeated"] is None and repeated_line(f) == ""  # no floor measured
+    report |= {"body_channels_repeated": ["forward", "sideways", "yaw"], "r2_body_repeated": 0.98}
+    f = build_figures(report | {"r2_body_raw_repeated": 0.99})
+    assert f["body_r2_repeated"] == 0.98 and repeated_line(f) == (
+        ", over the channels physics repeats (forward, sideways, yaw) 0.990 (from the gait alone 0.980)"
+    )
 
 
 FIVE = DEFAULT_ROBOT.model_copy(update={"name": "five", "n_joints": 5})

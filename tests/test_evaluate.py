@@ -10,7 +10,8 @@ import torch
 
 from snakeloco.app.cli import main
 from snakeloco.app.evaluate_report import format_report
-from snakeloco.model.evaluate import ConsistencyConfig, evaluate, physics_floor
+from snakeloco.model.evaluate import ConsistencyConfig, evaluate, physics_floor, repeated_channels
+from snakeloco.model.metrics import r2_overall, r2_per_channel
 from snakeloco.sim.backend import open_backend
 from snakeloco.sim.consistency import (
     compare,
@@ -352,3 +353,22 @@ def test_evaluate_reports_how_far_each_variation_moves_the_sampler_gaits(member_
 
 
 _EMPTY_MODE = {"n_gaits": 0, "n_broken": 0, "final_inside_fraction": 0.0}
+
+
+def test_body_r2_over_the_channels_physics_repeats():
+    """A channel whose noisy replays do not repeat the record (a planar snake's roll: contact jitter)
+    is left out of the repeated-channel body R², which is the mean of the others' standardised R²
+    (``r2_overall`` over them)."""
+    rng = np.random.default_rng(0)
+    target = rng.normal(size=(40, 50, 6))
+    pred = target + 0.1 * rng.normal(size=target.shape)
+    pred[..., 3] = rng.normal(size=pred.shape[:2])  # roll: nothing of the record in it
+    channels = ("vertical", "forward", "sideways", "roll", "pitch", "yaw")
+    per = dict(zip(channels, r2_per_channel(target, pred).tolist(), strict=True))
+    floor = dict.fromkeys(channels, 0.9) | {"roll": 0.01, "pitch": 0.49}
+    report = {"r2_body_floor_per_channel": floor, "r2_body_raw_per_channel": per, "r2_body_per_channel": per}
+    out = repeated_channels(report)
+    assert out["body_channels_repeated"] == ["vertical", "forward", "sideways", "yaw"]
+    keep = [0, 1, 2, 5]
+    assert out["r2_body_raw_repeated"] == pytest.approx(r2_overall(target[..., keep], pred[..., keep]))
+    assert out["r2_body_repeated"] > 0.95 > r2_overall(target, pred)
