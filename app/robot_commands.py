@@ -11,6 +11,7 @@ import numpy as np
 
 from snakeloco.app.commands import Build, Export, FitRobot, RobotMjcf, RobotShow, Robustness
 from snakeloco.app.options import OptionError
+from snakeloco.sim.body import BODY_CHANNELS
 
 
 def _robot(path: Path | None):
@@ -170,7 +171,7 @@ def repeated_line(f: dict) -> str:
     """Where some body channels are not repeated by physics itself (a planar snake's vertical, roll
     and pitch): the body R² over those that are, named."""
     keep = f.get("body_channels_repeated")
-    if not keep or len(keep) == 6 or f.get("body_r2_reconstruction_repeated") is None:
+    if not keep or len(keep) == len(BODY_CHANNELS) or f.get("body_r2_reconstruction_repeated") is None:
         return ""
     return (
         f", over the channels physics repeats ({', '.join(keep)}) {f['body_r2_reconstruction_repeated']:.3f} "
