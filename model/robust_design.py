@@ -25,7 +25,6 @@ import numpy as np
 from snakeloco.model.design import Candidate, DesignResult, design
 from snakeloco.model.design_config import DesignConfig, Target
 from snakeloco.sim.backend import open_backend
-from snakeloco.sim.dataset import BODY_DOWNSAMPLE
 from snakeloco.sim.variations import DEFAULT_SET, Variation
 
 PREDICT_ROWS = 2048
@@ -68,12 +67,14 @@ class PredictedFan:
 
 
 def simulate_variations(simulator, job: tuple) -> tuple[np.ndarray, list[str | None]]:
-    """A backend job: one gait's commands (T, J) on each variation of the simulator's robot; the body
-    series at the model's rate (V, 500, 6) and each replay's break reason."""
+    """A backend job: one gait's commands (T, J) on each variation of the simulator's robot; where
+    each replay ends, (V, 2) forward and sideways m at the record's last sample (the end
+    ``sim.robustness`` reports, so ``snakeloco robustness`` on the written gait gives the same
+    numbers), and each replay's break reason."""
     commands, variations = job
     robots = [v.apply(simulator.robot) for v in variations]
     result = simulator.simulate(np.repeat(commands[None], len(robots), axis=0), robots=robots)
-    return result.body[:, ::BODY_DOWNSAMPLE].astype(np.float32), result.failures
+    return result.body[:, -1, 1:3] - result.body[:, 0, 1:3], result.failures
 
 
 def worst_case(
@@ -85,13 +86,12 @@ def worst_case(
     base = float(np.hypot(target.forward, target.sideways))
     out = []
     for i, c in enumerate(candidates):
-        bodies, failures = results[i]
+        ends, failures = results[i]
         errors, names = [c.error_m], ["nominal"]
-        for v, body, failure in zip(variations, bodies, failures, strict=True):
+        for v, end, failure in zip(variations, ends, failures, strict=True):
             if failure is not None:
                 errors.append(c.error_m + base)
             else:
-                end = body[-1, 1:3] - body[0, 1:3]
                 errors.append(float(np.hypot(end[0] - target.forward, end[1] - target.sideways)))
             names.append(v.name)
         errors = np.array(errors)
