@@ -84,6 +84,15 @@ def test_a_run_shorter_than_a_cycle_or_of_another_gait_is_refused():
         fit_robot([(PRESETS["roll"].gait.commands()[:, :6], run)], DEFAULT_ROBOT, QUICK)
 
 
+def test_bench_fit_fits_by_default_the_runs_the_library_names():
+    """The command line's default (``app.bench.options``, which imports no MuJoCo) is the library's
+    fit set, and every gait in it is a library gait."""
+    from snakeloco.app.bench.options import BenchFit
+    from snakeloco.sim.bench_fit import FIT_GAITS
+
+    assert BenchFit().gaits == FIT_GAITS and set(FIT_GAITS) <= set(PRESETS)
+
+
 @pytest.mark.slow
 def test_a_perturbed_robot_is_recovered_and_noise_alone_stays_within_the_uncertainty():
     truth = Robot(friction_across=0.6 * 1.25, servo_kp=30 * 0.75)

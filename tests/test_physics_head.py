@@ -177,8 +177,10 @@ def test_a_robust_search_pays_for_a_nominal_miss_beyond_most_of_the_tolerance():
 @pytest.mark.slow
 def test_robust_design_searches_with_the_predicted_fan_and_reports_it_beside_the_replays(physics_checkpoint):
     from snakeloco.model.api import load_pretrained
+    from snakeloco.model.design import design
     from snakeloco.model.design_config import DesignConfig, Target
-    from snakeloco.model.robust_design import PredictedFan, robust_design
+    from snakeloco.model.robust_design import PredictedFan, robust_design, worst_case
+    from snakeloco.sim.backend import open_backend
 
     model = load_pretrained(physics_checkpoint[0])
     fan = PredictedFan(model, [v.apply(model.robot) for v in DEFAULT_SET])
@@ -196,6 +198,17 @@ def test_robust_design_searches_with_the_predicted_fan_and_reports_it_beside_the
     assert result.extra["searched_with"] == "predicted variations fan"
     for r in result.extra["robust"]:
         assert r["replayed"] == len(DEFAULT_SET) and r["predicted_worst_m"] >= 0
+    # The nominal design's answer competed: the robust answer ranks no worse than it by the same key
+    # (meets the target on the nominal robot first, then the replayed worst case).
+    runner = open_backend(None, 2, robot=model.robot)
+    try:
+        plain = design(model, target, cfg, runner=runner).candidates[0]
+        plain_worst = worst_case([plain], model, target, runner)[0]["worst_m"]
+    finally:
+        runner.close()
+    tol, top = result.tolerance_m, result.candidates[0]
+    key = (top.error_m > tol, result.extra["robust"][0]["worst_m"])
+    assert key <= (plain.error_m > tol, plain_worst + 1e-9)
     nominal = robust_design(model, target, cfg, workers=2, predicted=False)
     assert nominal.extra["searched_with"] == "nominal path"
 
@@ -218,6 +231,10 @@ def test_bench_robust_judges_nominal_and_robust_answers_by_the_same_replayed_wor
         and row["robust_worst_rel"] >= row["robust_error_rel"]
     )
     assert row["worst_ratio"] == pytest.approx(row["robust_worst_rel"] / row["nominal_worst_rel"])
+    # The nominal answer competes in the robust design: where it meets the target (the tolerance is
+    # 0.25 m within 2.5 m), the robust answer's replayed worst case is never worse than its.
+    if row["nominal_error_rel"] * row["distance_m"] <= 0.25:
+        assert row["worst_ratio"] <= 1.0 + 1e-9
     assert any(line.startswith("worst robust / nominal: median") for line in lines)
 
 
