@@ -147,12 +147,16 @@ def robust_design(
     try:
         result = design(model, target, wide, runner=runner, cancelled=cancelled, on_verify=on_verify, fan=fan)
         verified = [c for c in result.candidates if c.simulated is not None]
-        nominal = result
+        searches = [result]
         if fan is not None and not (cancelled is not None and cancelled()):
             # The nominal search's answer competes too: asking for robustness never returns a gait
             # whose replayed worst case is worse than the answer the nominal design gives.
-            nominal = design(model, target, cfg, runner=runner, cancelled=cancelled, on_verify=on_verify)
-            verified += [c for c in nominal.candidates if c.simulated is not None and not _among(c, verified)]
+            searches.append(
+                design(model, target, cfg, runner=runner, cancelled=cancelled, on_verify=on_verify)
+            )
+            verified += [
+                c for c in searches[-1].candidates if c.simulated is not None and not _among(c, verified)
+            ]
         if cancelled is not None and cancelled():
             verified = []
         scores = worst_case(verified, model, target, runner, variations) if verified else []
@@ -182,17 +186,15 @@ def robust_design(
         tolerance_m=result.tolerance_m,
         candidates=ranked,
         met=met,
-        search_s=result.search_s + (nominal.search_s if nominal is not result else 0.0),
-        physics_s=result.physics_s + (nominal.physics_s if nominal is not result else 0.0),
-        replays=result.replays
-        + (nominal.replays if nominal is not result else 0)
-        + len(verified) * len(variations),
+        search_s=sum(s.search_s for s in searches),
+        physics_s=sum(s.physics_s for s in searches),
+        replays=sum(s.replays for s in searches) + len(verified) * len(variations),
         rounds=result.rounds,
         extra={
             **result.extra,
             "robust": robust,
             "score": score,
-            "nominal_best": nominal.candidates[:1],
+            "nominal_best": searches[-1].candidates[:1],
             "searched_with": "predicted variations fan" if fan is not None else "nominal path",
         },
     )
