@@ -6,8 +6,6 @@ subprocess); only evaluation and calibration (``snakeloco.model.evaluate``, ``.c
 """
 
 import importlib
-import sys
-import types
 
 _WHERE = {
     "GaitModel": "api",
@@ -16,16 +14,16 @@ _WHERE = {
     "CheckpointError": "checkpoint",
     "load_checkpoint": "checkpoint",
     "save_checkpoint": "checkpoint",
-    "ModelConfig": "config",
-    "gaussian_mmd": "losses",
-    "loss_terms": "losses",
-    "HierarchicalVAE": "network",
+    "ModelConfig": "vae.config",
+    "gaussian_mmd": "vae.losses",
+    "loss_terms": "vae.losses",
+    "HierarchicalVAE": "vae.network",
     "PRESETS": "options",
     "TrainConfig": "options",
     "TrainPreset": "options",
-    "TrainingError": "train",
-    "cyclic_lr": "train",
-    "train": "train",
+    "TrainingError": "vae.train",
+    "cyclic_lr": "vae.train",
+    "train": "vae.train",
 }
 """Where each name of the package lives: imported on first use (PEP 562), so that a command-line
 ``--help`` that reads only configs (``snakeloco.model.options``) never imports torch."""
@@ -35,21 +33,6 @@ def __getattr__(name: str):
     if name in _WHERE:
         return getattr(importlib.import_module(f"snakeloco.model.{_WHERE[name]}"), name)
     raise AttributeError(f"module 'snakeloco.model' has no attribute {name!r}")
-
-
-class _Package(types.ModuleType):
-    """This package's module: ``snakeloco.model.train`` is the training function, as it always was.
-    Python sets a package's attribute to each submodule it imports, so without this the first import
-    of the submodule ``snakeloco.model.train`` would turn ``from snakeloco.model import train`` into
-    the module (the eager imports this package made before did the same rebinding by their order)."""
-
-    def __setattr__(self, name: str, value) -> None:
-        if name == "train" and isinstance(value, types.ModuleType):
-            value = value.train
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package
 
 
 __all__ = [

@@ -5,10 +5,10 @@ body_ds (B, 500, 6) at 5 Hz, channels vertical, forward, sideways (m), roll, pit
 z_b (B, z_b_dim); z_j (B, 8, z_j_dim).
 
 A checkpoint of the structured family with ``members`` (schema 4) decodes *members*: each decoded
-shape is projected onto the family (``sim.members``), the shape returned is that member's (as the
+shape is projected onto the family (``sim.gaits.members``), the shape returned is that member's (as the
 servos measure it) and the path is the member path head's prediction for it
-(``model.member_path``), so what is drawn, replayed and exported is one gait with its own path
-(``model.member_decoding``). ``decode_raw`` keeps the network's own decode.
+(``model.heads.member_path``), so what is drawn, replayed and exported is one gait with its own path
+(``model.heads.member_decoding``). ``decode_raw`` keeps the network's own decode.
 """
 
 from __future__ import annotations
@@ -21,13 +21,13 @@ import numpy as np
 import torch
 
 from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint, load_member_head
-from snakeloco.model.member_decoding import MemberDecoding, _finite
-from snakeloco.model.member_path import MemberPathHead
-from snakeloco.model.network import HierarchicalVAE
-from snakeloco.model.physics_head import load_physics_head
-from snakeloco.model.stats import stats_dict
-from snakeloco.model.tracing import Graphs
-from snakeloco.sim.robot import DEFAULT_ROBOT
+from snakeloco.model.heads.member_decoding import MemberDecoding, _finite
+from snakeloco.model.heads.member_path import MemberPathHead
+from snakeloco.model.heads.physics_head import load_physics_head
+from snakeloco.model.vae.network import HierarchicalVAE
+from snakeloco.model.vae.stats import stats_dict
+from snakeloco.model.vae.tracing import Graphs
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 
 class GaitModel(MemberDecoding):
@@ -46,7 +46,7 @@ class GaitModel(MemberDecoding):
         self.path = path
         self.member_head = member_head
         self.physics_head = physics_head
-        """The member path head conditioned on the physics (``model.physics_head``), where fitted."""
+        """The member path head conditioned on the physics (``model.heads.physics_head``), where fitted."""
         if physics_head is not None and member_head is None:
             raise ValueError("a physics head extends a member head")
         if (member_head is None) != (config.member_head is None):
@@ -56,7 +56,7 @@ class GaitModel(MemberDecoding):
         self._body_mean, self._body_std = norm["body_mean"], norm["body_std"]  # (6,)
         self._stats_mean, self._stats_std = norm["stats_mean"], norm["stats_std"]  # (4,)
         self.robot = config.robot or DEFAULT_ROBOT
-        """The robot the checkpoint was trained on (``sim.robot.Robot``): its joints, its members."""
+        """The robot the checkpoint was trained on (``sim.robot.description.Robot``): its joints, its members."""
         g = config.servo_response
         self._servo_response = None if g is None else np.asarray(g, dtype=np.float64)  # (8, L, 2)
         support = config.shape_support
@@ -108,7 +108,7 @@ class GaitModel(MemberDecoding):
         return out.reshape(*shape.shape[:-3], *out.shape[1:])
 
     def robot_warning(self, robot=None) -> str | None:
-        """None if the checkpoint was trained on ``robot`` (a ``sim.robot.Robot``; None: the robot it
+        """None if the checkpoint was trained on ``robot`` (a ``sim.robot.description.Robot``; None: the robot it
         was trained on), else a warning.
 
         Another robot (joints, servos, friction, a fitted robot) changes what a decoded gait does when
@@ -153,7 +153,7 @@ class GaitModel(MemberDecoding):
         return torch.as_tensor((body_ds - self._body_mean) / self._body_std, dtype=torch.float32)
 
     def normalize_stats(self, stats: np.ndarray) -> torch.Tensor:
-        """Statistics vectors (..., 4) (``model.stats.stats_vector``) -> normalised float32 tensor."""
+        """Statistics vectors (..., 4) (``model.vae.stats.stats_vector``) -> normalised float32 tensor."""
         return torch.as_tensor((stats - self._stats_mean) / self._stats_std, dtype=torch.float32)
 
     def stats_from_network(self, stats: torch.Tensor | np.ndarray) -> dict[str, np.ndarray]:
@@ -211,8 +211,8 @@ class GaitModel(MemberDecoding):
     ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """``decode`` plus the predicted body statistics of the decoded gait, {name: (B,)}.
 
-        Names (``model.stats.STAT_NAMES``): path_length (m over the 100 s), median_speed (m/s),
-        vertical_std (m), net_roll (rad); as ``sim.consistency.path_stats`` measures them at 5 Hz.
+        Names (``model.vae.stats.STAT_NAMES``): path_length (m over the 100 s), median_speed (m/s),
+        vertical_std (m), net_roll (rad); as ``sim.scores.consistency.path_stats`` measures them at 5 Hz.
         """
         if self.projects:
             _, _, shape, body, stats = self.decode_members(z_b, z_j)

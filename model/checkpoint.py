@@ -17,12 +17,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from snakeloco.model.config import ModelConfig
-from snakeloco.model.density import LatentDensity
-from snakeloco.model.member_path import MEMBER_HEAD_WEIGHTS, MemberHeadConfig, MemberPathHead
-from snakeloco.model.network import HierarchicalVAE
-from snakeloco.sim.robot import Robot
-from snakeloco.sim.structured import StructuredConfig
+from snakeloco.model.heads.density import LatentDensity
+from snakeloco.model.heads.member_path import MEMBER_HEAD_WEIGHTS, MemberHeadConfig, MemberPathHead
+from snakeloco.model.vae.config import ModelConfig
+from snakeloco.model.vae.network import HierarchicalVAE
+from snakeloco.sim.gaits.structured import StructuredConfig
+from snakeloco.sim.robot.description import Robot
 
 SCHEMA_VERSION = 4
 """2: the body-statistics head (signal CNN, MLP, inverse-transform buffers) and its normalisation.
@@ -62,7 +62,7 @@ def resolve_checkpoint(directory: str | Path | None) -> Path:
     if str(directory) in SHIPPED and not Path(directory).is_dir():
         return SHIPPED[str(directory)]
     path = Path(directory)
-    if (path / "build.json").is_file() and (path / "model").is_dir():  # ``app.build``'s folder
+    if (path / "build.json").is_file() and (path / "model").is_dir():  # ``app.cli.build``'s folder
         return path / "model"
     return path
 
@@ -87,8 +87,8 @@ class Normalization(BaseModel):
     shape_std: list[list[float]] = Field(description="(L, 2) rad")
     body_mean: list[float] = Field(description="(6,) m and rad")
     body_std: list[float] = Field(description="(6,) m and rad")
-    stats_mean: list[float] = Field(description="(4,) body statistics vector (model/stats.py)")
-    stats_std: list[float] = Field(description="(4,) body statistics vector (model/stats.py)")
+    stats_mean: list[float] = Field(description="(4,) body statistics vector (model/vae/stats.py)")
+    stats_std: list[float] = Field(description="(4,) body statistics vector (model/vae/stats.py)")
 
     @model_validator(mode="after")
     def _positive(self) -> Normalization:
@@ -153,22 +153,22 @@ class CheckpointConfig(BaseModel):
     density: LatentDensity | None = Field(
         None,
         description="Gaussian mixture over the training records' posterior z_B: the sliders, Random and "
-        "generated gaits draw from it, and a z_B it finds unlikely is flagged (``model.density``). None: "
+        "generated gaits draw from it, and a z_B it finds unlikely is flagged (``model.heads.density``). None: "
         "the N(0, I) prior.",
     )
     members: StructuredConfig | None = Field(
         None,
-        description="The structured family every decoded shape is projected onto (``sim.members``): "
+        description="The structured family every decoded shape is projected onto (``sim.gaits.members``): "
         "the commands replayed, drawn and exported are exactly one member. None: decodes as they are.",
     )
     member_head: MemberHeadConfig | None = Field(
         None,
-        description="The member path head (``model.member_path``): the decoded path is its prediction "
+        description="The member path head (``model.heads.member_path``): the decoded path is its prediction "
         "for the projected member. Needs ``members``.",
     )
     robot: Robot | None = Field(
         None,
-        description="The robot description the training data was simulated on (``sim.robot``); None "
+        description="The robot description the training data was simulated on (``sim.robot.description``); None "
         "(checkpoints of the paper's robot before robots were data): the default robot, sim/snake.xml.",
     )
     mjcf_sha256: str = Field(description="Hash of that robot's MJCF (``Robot.mjcf_sha256``).")

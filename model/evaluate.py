@@ -2,7 +2,7 @@
 
 Consistency is judged against the physics' own predictability: each generated gait's commands are
 replayed as an ensemble (the commands plus K-1 copies with 1e-3 relative noise), and the decoded
-body path is scored beside the ensemble's spread (``sim.consistency``).
+body path is scored beside the ensemble's spread (``sim.scores.consistency``).
 """
 
 from __future__ import annotations
@@ -14,15 +14,22 @@ import numpy as np
 
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.model.checkpoint import SHAPE_STD_FLOOR
-from snakeloco.model.metrics import median_interval, mmd_null_quantile, mmd_numpy, r2_overall, r2_per_channel
+from snakeloco.model.design.library import robustness_by_kind
 from snakeloco.model.options import PRIOR_SAMPLES as PRIOR_SAMPLES  # re-exported
 from snakeloco.model.options import ZK_MODES, ConsistencyConfig
 from snakeloco.model.replays import check_same_gaits, load_side_file, replay_shapes, save_side_file
-from snakeloco.model.robust_library import robustness_by_kind
-from snakeloco.model.stats import median_relative_errors
+from snakeloco.model.vae.metrics import (
+    median_interval,
+    mmd_null_quantile,
+    mmd_numpy,
+    r2_overall,
+    r2_per_channel,
+)
+from snakeloco.model.vae.stats import median_relative_errors
 from snakeloco.sim import BODY_CHANNELS, BODY_RATE, load_dataset
-from snakeloco.sim.backend import BackendConfig, open_backend
-from snakeloco.sim.consistency import (
+from snakeloco.sim.gaits.structured import KINDS
+from snakeloco.sim.physics.backend import BackendConfig, open_backend
+from snakeloco.sim.scores.consistency import (
     ENSEMBLE_NOISE,
     PREDICTABLE,
     compare,
@@ -30,7 +37,6 @@ from snakeloco.sim.consistency import (
     path_stats,
     perturbed_commands,
 )
-from snakeloco.sim.structured import KINDS
 
 
 def _stats_errors(predicted: dict[str, np.ndarray], body_ds: np.ndarray) -> dict[str, float]:
@@ -145,7 +151,7 @@ def consistency(
     hold the same draw of this checkpoint's decodes: ``model.replays``), else written after
     replaying. A calibration that leaves the decoded shapes alone (``snakeloco calibrate``) is
     then re-scored in seconds instead of replaying 2 x prior_samples ensembles. ``backend``: where the
-    replays run (``sim.backend``; default this machine's ``workers`` threads). ``robustness``: the
+    replays run (``sim.physics.backend``; default this machine's ``workers`` threads). ``robustness``: the
     first that many gaits of each mode are also replayed on the default variation set
     (``robustness_by_kind``, under the mode's ``"robustness"``).
     """
@@ -299,7 +305,7 @@ def physics_floor(commands: np.ndarray, body_ds: np.ndarray, runner, seed: int =
     record's own ``body_ds`` (n, 500, 6) as a reconstruction is. A model cannot beat this on a
     family whose paths physics does not repeat (the paper family's is about 0). Records whose noisy
     replay broke are left out (``floor_broken``)."""
-    from snakeloco.sim.backend import simulate_bodies
+    from snakeloco.sim.physics.backend import simulate_bodies
 
     jobs = (  # a batch's noisy commands made only when the backend takes it: memory stays bounded
         np.stack(

@@ -226,7 +226,7 @@ def consistency_figure(report: str | Path | dict, path: Path) -> Path:
 
 def diversity_figure(report: dict, path: Path) -> Path:
     """Where the generated gaits' replays went: final positions in the start frame, final heading
-    (polar histogram) and speed, per z_k mode of an evaluate report (``sim.consistency.diversity``)."""
+    (polar histogram) and speed, per z_k mode of an evaluate report (``sim.scores.consistency.diversity``)."""
     plt = _plt()
     fig = plt.figure(figsize=(16, 4.8))
     scatter = fig.add_subplot(1, 3, 1)

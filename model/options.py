@@ -9,8 +9,8 @@ from typing import Literal, NamedTuple
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from snakeloco.model.config import ModelConfig
-from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.model.vae.config import ModelConfig
+from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE
 
 
 class TrainConfig(BaseModel):
@@ -174,7 +174,7 @@ class SamplerConfig(BaseModel):
     val_fraction: float = Field(0.1, gt=0, lt=1, description="Share of z_B draws held out.")
     head_path: HeadPath = Field(
         "direct",
-        description="How the head draws the path in the plane (``model.member_path.HeadPath``): "
+        description="How the head draws the path in the plane (``model.heads.member_path.HeadPath``): "
         "positions directly, or (heading) velocities in the body's frame turned by the predicted "
         "heading and summed, so a turn in place ends where its yaw takes it.",
     )
@@ -182,7 +182,7 @@ class SamplerConfig(BaseModel):
         None,
         gt=0,
         description="Weight each example's forward and sideways errors by 1 / (its path's scale² + "
-        "this²) (m; ``model.member_path.fit_member_head``), so a turn in place that wanders half a "
+        "this²) (m; ``model.heads.member_path.fit_member_head``), so a turn in place that wanders half a "
         "metre is fitted as closely, relative to its size, as a 15 m undulation. None: errors in "
         "the family's metres (the library checkpoint's head).",
     )
@@ -237,7 +237,7 @@ class ConsistencyConfig(BaseModel):
 
 
 class PhysicsHeadConfig(BaseModel):
-    """What ``calibrate --physics-head`` replays and fits (``model.physics_head``)."""
+    """What ``calibrate --physics-head`` replays and fits (``model.heads.physics_head``)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 

@@ -20,8 +20,8 @@ import numpy as np
 
 from snakeloco.model.api import GaitModel, load_pretrained
 from snakeloco.sim import Dataset, DatasetError, load_dataset, mjcf_sha256, read_npz, write_npz
-from snakeloco.sim.backend import BackendConfig, open_backend, simulate_bodies
-from snakeloco.sim.consistency import ENSEMBLE_NOISE, perturbed_commands
+from snakeloco.sim.physics.backend import BackendConfig, open_backend, simulate_bodies
+from snakeloco.sim.scores.consistency import ENSEMBLE_NOISE, perturbed_commands
 
 DECODE_TOLERANCE = 1e-4
 """Largest difference (rad) between stored and fresh decodes of the same latents that still counts
@@ -30,7 +30,7 @@ as the same gait: one z_B and a batch of them decode 3.6e-7 rad apart on one CPU
 
 @dataclass(frozen=True)
 class Fit:
-    """A fit after training (``model.calibrate.calibrate``, ``model.sampler.fit_sampler``; the
+    """A fit after training (``model.heads.calibrate.calibrate``, ``model.heads.sampler.fit_sampler``; the
     command ``snakeloco calibrate``): the checkpoint it starts from, the dataset that checkpoint was
     trained on, where the fitted checkpoint goes and where the replays it fits on are kept; where
     those replays run (``workers`` threads or a Ray cluster's CPUs, ``backend``) and who hears of
@@ -76,7 +76,7 @@ def replay_shapes(
 
     Gait i's perturbed members use noise seeded with ``seed + i``; member 0 is the unperturbed
     replay (left out with ``own=False``, for a gait whose own replay ran already: the members that
-    remain are the same noisy copies). ``backend`` is where they run (``sim.backend.open_backend``:
+    remain are the same noisy copies). ``backend`` is where they run (``sim.physics.backend.open_backend``:
     this machine's cores or Ray; the caller closes it); the commands of a few gaits are made at a
     time, so memory stays bounded. ``progress`` is called with the number of gaits finished after
     each batch.

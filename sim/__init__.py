@@ -5,14 +5,12 @@ Imports neither ``snakeloco.model`` nor ``snakeloco.app``. Units: metres, second
 Importing this package does not import MuJoCo: it exports the numpy-only parts (robot constants,
 excitation, spectra, the command rule, body states, path statistics, the dataset reader and
 writer), which the model package and training need. What runs the simulator is imported from its
-own module, where MuJoCo loads with it: ``sim.physics`` (``Simulator``, ``replay``,
-``ReplayResult``), ``sim.generate`` (``generate_dataset``), ``sim.kinematics`` (``LinkPoses``),
-``sim.threads`` (``resolve_workers``).
+own module, where MuJoCo loads with it: ``sim.physics.simulator`` (``Simulator``, ``replay``,
+``ReplayResult``), ``sim.data.generate`` (``generate_dataset``), ``sim.robot.kinematics`` (``LinkPoses``),
+``sim.physics.threads`` (``resolve_workers``).
 """
 
-from snakeloco.sim.body import BODY_CHANNELS, body_states
-from snakeloco.sim.command_rule import CommandRule, expand_commands
-from snakeloco.sim.dataset import (
+from snakeloco.sim.data.dataset import (
     BODY_DOWNSAMPLE,
     BODY_RATE,
     BODY_STEPS,
@@ -24,10 +22,13 @@ from snakeloco.sim.dataset import (
     read_npz,
     write_npz,
 )
-from snakeloco.sim.excitation import RECORD, ExcitationConfig, multisine, random_phases
-from snakeloco.sim.generate_config import GenerateConfig
-from snakeloco.sim.results import SimulationError
-from snakeloco.sim.robot import (
+from snakeloco.sim.data.generate_config import GenerateConfig
+from snakeloco.sim.gaits.excitation import RECORD, ExcitationConfig, multisine, random_phases
+from snakeloco.sim.gaits.spectra import joint_shape, servo_response, shape_to_commands, synthesis_phase
+from snakeloco.sim.physics.body import BODY_CHANNELS, body_states
+from snakeloco.sim.physics.command_rule import CommandRule, expand_commands
+from snakeloco.sim.physics.results import SimulationError
+from snakeloco.sim.robot.description import (
     BODY_LENGTH,
     COMMAND_LIMIT,
     JOINT_RANGE,
@@ -39,7 +40,6 @@ from snakeloco.sim.robot import (
     load_model,
     mjcf_sha256,
 )
-from snakeloco.sim.spectra import joint_shape, servo_response, shape_to_commands, synthesis_phase
 
 __all__ = [
     "BODY_CHANNELS",

@@ -8,7 +8,7 @@ import os
 import pytest
 
 from snakeloco.sim import GenerateConfig, load_dataset
-from snakeloco.sim.generate import generate_dataset
+from snakeloco.sim.data.generate import generate_dataset
 
 from helpers import SMALL
 
@@ -53,9 +53,9 @@ def member_checkpoint(tmp_path_factory):
     the family its decodes project onto and a member path head. Its records are the undulate preset's
     draws screened leniently (two replays each, any spread kept), so it builds in seconds."""
     from snakeloco.model import TrainConfig, train
+    from snakeloco.model.heads.sampler import SamplerConfig, fit_sampler
     from snakeloco.model.replays import Fit
-    from snakeloco.model.sampler import SamplerConfig, fit_sampler
-    from snakeloco.sim.structured import STRUCTURED_PRESETS
+    from snakeloco.sim.gaits.structured import STRUCTURED_PRESETS
 
     family = STRUCTURED_PRESETS["undulate"].model_copy(
         update={"max_spread": 1e3, "coefficient_noise": 0.0, "members": 2}
@@ -75,7 +75,7 @@ def member_checkpoint(tmp_path_factory):
 @pytest.fixture
 def server(checkpoint):
     """A designer on the tiny checkpoint on a free port (no variation replays), stopped after the test."""
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     srv = DesignerServer(
         port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False, variations=False

@@ -15,9 +15,9 @@ from snakeloco.app.bench.headless import HeadlessClient
 from snakeloco.app.bench.load_driver import CHROMIUM
 from snakeloco.model import HierarchicalVAE, ModelConfig
 from snakeloco.model.checkpoint import Normalization
-from snakeloco.model.config import TINY
-from snakeloco.model.train import init_signal_source
-from snakeloco.sim.excitation import RECORD
+from snakeloco.model.vae.config import TINY
+from snakeloco.model.vae.train import init_signal_source
+from snakeloco.sim.gaits.excitation import RECORD
 
 SMALL = TINY
 """A network small enough to train in seconds on the 4-record test dataset."""
@@ -102,7 +102,7 @@ def designer_page(checkpoint, viewport: dict | None = None, **page_options):
     """A designer server (ensemble 2) and one Chromium page on it whose tab has settled: yields the
     Playwright module, the server, the page and the tab's ``DesignerClient``; all closed after."""
     from snakeloco.app.bench.load_driver import CHROMIUM_ARGS, wait_until
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     sync_api = pytest.importorskip("playwright.sync_api")
     srv = DesignerServer(

@@ -16,7 +16,7 @@ from snakeloco.model import (
     save_checkpoint,
 )
 from snakeloco.model.checkpoint import CheckpointConfig
-from snakeloco.sim.excitation import RECORD
+from snakeloco.sim.gaits.excitation import RECORD
 
 from helpers import SMALL, fresh_net, unit_normalization
 
@@ -163,7 +163,7 @@ def test_single_z_decode_runs_traced_and_matches_eager_exactly(checkpoint):
 
 
 def test_one_members_path_and_statistics_run_traced_and_match_eager_exactly():
-    from snakeloco.model.member_path import member_inputs
+    from snakeloco.model.heads.member_path import member_inputs
 
     m = load_pretrained("structured")  # the shipped checkpoint with a member path head
     z_b = m.sample_z_b(1, seed=4)
@@ -180,7 +180,7 @@ def test_one_members_path_and_statistics_run_traced_and_match_eager_exactly():
 
 
 def test_shipped_checkpoints_load_by_family_name(tmp_path, monkeypatch, capsys):
-    from snakeloco.app.cli import main
+    from snakeloco.app.cli.main import main
     from snakeloco.model.checkpoint import PRETRAINED_DIR, SHIPPED, STRUCTURED_DIR
 
     assert SHIPPED == {"paper": PRETRAINED_DIR, "structured": STRUCTURED_DIR}

@@ -11,14 +11,14 @@ import pytest
 from test_app_parts import bad_gait_files
 
 from snakeloco.app.bench.load_driver import wait_until
-from snakeloco.app.gait_csv import read_gait_csv, write_gait_csv
-from snakeloco.app.gui import path_plot_values
-from snakeloco.app.scene import FAN_STEP
-from snakeloco.app.scene_geometry import shape_points
-from snakeloco.app.server import DesignerServer
-from snakeloco.app.session import Latents
-from snakeloco.sim.physics import replay
-from snakeloco.sim.scheduler import Turn
+from snakeloco.app.designer.gui import path_plot_values
+from snakeloco.app.designer.scene import FAN_STEP
+from snakeloco.app.designer.scene_geometry import shape_points
+from snakeloco.app.designer.session import Latents
+from snakeloco.app.export.gait_csv import read_gait_csv, write_gait_csv
+from snakeloco.app.server.lifecycle import DesignerServer
+from snakeloco.sim.physics.scheduler import Turn
+from snakeloco.sim.physics.simulator import replay
 
 from helpers import apply, connect_headless
 
@@ -171,7 +171,7 @@ def test_two_clients_are_independent(server):
 
 @pytest.mark.slow
 def test_bench_app_json(checkpoint, capsys):
-    from snakeloco.app.cli import main
+    from snakeloco.app.cli.main import main
 
     main(["bench", "app", "--json", "--checkpoint", str(checkpoint), "--moves", "2", "--ensemble", "2"])
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -254,7 +254,7 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
 
 
 def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server):
-    from snakeloco.sim.results import STREAM_CHUNK, STREAM_FIRST
+    from snakeloco.sim.physics.results import STREAM_CHUNK, STREAM_FIRST
 
     client, d = connect_headless(server)
     try:
@@ -318,9 +318,9 @@ def test_server_stop_leaves_no_threads(checkpoint):
 
 
 def test_the_ensemble_comes_in_batches_equal_to_one_rollout_and_stops_when_left(checkpoint):
-    from snakeloco.app.session import GaitSession, Latents
+    from snakeloco.app.designer.session import GaitSession, Latents
     from snakeloco.model import load_pretrained
-    from snakeloco.sim.consistency import perturbed_commands
+    from snakeloco.sim.scores.consistency import perturbed_commands
 
     session = GaitSession(load_pretrained(checkpoint), ensemble=5, workers=2)
     try:
@@ -341,7 +341,7 @@ def test_the_ensemble_comes_in_batches_equal_to_one_rollout_and_stops_when_left(
 
 
 def test_a_replay_the_user_is_still_dragging_through_runs_below_settled_ones(checkpoint):
-    from snakeloco.app.session import GaitSession, Latents
+    from snakeloco.app.designer.session import GaitSession, Latents
     from snakeloco.model import load_pretrained
 
     session = GaitSession(load_pretrained(checkpoint), ensemble=2, workers=1)

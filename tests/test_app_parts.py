@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
-from snakeloco.app.panel import spread_text
-from snakeloco.app.workers import LatestWorker
+from snakeloco.app.designer.panel import spread_text
+from snakeloco.app.export.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
+from snakeloco.app.server.workers import LatestWorker
 
 
 def bad_gait_files() -> dict[str, tuple[bytes, str]]:
@@ -104,7 +104,7 @@ def test_gait_csv_round_trip():
 _FREED_MEMORY = """
 import sys
 import numpy as np, psutil
-from snakeloco.app.server import return_freed_buffers_to_the_os
+from snakeloco.app.server.lifecycle import return_freed_buffers_to_the_os
 if sys.argv[1] == "on":
     assert return_freed_buffers_to_the_os()
 rss = lambda: psutil.Process().memory_info().rss / 2**20
@@ -127,7 +127,7 @@ def _off_and_on(script: str, setting: str) -> dict[str, str] | None:
     import sys
 
     if not (platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"):
-        from snakeloco.app import server
+        from snakeloco.app.server import lifecycle as server
 
         assert getattr(server, setting)() is False
         return None
@@ -153,7 +153,7 @@ def test_large_freed_buffers_go_back_to_the_os_on_glibc():
 
 _ARENAS = """
 import ctypes, re, sys, threading
-from snakeloco.app.server import limit_malloc_arenas
+from snakeloco.app.server.lifecycle import limit_malloc_arenas
 if sys.argv[1] == "on":
     assert limit_malloc_arenas(2)
 libc = ctypes.CDLL("libc.so.6")
@@ -198,7 +198,14 @@ def test_panel_spread_is_relative_only_where_the_mean_is_a_scale():
 
 
 def test_the_metre_grid_is_thin_quads_on_the_ground_one_per_line():
-    from snakeloco.app.view import GRID_HALF_M, GRID_LIFT_M, RINGS_M, grid_lines, ground_quads, ring_strips
+    from snakeloco.app.designer.view import (
+        GRID_HALF_M,
+        GRID_LIFT_M,
+        RINGS_M,
+        grid_lines,
+        ground_quads,
+        ring_strips,
+    )
 
     lines = grid_lines(1, skip=5)
     assert len(lines) == 2 * (2 * GRID_HALF_M + 1 - (2 * GRID_HALF_M // 5 + 1))  # 5 m lines left out
@@ -222,7 +229,7 @@ def test_the_metre_grid_is_thin_quads_on_the_ground_one_per_line():
 def test_set_arrays_sends_one_update_and_nothing_once_the_connection_has_closed():
     from types import SimpleNamespace as NS
 
-    from snakeloco.app.viser_patches import set_arrays
+    from snakeloco.app.server.viser_patches import set_arrays
 
     buffer, sent = NS(done=False), []
     api = NS(_queue_scene_message=sent.append, _websock_interface=NS(get_message_buffer=lambda: buffer))
@@ -241,7 +248,7 @@ def test_framing_sends_a_camera_move_only_where_the_view_would_move():
     import contextlib
     from types import SimpleNamespace
 
-    from snakeloco.app.view import FRAME_STILL, Framer
+    from snakeloco.app.designer.view import FRAME_STILL, Framer
 
     moves = []
 
@@ -274,7 +281,7 @@ def test_a_started_server_leaves_its_objects_out_of_the_garbage_collection():
 
     code = (
         "import gc, time\n"
-        "from snakeloco.app.server import freeze_started\n"
+        "from snakeloco.app.server.lifecycle import freeze_started\n"
         "kept = [{'i': i} for i in range(50000)]\n"
         "freeze_started()\n"
         "new = [{'i': i} for i in range(100)]\n"
@@ -292,7 +299,7 @@ def test_a_tab_keeps_its_newest_timings_indexed_and_counts_every_value():
     from collections import deque
     from types import SimpleNamespace
 
-    from snakeloco.app.tab import TIMINGS_KEPT, DesignerClient
+    from snakeloco.app.designer.tab import TIMINGS_KEPT, DesignerClient
 
     tab = SimpleNamespace(timings=deque(maxlen=TIMINGS_KEPT), _timing_by_version={}, values_received=0)
     for version in range(1, 3 * TIMINGS_KEPT + 1):
@@ -308,7 +315,7 @@ def test_a_tab_keeps_its_newest_timings_indexed_and_counts_every_value():
 def test_the_path_plots_draw_each_bucket_as_its_extremes_in_the_order_they_came():
     """Yaw's ~0.5 Hz wiggle at 5 Hz: every 2nd sample lost its peaks unevenly; the envelope keeps
     each cycle's highest and lowest sample in as many points, and a monotone path's samples exactly."""
-    from snakeloco.app.gui import PATH_PLOT_BUCKET, PATH_PLOT_TIMES, path_plot_values
+    from snakeloco.app.designer.gui import PATH_PLOT_BUCKET, PATH_PLOT_TIMES, path_plot_values
     from snakeloco.sim import BODY_TIMES
 
     assert len(PATH_PLOT_TIMES) == 2 * len(BODY_TIMES) // PATH_PLOT_BUCKET and np.all(
@@ -353,7 +360,7 @@ def test_a_paused_animation_sleeps_until_played_and_closes_at_once():
     from types import SimpleNamespace
 
     from snakeloco.app.bench.load_driver import wait_until
-    from snakeloco.app.playback import FRAME_HZ, PAUSED_WAIT_S, Playback
+    from snakeloco.app.designer.playback import FRAME_HZ, PAUSED_WAIT_S, Playback
 
     def runs(thread: threading.Thread) -> int:
         """How many times the thread has been put on a core (Linux schedstat): its wake-ups."""

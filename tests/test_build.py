@@ -8,17 +8,17 @@ import json
 import numpy as np
 import pytest
 
-from snakeloco.app.build import QUICK, Build, BuildError, build_figures, sector
-from snakeloco.app.cli import main
-from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
-from snakeloco.app.robot_commands import repeated_line
+from snakeloco.app.cli.build import QUICK, Build, BuildError, build_figures, sector
+from snakeloco.app.cli.main import main
+from snakeloco.app.cli.robot_commands import repeated_line
+from snakeloco.app.export.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
 from snakeloco.sim import GenerateConfig, load_dataset
-from snakeloco.sim.gaits import PRESETS, layout
-from snakeloco.sim.generate import generate_dataset
-from snakeloco.sim.members import member_from_draw
-from snakeloco.sim.projection import project
-from snakeloco.sim.robot import DEFAULT_ROBOT, ROBOTS_DIR, load_robot
-from snakeloco.sim.structured import STRUCTURED_PRESETS, draw_structured
+from snakeloco.sim.data.generate import generate_dataset
+from snakeloco.sim.gaits.library import PRESETS, layout
+from snakeloco.sim.gaits.members import member_from_draw
+from snakeloco.sim.gaits.projection import project
+from snakeloco.sim.gaits.structured import STRUCTURED_PRESETS, draw_structured
+from snakeloco.sim.robot.description import DEFAULT_ROBOT, ROBOTS_DIR, load_robot
 
 from helpers import SMALL, apply, connect_headless
 
@@ -87,8 +87,8 @@ def test_a_dataset_stores_its_robot_and_the_default_one_hashes_as_before():
 def twelve_checkpoint(tmp_path_factory):
     """A tiny member checkpoint of the 12-joint robot (the arcs family screened leniently)."""
     from snakeloco.model import TrainConfig, train
+    from snakeloco.model.heads.sampler import SamplerConfig, fit_sampler
     from snakeloco.model.replays import Fit
-    from snakeloco.model.sampler import SamplerConfig, fit_sampler
 
     work = tmp_path_factory.mktemp("twelve")
     cfg = GenerateConfig(num_samples=4, seed=3, family="structured", structured=LENIENT, robot=TWELVE)
@@ -153,7 +153,7 @@ def test_bench_design_replays_on_the_checkpoints_robot(twelve_checkpoint, capsys
 
 @pytest.mark.slow
 def test_the_designer_switches_to_a_family_of_another_robot(member_checkpoint, twelve_checkpoint):
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     families = {"structured": member_checkpoint[0], "twelve": twelve_checkpoint[0]}
     srv = DesignerServer(port=0, families=families, ensemble=2, workers=2, verbose=False, variations=False)
@@ -232,7 +232,7 @@ FIVE = DEFAULT_ROBOT.model_copy(update={"name": "five", "n_joints": 5})
 def test_build_quick_goes_from_a_description_to_a_served_five_joint_designer(tmp_path, capsys):
     """A 5-joint robot through ``build --quick`` to a served decode, a 5-column CSV export and its
     replay; a second run skips every stage, other sizes are refused."""
-    from snakeloco.app.server import DesignerServer, load_families
+    from snakeloco.app.server.lifecycle import DesignerServer, load_families
     from snakeloco.model import load_pretrained
 
     robot_file, out = tmp_path / "five.yaml", tmp_path / "runs" / "five"
@@ -292,8 +292,8 @@ def test_a_build_folder_names_its_model(tmp_path):
 
 
 def test_serve_offers_several_checkpoints_in_the_family_dropdown(twelve_checkpoint, tmp_path):
-    from snakeloco.app.cli import parse_args
-    from snakeloco.app.server import load_families
+    from snakeloco.app.cli.main import parse_args
+    from snakeloco.app.server.lifecycle import load_families
 
     path, _ = twelve_checkpoint
     built = tmp_path / "runs" / "twelve"  # a build's folder: its model is offered under the robot's name

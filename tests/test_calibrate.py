@@ -17,7 +17,7 @@ from helpers import SMALL
 def test_calibration_counts_are_checked_in_the_config():
     from pydantic import ValidationError
 
-    from snakeloco.model.calibrate import CalibrateConfig
+    from snakeloco.model.heads.calibrate import CalibrateConfig
 
     assert CalibrateConfig(prior_samples=2).gait_count == 2 * 3 + 8 + 4 * 2  # defaults 4n and 2n
     assert CalibrateConfig(prior_samples=2, zero_samples=0, sampled_samples=1).gait_count == 6 + 0 + 2
@@ -28,10 +28,10 @@ def test_calibration_counts_are_checked_in_the_config():
 
 @pytest.mark.slow
 def test_calibration_tunes_only_the_head_and_body_decoder(checkpoint, tiny_dataset_path, tmp_path):
-    from snakeloco.model.calibrate import MODES, CalibrateConfig, calibrate
     from snakeloco.model.checkpoint import load_checkpoint
+    from snakeloco.model.heads.calibrate import MODES, CalibrateConfig, calibrate
     from snakeloco.sim import DatasetError, GenerateConfig
-    from snakeloco.sim.generate import generate_dataset
+    from snakeloco.sim.data.generate import generate_dataset
 
     out, gaits = tmp_path / "calibrated", tmp_path / "gaits.npz"
     cfg = CalibrateConfig(prior_samples=4, epochs=3)
@@ -74,7 +74,7 @@ def test_calibration_tunes_only_the_head_and_body_decoder(checkpoint, tiny_datas
 
 @pytest.mark.slow
 def test_calibration_gaits_file_is_reused_and_checked(checkpoint, tiny_dataset_path, tmp_path, monkeypatch):
-    import snakeloco.model.calibrate as cal
+    import snakeloco.model.heads.calibrate as cal
     from snakeloco.model.checkpoint import load_checkpoint
     from snakeloco.sim import DatasetError
 
@@ -131,7 +131,7 @@ def test_calibration_gaits_file_is_reused_and_checked(checkpoint, tiny_dataset_p
 def _with_extra_draws(checkpoint, base, first_extra: int, **extra_counts):
     """Calibration gaits replayed for ``base`` and again with more extra draws: both runs, and a mask
     of the second's extra gaits. The gaits before them must be those of the first run, exactly."""
-    import snakeloco.model.calibrate as cal
+    import snakeloco.model.heads.calibrate as cal
 
     model = load_pretrained(checkpoint)
     one_thread = Fit(checkpoint, "", "", workers=1)
@@ -146,7 +146,7 @@ def _with_extra_draws(checkpoint, base, first_extra: int, **extra_counts):
 
 @pytest.mark.slow
 def test_extra_zero_draws_leave_the_shared_draws_alone(checkpoint):
-    import snakeloco.model.calibrate as cal
+    import snakeloco.model.heads.calibrate as cal
 
     base = cal.CalibrateConfig(prior_samples=2, seed=7, zero_samples=0, sampled_samples=0)
     plain, more, extra = _with_extra_draws(checkpoint, base, 2, zero_samples=3)
@@ -158,7 +158,7 @@ def test_extra_zero_draws_leave_the_shared_draws_alone(checkpoint):
 
 @pytest.mark.slow
 def test_extra_sampled_draws_come_last_in_every_sampled_mode(checkpoint):
-    import snakeloco.model.calibrate as cal
+    import snakeloco.model.heads.calibrate as cal
 
     base = cal.CalibrateConfig(prior_samples=2, seed=7, zero_samples=1, sampled_samples=0)
     before, more, extra = _with_extra_draws(checkpoint, base, 3, sampled_samples=2)
@@ -173,7 +173,7 @@ def test_extra_sampled_draws_come_last_in_every_sampled_mode(checkpoint):
 
 
 def test_head_loss_prefers_the_median():
-    from snakeloco.model.finetune import head_loss
+    from snakeloco.model.heads.finetune import head_loss
 
     # Nine gaits that barely roll and one that rolls over: absolute error prefers their median (what a
     # median relative error rewards), where training's squared error would prefer their mean.
@@ -189,7 +189,7 @@ def test_head_loss_prefers_the_median():
 def test_kind_weights_make_every_kind_of_member_weigh_the_same():
     from types import SimpleNamespace
 
-    from snakeloco.model.member_path import kind_weights
+    from snakeloco.model.heads.member_path import kind_weights
 
     members = [SimpleNamespace(kind=k) for k in ["undulate"] * 6 + ["roll"] * 2 + ["turn"]]
     w = kind_weights(members)

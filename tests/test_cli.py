@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from snakeloco.app.bench.protocol import ProtocolClient
-from snakeloco.app.cli import main
+from snakeloco.app.cli.main import main
 from snakeloco.sim import load_dataset
 
 from helpers import free_port
@@ -144,7 +144,7 @@ def test_train_from_python_and_from_the_command_line_build_the_same_model(tmp_pa
 
 
 def test_train_presets_are_python_objects_that_options_override(tmp_path):
-    from snakeloco.app.cli import parse_args
+    from snakeloco.app.cli.main import parse_args
     from snakeloco.model import PRESETS
 
     base = ["train", "--data", "d.npz", "--out", str(tmp_path / "o")]
@@ -214,7 +214,7 @@ def test_serve_stops_cleanly_on_signals(tmp_path, checkpoint, sig):
         [
             sys.executable,
             "-m",
-            "snakeloco.app.cli",
+            "snakeloco.app.cli.main",
             "serve",
             "--port",
             str(port),
@@ -316,7 +316,7 @@ def test_help_and_the_gait_list_import_no_torch_mujoco_or_viser(argv):
     that run them (``snakeloco --help`` took 3.7-5.5 s when they were imported up front)."""
     code = (
         "import sys, contextlib, io\n"
-        "from snakeloco.app.cli import main\n"
+        "from snakeloco.app.cli.main import main\n"
         "with contextlib.redirect_stdout(io.StringIO()):\n"
         "    try:\n"
         f"        main({argv!r})\n"

@@ -17,8 +17,8 @@ from snakeloco.sim import (
     joint_shape,
     load_dataset,
 )
-from snakeloco.sim.generate import generate_dataset
-from snakeloco.sim.physics import Simulator
+from snakeloco.sim.data.generate import generate_dataset
+from snakeloco.sim.physics.simulator import Simulator
 
 EXC = ExcitationConfig()
 

@@ -1,4 +1,4 @@
-"""A server's decodes in a child process (``app.decode_process``): the same bits as a thread's, its
+"""A server's decodes in a child process (``app.server.decode_process``): the same bits as a thread's, its
 errors told, and a server that carries on when the child dies."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from snakeloco.app.bench.load_driver import wait_until
-from snakeloco.app.decode_process import IN_FLIGHT, DecodePool, DecodeProcess, decode_pids
-from snakeloco.app.session import Latents, decode_latents
+from snakeloco.app.designer.session import Latents, decode_latents
+from snakeloco.app.server.decode_process import IN_FLIGHT, DecodePool, DecodeProcess, decode_pids
 from snakeloco.model.api import load_pretrained
 
 
@@ -100,7 +100,7 @@ def test_a_pool_without_processes_decodes_in_the_callers_thread_one_at_a_time():
 
 @pytest.mark.slow
 def test_a_server_decodes_in_its_process_and_carries_on_when_it_dies(checkpoint):
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     from helpers import apply, connect_headless
 
@@ -140,7 +140,7 @@ def test_a_child_whose_server_left_while_it_started_leaves_quietly():
         [
             sys.executable,
             "-m",
-            "snakeloco.app.decode_process",
+            "snakeloco.app.server.decode_process",
             str(theirs.fileno()),
             "1",
             str(SHIPPED["structured"]),
@@ -158,7 +158,7 @@ def test_a_member_decode_leaves_its_statistics_to_the_ensembles_score():
     """The designer's decode of an exact member skips the statistics head (a quarter of the decode a
     slider move waits for); the ensemble's score predicts them for the member as ``decode_members``
     does, to the bit."""
-    from snakeloco.app.session import GaitSession
+    from snakeloco.app.designer.session import GaitSession
 
     model = load_pretrained("structured")
     session = GaitSession(model, ensemble=2, workers=1)

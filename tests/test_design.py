@@ -8,11 +8,12 @@ import json
 import numpy as np
 import pytest
 
-from snakeloco.app.cli import main
-from snakeloco.app.gait_csv import read_gait_csv
-from snakeloco.model import design as design_module
+from snakeloco.app.cli.main import main
+from snakeloco.app.export.gait_csv import read_gait_csv
 from snakeloco.model import load_pretrained
-from snakeloco.model.design import (
+from snakeloco.model.design import search as design_module
+from snakeloco.model.design.config import DesignConfig, Target
+from snakeloco.model.design.search import (
     Candidate,
     corrected,
     design,
@@ -21,11 +22,10 @@ from snakeloco.model.design import (
     search,
     verify,
 )
-from snakeloco.model.design_config import DesignConfig, Target
-from snakeloco.sim.backend import open_backend
-from snakeloco.sim.dataset import BODY_DOWNSAMPLE
-from snakeloco.sim.gaits import PRESETS
-from snakeloco.sim.physics import replay
+from snakeloco.sim.data.dataset import BODY_DOWNSAMPLE
+from snakeloco.sim.gaits.library import PRESETS
+from snakeloco.sim.physics.backend import open_backend
+from snakeloco.sim.physics.simulator import replay
 
 QUICK = DesignConfig(candidates=2, screen=64, starts=2, generations=15, population=8)
 REPORT_KEYS = {"target", "tolerance_m", "met", "candidates", "seconds"}
@@ -190,8 +190,8 @@ def test_designer_panel_designs_on_its_own_worker_and_a_picked_candidate_becomes
     from types import SimpleNamespace
 
     from snakeloco.app.bench.load_driver import wait_until
-    from snakeloco.app.design_panel import ground_point
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.designer.design_panel import ground_point
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     from helpers import apply, connect_headless
 
@@ -313,7 +313,7 @@ def test_uniform_design_targets_cover_every_direction_and_the_range():
 def test_a_target_beyond_the_familys_reach_is_answered_at_once(checkpoint, tmp_path, capsys):
     """`design --forward 1e6` searched 5 minutes before saying not met: now the family's reach answers."""
     from snakeloco.model import load_pretrained
-    from snakeloco.model.design import nearest_in_reach
+    from snakeloco.model.design.search import nearest_in_reach
 
     model = load_pretrained(checkpoint)
     assert nearest_in_reach(model, Target(forward=1.0, sideways=0.0), QUICK) is None  # a search is worth it
@@ -343,7 +343,7 @@ def test_a_target_beyond_the_familys_reach_is_answered_at_once(checkpoint, tmp_p
 def test_the_designer_designs_robust_to_other_robots_when_asked(checkpoint):
     """Issue 55: the Design panel's "Robust to other robots" ranks candidates by their worst end over
     the variations, each replayed, and says where candidate 1 ends on them."""
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     from helpers import connect_headless
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from snakeloco.app.cli import main
-from snakeloco.app.evaluate_report import format_report
+from snakeloco.app.cli.evaluate_report import format_report
+from snakeloco.app.cli.main import main
 from snakeloco.model.evaluate import ConsistencyConfig, evaluate, physics_floor, repeated_channels
-from snakeloco.model.metrics import r2_overall, r2_per_channel
-from snakeloco.sim.backend import open_backend
-from snakeloco.sim.consistency import (
+from snakeloco.model.vae.metrics import r2_overall, r2_per_channel
+from snakeloco.sim.physics.backend import open_backend
+from snakeloco.sim.scores.consistency import (
     compare,
     diversity,
     ensemble_spread,
@@ -154,7 +154,7 @@ def test_evaluate_end_to_end(checkpoint, tiny_dataset_path):
 
 
 def test_median_interval_brackets_the_median_and_narrows_with_more_gaits():
-    from snakeloco.model.metrics import median_interval
+    from snakeloco.model.vae.metrics import median_interval
 
     rng = np.random.default_rng(3)
     # Bimodal per-gait errors, like z_k = 0 vertical oscillation: most near 5%, a third near 60%.
@@ -174,7 +174,7 @@ def test_consistency_drops_broken_members_and_leaves_out_broken_gaits(checkpoint
 
     from snakeloco.model import evaluate as ev
     from snakeloco.model.api import load_pretrained
-    from snakeloco.sim.physics import Simulator
+    from snakeloco.sim.physics.simulator import Simulator
 
     real = Simulator.simulate
 
@@ -259,7 +259,7 @@ def test_consistency_replays_are_written_reused_and_checked(
     def no_simulation(self, commands):
         raise AssertionError("stored replays must be reused, not simulated again")
 
-    from snakeloco.sim.physics import Simulator
+    from snakeloco.sim.physics.simulator import Simulator
 
     monkeypatch.setattr(Simulator, "simulate", no_simulation)
     reused = ev.consistency(model, TWO, workers=2, replays=replays)
@@ -285,7 +285,7 @@ def test_consistency_replays_are_written_reused_and_checked(
 
 
 def test_reconstruction_reports_a_bin_the_data_do_not_excite_as_such(checkpoint, tiny_dataset):
-    from snakeloco.app.evaluate_report import format_report
+    from snakeloco.app.cli.evaluate_report import format_report
     from snakeloco.model.api import load_pretrained
     from snakeloco.model.evaluate import reconstruction
 
@@ -307,7 +307,7 @@ def test_reconstruction_reports_a_bin_the_data_do_not_excite_as_such(checkpoint,
 
 @pytest.mark.slow
 def test_evaluate_reports_each_member_kind_of_the_sampler_gaits(member_checkpoint):
-    from snakeloco.app.evaluate_report import consistency_lines
+    from snakeloco.app.cli.evaluate_report import consistency_lines
     from snakeloco.model import load_pretrained
     from snakeloco.model.evaluate import ConsistencyConfig, consistency
 
@@ -329,12 +329,12 @@ def test_evaluate_reports_each_member_kind_of_the_sampler_gaits(member_checkpoin
 @pytest.mark.slow
 def test_evaluate_reports_how_far_each_variation_moves_the_sampler_gaits(member_checkpoint):
     """``evaluate --robustness N``: the first N gaits replayed on the default set, per kind, against
-    the ensemble's first noisy copy; each median as ``sim.robustness`` reports the gaits one by one."""
-    from snakeloco.app.evaluate_report import consistency_lines
+    the ensemble's first noisy copy; each median as ``sim.scores.robustness`` reports the gaits one by one."""
+    from snakeloco.app.cli.evaluate_report import consistency_lines
     from snakeloco.model import load_pretrained
     from snakeloco.model.evaluate import ConsistencyConfig, consistency
-    from snakeloco.sim.robustness import robustness
-    from snakeloco.sim.variations import DEFAULT_SET
+    from snakeloco.sim.robot.variations import DEFAULT_SET
+    from snakeloco.sim.scores.robustness import robustness
 
     m = load_pretrained(member_checkpoint[0])
     cfg = ConsistencyConfig(prior_samples=3, ensemble=2, seed=4, zk_modes=("zk_zero",))

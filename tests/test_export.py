@@ -10,13 +10,13 @@ import re
 import numpy as np
 import pytest
 
-from snakeloco.app import export
-from snakeloco.app.cli import main
-from snakeloco.app.gait_csv import MEMBER_KEY, library_gait_csv, write_gait_csv
-from snakeloco.sim.command_rule import CommandRule, expand_commands
-from snakeloco.sim.gaits import PRESETS, GaitEquation
-from snakeloco.sim.members import Member
-from snakeloco.sim.robot import DEFAULT_ROBOT, Robot
+from snakeloco.app.cli.main import main
+from snakeloco.app.export import formats as export
+from snakeloco.app.export.gait_csv import MEMBER_KEY, library_gait_csv, write_gait_csv
+from snakeloco.sim.gaits.library import PRESETS, GaitEquation
+from snakeloco.sim.gaits.members import Member
+from snakeloco.sim.physics.command_rule import CommandRule, expand_commands
+from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
 
 from helpers import BROWSER, random_commands
 
@@ -165,7 +165,7 @@ def test_a_command_beyond_the_range_or_speed_is_refused_with_joint_and_time(side
 def test_100hz_commands_replay_where_the_20hz_ones_do():
     """The 100 Hz export, interpolated between its own samples at the physics step (as a servo stack
     that interpolates would), ends within 1 cm of the 20 Hz replay."""
-    from snakeloco.sim.physics import Simulator
+    from snakeloco.sim.physics.simulator import Simulator
 
     sim = Simulator(workers=1)
     ctrl20 = expand_commands(SIDEWIND[None], sim.substeps, CommandRule())[0]
@@ -217,8 +217,8 @@ def test_html_export_opens_from_disk_with_no_server(sidewind_csv, tmp_path):
 
 @pytest.mark.slow
 def test_the_designer_exports_for_the_robot_and_shares_its_replay(checkpoint, tmp_path):
-    from snakeloco.app.export import ROBOT_FORMATS
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.export.formats import ROBOT_FORMATS
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     from helpers import connect_headless
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from snakeloco.app.gait_csv import read_gait_csv
-from snakeloco.app.server import DesignerServer
+from snakeloco.app.export.gait_csv import read_gait_csv
+from snakeloco.app.server.lifecycle import DesignerServer
 from snakeloco.model import TrainConfig, load_pretrained, train
 from snakeloco.sim import GenerateConfig
-from snakeloco.sim.generate import generate_dataset
+from snakeloco.sim.data.generate import generate_dataset
 
 from helpers import SMALL, apply, connect_headless
 
@@ -64,7 +64,7 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
         np.testing.assert_array_equal(
             d1.decoded.commands, read_gait_csv(text).commands
         )  # exactly as exported
-        from snakeloco.model.design_config import DesignConfig
+        from snakeloco.model.design.config import DesignConfig
 
         d1.design.config = DesignConfig(candidates=1, screen=16, starts=1, generations=3, population=4)
         d1.design.request()
@@ -84,7 +84,7 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
 
 def test_a_newcomers_designer_opens_on_the_structured_family(tmp_path):
     """`snakeloco serve` with no --checkpoint: the family whose promise holds, the paper one a click away."""
-    from snakeloco.app.server import load_families
+    from snakeloco.app.server.lifecycle import load_families
 
     models, default = load_families(None)
     assert default == "structured" and list(models) == ["structured", "paper"]

@@ -11,9 +11,9 @@ import pytest
 from PIL import Image
 
 from snakeloco.app.bench.load_driver import wait_until
-from snakeloco.app.readout import GAP_BASE_M, READOUT_ID, heading_text
-from snakeloco.app.scene_geometry import path_points
-from snakeloco.app.view import in_view
+from snakeloco.app.designer.readout import GAP_BASE_M, READOUT_ID, heading_text
+from snakeloco.app.designer.scene_geometry import path_points
+from snakeloco.app.designer.view import in_view
 
 from helpers import BROWSER, designer_page
 
@@ -102,7 +102,7 @@ def test_the_readout_is_in_view_and_says_what_the_server_computed_and_the_camera
 
 def _left_of_panel(d) -> bool:
     """Both paths' ends and the start project inside the canvas, left of the control panel."""
-    from snakeloco.app.view import PANEL_PX
+    from snakeloco.app.designer.view import PANEL_PX
 
     cam = d.client.camera
     pts = np.array(

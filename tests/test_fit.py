@@ -1,4 +1,4 @@
-"""Fitting the robot to measured runs (``sim.measured``, ``sim.fit``, ``snakeloco fit-robot``, the
+"""Fitting the robot to measured runs (``sim.fit.measured``, ``sim.fit.fit_robot``, ``snakeloco fit-robot``, the
 designer's "Your robot" folder): docs/calibration.md."""
 
 from __future__ import annotations
@@ -8,13 +8,13 @@ import json
 import numpy as np
 import pytest
 
-from snakeloco.app.cli import main
-from snakeloco.app.gait_csv import library_gait_csv
-from snakeloco.sim.fit import FitConfig, fit_robot
-from snakeloco.sim.gaits import BASE_GAITS, PRESETS
-from snakeloco.sim.measured import MeasuredRunError, read_measured_run, write_measured_run
-from snakeloco.sim.physics import Simulator
-from snakeloco.sim.robot import DEFAULT_ROBOT, Robot, load_robot
+from snakeloco.app.cli.main import main
+from snakeloco.app.export.gait_csv import library_gait_csv
+from snakeloco.sim.fit.fit_robot import FitConfig, fit_robot
+from snakeloco.sim.fit.measured import MeasuredRunError, read_measured_run, write_measured_run
+from snakeloco.sim.gaits.library import BASE_GAITS, PRESETS
+from snakeloco.sim.physics.simulator import Simulator
+from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot, load_robot
 
 QUICK = FitConfig(params=("friction_across", "servo_kp"), popsize=6, generations=9, horizons=(20.0, 40.0))
 """A fit small enough for a test: two fields, 40 s runs."""
@@ -88,7 +88,7 @@ def test_bench_fit_fits_by_default_the_runs_the_library_names():
     """The command line's default (``app.bench.options``, which imports no MuJoCo) is the library's
     fit set, and every gait in it is a library gait."""
     from snakeloco.app.bench.options import BenchFit
-    from snakeloco.sim.bench_fit import FIT_GAITS
+    from snakeloco.sim.fit.bench import FIT_GAITS
 
     assert BenchFit().gaits == FIT_GAITS and set(FIT_GAITS) <= set(PRESETS)
 
@@ -121,7 +121,7 @@ def test_a_perturbed_robot_is_recovered_and_noise_alone_stays_within_the_uncerta
 def test_measured_joint_angles_enter_the_loss_and_their_error_is_reported():
     """The servos' tracking: on a robot with softer servos the replayed joint angles lag the
     measured ones less than the nominal robot's do; a run without joints is scored on its path alone."""
-    from snakeloco.sim.fit import RobotFit
+    from snakeloco.sim.fit.fit_robot import RobotFit
 
     soft = Robot(servo_kp=30 * 0.6)
     with_joints = read_measured_run(measured_text(soft, "roll", seconds=10.0, joints=True), "run.csv", 8)
@@ -174,7 +174,7 @@ def test_fit_robot_writes_a_robot_description_that_loads_and_replays(tmp_path, c
 
 @pytest.mark.slow
 def test_the_designer_fits_a_measured_run_and_replays_on_the_fitted_robot(checkpoint):
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     from helpers import connect_headless
 

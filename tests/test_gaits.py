@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from snakeloco.app.cli import main
-from snakeloco.app.gait_csv import read_gait_csv
+from snakeloco.app.cli.main import main
+from snakeloco.app.export.gait_csv import read_gait_csv
 from snakeloco.sim import RECORD, joint_shape
-from snakeloco.sim.gaits import PRESETS, GaitEquation, measure_gait
-from snakeloco.sim.physics import Simulator, replay
+from snakeloco.sim.gaits.library import PRESETS, GaitEquation, measure_gait
+from snakeloco.sim.physics.simulator import Simulator, replay
 
 from helpers import apply, connect_headless
 
@@ -67,8 +67,8 @@ def test_presets_reproduce_their_documented_figures():
 def test_presets_worst_cases_reproduce_over_the_default_variation_set():
     """``gait --list``'s worst case of each library gait, replayed: the same variation, the same end
     error within 2% (the figures were measured with MuJoCo 4.0.1)."""
-    from snakeloco.sim.robustness import robustness
-    from snakeloco.sim.variations import DEFAULT_SET
+    from snakeloco.sim.robot.variations import DEFAULT_SET
+    from snakeloco.sim.scores.robustness import robustness
 
     simulator = Simulator(None)
     try:
@@ -106,7 +106,7 @@ def test_gait_command_writes_and_lists_the_library(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     srv = DesignerServer(
         port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
@@ -136,8 +136,8 @@ def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
 def test_search_robust_writes_only_the_gaits_that_beat_the_library_into_it(tmp_path):
     """``gait --search-robust --write-library``: the robust-* gaits are replaced by the found ones
     that move less than the library's gait of their kind; the first four stay; figures to 4 digits."""
-    from snakeloco.model.robust_library import write_library
-    from snakeloco.sim.gaits import BASE_GAITS, LIBRARY_FILE, GaitPreset
+    from snakeloco.model.design.library import write_library
+    from snakeloco.sim.gaits.library import BASE_GAITS, LIBRARY_FILE, GaitPreset
 
     library = tmp_path / "library.json"
     library.write_text(LIBRARY_FILE.read_text())

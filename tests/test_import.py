@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from snakeloco.app.gait_csv import exported_latents, library_gait_csv
-from snakeloco.app.server import DesignerServer
+from snakeloco.app.export.gait_csv import exported_latents, library_gait_csv
+from snakeloco.app.server.lifecycle import DesignerServer
 
 from helpers import apply, connect_headless
 

@@ -10,7 +10,7 @@ import zipfile
 
 import pytest
 
-from snakeloco.app.gui import help_text
+from snakeloco.app.designer.gui import help_text
 
 
 def test_model_package_and_training_never_import_mujoco(tiny_dataset_path, tmp_path):
@@ -21,8 +21,9 @@ def test_model_package_and_training_never_import_mujoco(tiny_dataset_path, tmp_p
         import sys
         import numpy as np
         import snakeloco.model
-        from snakeloco.model import TrainConfig, load_pretrained, train
-        from snakeloco.model.config import ModelConfig
+        from snakeloco.model import TrainConfig, load_pretrained
+        from snakeloco.model import train
+        from snakeloco.model.vae.config import ModelConfig
         assert "mujoco" not in sys.modules, "import snakeloco.model loaded mujoco"
         small = ModelConfig(z_b_dim=2, z_j_dim=2, cnn_channels=(4, 4, 4), root_hidden=8, child_hidden=4,
                             joint_embed=4, positional_channels=1)
@@ -43,7 +44,7 @@ def test_model_package_and_training_never_import_mujoco(tiny_dataset_path, tmp_p
 def test_the_sim_package_is_mujoco_free_and_the_simulator_module_loads_it():
     code = (
         "import sys; import snakeloco.sim as s; assert 'mujoco' not in sys.modules; "
-        "assert not hasattr(s, 'Simulator'); from snakeloco.sim.physics import Simulator; "
+        "assert not hasattr(s, 'Simulator'); from snakeloco.sim.physics.simulator import Simulator; "
         "assert 'mujoco' in sys.modules; print('ok')"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
@@ -127,7 +128,7 @@ def test_layers_import_downward_only_and_the_benchmarks_never_import_the_cli():
         if below is not None:
             assert all(d.startswith(below) for d in deps), (module, sorted(deps))
         if module.startswith("snakeloco.app.bench"):
-            assert not deps & {"snakeloco.app.cli", "snakeloco.app.commands"}, module
+            assert not deps & {"snakeloco.app.cli.main", "snakeloco.app.cli.commands"}, module
     for module, deps in graph.items():  # a cycle of any length through module
         seen, todo = set(), [d for d in deps if d in graph]
         while todo:

@@ -20,7 +20,7 @@ pytestmark = [*BROWSER, pytest.mark.load]
 def _bench_load(capsys, checkpoint, *extra: str) -> dict:
     """``snakeloco bench load`` with 2 users for 6 s (4 s alone) and ``extra`` flags: its JSON."""
     pytest.importorskip("playwright.sync_api")
-    from snakeloco.app.cli import main
+    from snakeloco.app.cli.main import main
 
     short = ["--clients", "2", "--seconds", "6", "--single-seconds", "4", "--ensemble", "2"]
     main(["bench", "load", *short, "--json", "--checkpoint", str(checkpoint), *extra])
@@ -100,7 +100,7 @@ def test_bench_load_held_pattern_times_every_move(checkpoint, capsys):
 
 def test_bench_tabs_two_rendering_tabs_in_one_browser(checkpoint, capsys):
     pytest.importorskip("playwright.sync_api")
-    from snakeloco.app.cli import main
+    from snakeloco.app.cli.main import main
 
     main(
         [

@@ -74,7 +74,7 @@ def test_stale_checks_recheck_a_state_that_moved_but_report_real_mismatches(monk
 
 
 def test_the_breakdown_splits_a_decoded_view_and_a_first_motion_into_their_stages():
-    from snakeloco.app.session import Timing
+    from snakeloco.app.designer.session import Timing
 
     t = Timing(1, submitted=0.0, started=0.002, decoded=0.010, first_chunk=0.060, first_motion=0.065)
     t.decode_ms = 5.0
@@ -132,7 +132,7 @@ def test_browser_nice_puts_the_browsers_threads_at_its_nice_and_in_the_idle_clas
 
 
 def test_every_view_a_tab_drew_is_timed_server_side_and_the_superseded_ones_are_not():
-    from snakeloco.app.session import Timing
+    from snakeloco.app.designer.session import Timing
 
     drawn, superseded, late = Timing(1, 10.0), Timing(2, 10.05), Timing(3, 10.1)
     drawn.decoded, late.decoded = 10.012, 10.125  # the second value was overtaken before its draw

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from snakeloco.app.gait_csv import GaitCSVError, read_gait_csv, read_member, write_gait_csv
+from snakeloco.app.export.gait_csv import GaitCSVError, read_gait_csv, read_member, write_gait_csv
 from snakeloco.sim import shape_to_commands
-from snakeloco.sim.gaits import GaitEquation
-from snakeloco.sim.members import Member, member_from_draw
-from snakeloco.sim.projection import project, residual
-from snakeloco.sim.structured import STRUCTURED_PRESETS, curve_wave, draw_structured
+from snakeloco.sim.gaits.library import GaitEquation
+from snakeloco.sim.gaits.members import Member, member_from_draw
+from snakeloco.sim.gaits.projection import project, residual
+from snakeloco.sim.gaits.structured import STRUCTURED_PRESETS, curve_wave, draw_structured
 
 UNDULATE = STRUCTURED_PRESETS["undulate"]
 MIXED = STRUCTURED_PRESETS["mixed"]
@@ -67,7 +67,7 @@ def test_a_curving_undulation_projects_onto_itself_and_its_mirror_image_curves_t
     np.testing.assert_allclose(image.shape()[1::2], -m.shape()[1::2], atol=1e-12)  # yaw joints negated
     np.testing.assert_allclose(image.shape()[::2], m.shape()[::2], atol=1e-12)
     assert "curving" in m.describe() and Member.model_validate(m.params()) == m
-    from snakeloco.model.member_path import CURVE_INPUTS, NAMED_INPUTS, named_inputs
+    from snakeloco.model.heads.member_path import CURVE_INPUTS, NAMED_INPUTS, named_inputs
 
     # The path head's named inputs carry the curve ("named_curve"; "named" stays 14 wide for the
     # checkpoints trained with it): its yaw amplitude, and its offset's cosine and sine, which the
@@ -101,8 +101,8 @@ def test_a_noisy_member_keeps_its_kind_where_a_freer_kind_fits_it_only_a_little_
 
 
 def test_a_members_mirror_image_negates_its_yaw_joints_and_named_inputs_flip_only_the_phases():
-    from snakeloco.model.member_path import named_inputs, with_mirror_images
-    from snakeloco.sim.gaits import PITCH
+    from snakeloco.model.heads.member_path import named_inputs, with_mirror_images
+    from snakeloco.sim.gaits.library import PITCH
 
     family = STRUCTURED_PRESETS["every"]
     draws = [member_from_draw(draw_structured(family, 3, i, 0)[1]) for i in range(40)]
@@ -136,8 +136,8 @@ def test_a_members_mirror_image_replays_to_the_mirror_image_of_its_path():
     """The symmetry the every family's head is trained with: a sidewinding member with steering (8.4 m
     in 100 s) and its mirror image; sideways, roll and yaw flip, the rest stays (to 1 cm, 0.01 rad;
     measured: to the bit, where a chaotic draw (not screened) parts by metres)."""
-    from snakeloco.sim.body import mirror_body
-    from snakeloco.sim.physics import Simulator
+    from snakeloco.sim.physics.body import mirror_body
+    from snakeloco.sim.physics.simulator import Simulator
 
     m = member_from_draw(draw_structured(STRUCTURED_PRESETS["every"], 3, 44, 0)[1])
     assert m.kind == "sidewind" and m.steering_amplitude > 0
@@ -176,7 +176,7 @@ def test_a_member_scaled_to_the_command_limit_stays_a_member():
 def test_the_exported_csv_carries_the_member_whose_parameters_give_its_commands_to_the_bit():
     from types import SimpleNamespace
 
-    from snakeloco.app.gait_csv import gait_comments
+    from snakeloco.app.export.gait_csv import gait_comments
 
     member, _ = project(draw_structured(UNDULATE, 0, 2, 0)[0], UNDULATE)
     gait = SimpleNamespace(latents=None, source="model", member=member)

@@ -18,10 +18,10 @@ from snakeloco.model import (
     train,
 )
 from snakeloco.model.checkpoint import Normalization
-from snakeloco.model.metrics import mmd_null_quantile, mmd_numpy, r2_per_channel
-from snakeloco.model.train import make_scheduler, shape_support
+from snakeloco.model.vae.metrics import mmd_null_quantile, mmd_numpy, r2_per_channel
+from snakeloco.model.vae.train import make_scheduler, shape_support
 from snakeloco.sim import shape_to_commands
-from snakeloco.sim.excitation import RECORD
+from snakeloco.sim.gaits.excitation import RECORD
 
 from helpers import SMALL, fresh_net
 

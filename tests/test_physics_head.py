@@ -1,4 +1,4 @@
-"""The member path head conditioned on the physics (model/physics_head.py): its inputs, its fit, its
+"""The member path head conditioned on the physics (model/heads/physics_head.py): its inputs, its fit, its
 files, and the predicted Variations fan the designer draws and the replays check."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from snakeloco.model.physics_head import PHYSICS_FEATURES, mirror_features, physics_features
-from snakeloco.sim.robot import DEFAULT_ROBOT
-from snakeloco.sim.robustness import prediction_errors, prediction_line, summarise
-from snakeloco.sim.variations import DEFAULT_SET
+from snakeloco.model.heads.physics_head import PHYSICS_FEATURES, mirror_features, physics_features
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
+from snakeloco.sim.robot.variations import DEFAULT_SET
+from snakeloco.sim.scores.robustness import prediction_errors, prediction_line, summarise
 
 
 def test_physics_features_are_zero_on_the_nominal_robot_and_a_mirror_negates_the_slope_to_the_left():
@@ -63,8 +63,8 @@ def test_the_prediction_line_gives_the_median_and_the_worst_gap_over_the_replaye
 def physics_checkpoint(member_checkpoint, tmp_path_factory):
     """The tiny structured checkpoint with a physics head fitted on a few replays; the summary and
     the replays counted on the way."""
+    from snakeloco.model.heads.physics_fit import fit_physics_head
     from snakeloco.model.options import PhysicsHeadConfig
-    from snakeloco.model.physics_fit import fit_physics_head
     from snakeloco.model.replays import Fit
 
     out = tmp_path_factory.mktemp("physics")
@@ -80,11 +80,11 @@ def physics_checkpoint(member_checkpoint, tmp_path_factory):
 def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_in_the_designer(
     member_checkpoint, physics_checkpoint
 ):
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
     from snakeloco.model.api import load_pretrained
     from snakeloco.model.checkpoint import CheckpointError
-    from snakeloco.model.physics_fit import NOISE, fit_physics_head, replay_count
-    from snakeloco.model.physics_head import PHYSICS_HEAD_WEIGHTS
+    from snakeloco.model.heads.physics_fit import NOISE, fit_physics_head, replay_count
+    from snakeloco.model.heads.physics_head import PHYSICS_HEAD_WEIGHTS
     from snakeloco.model.replays import Fit
 
     from helpers import connect_headless
@@ -113,7 +113,7 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     assert paths.shape == (len(DEFAULT_SET), 500, 6) and np.isfinite(paths).all()
 
     # A robot inside the physics it was trained on (a fitted robot, say) is covered; far outside, not.
-    from snakeloco.sim.variations import Variation
+    from snakeloco.sim.robot.variations import Variation
 
     slippery = Variation(name="slippery", scale={"friction_along": 0.7, "friction_across": 0.7}).apply(
         model.robot
@@ -156,8 +156,8 @@ def _copy_beside(src):
 def test_a_robust_search_pays_for_a_nominal_miss_beyond_most_of_the_tolerance():
     """The fan's cost alone let the search trade the nominal error for robustness (12-38% nominal
     misses on 10 m targets); beyond 70% of the tolerance each metre of nominal miss costs ten."""
-    from snakeloco.model.design_config import DesignConfig, Target
-    from snakeloco.model.design_types import GUARD_SHARE, NOMINAL_GUARD, fan_cost
+    from snakeloco.model.design.config import DesignConfig, Target
+    from snakeloco.model.design.targets import GUARD_SHARE, NOMINAL_GUARD, fan_cost
 
     class Fan:  # the worst predicted miss, as PredictedFan's
         def cost(self, ends, target):
@@ -177,10 +177,10 @@ def test_a_robust_search_pays_for_a_nominal_miss_beyond_most_of_the_tolerance():
 @pytest.mark.slow
 def test_robust_design_searches_with_the_predicted_fan_and_reports_it_beside_the_replays(physics_checkpoint):
     from snakeloco.model.api import load_pretrained
-    from snakeloco.model.design import design
-    from snakeloco.model.design_config import DesignConfig, Target
-    from snakeloco.model.robust_design import PredictedFan, robust_design, worst_case
-    from snakeloco.sim.backend import open_backend
+    from snakeloco.model.design.config import DesignConfig, Target
+    from snakeloco.model.design.robust import PredictedFan, robust_design, worst_case
+    from snakeloco.model.design.search import design
+    from snakeloco.sim.physics.backend import open_backend
 
     model = load_pretrained(physics_checkpoint[0])
     fan = PredictedFan(model, [v.apply(model.robot) for v in DEFAULT_SET])
@@ -217,7 +217,7 @@ def test_robust_design_searches_with_the_predicted_fan_and_reports_it_beside_the
 def test_bench_robust_judges_nominal_and_robust_answers_by_the_same_replayed_worst_case(
     physics_checkpoint, capsys
 ):
-    from snakeloco.app.cli import main
+    from snakeloco.app.cli.main import main
 
     out = physics_checkpoint[0]
     args = ["bench", "robust", "--checkpoint", str(out), "--targets", "1", "--reach", "0.3", "0.6"]
@@ -242,10 +242,10 @@ def test_bench_robust_judges_nominal_and_robust_answers_by_the_same_replayed_wor
 def test_design_on_a_covered_robot_searches_on_the_physics_heads_paths_for_it(
     physics_checkpoint, tmp_path, capsys
 ):
-    from snakeloco.app.cli import main
+    from snakeloco.app.cli.main import main
     from snakeloco.model.api import load_pretrained
-    from snakeloco.model.physics_head import OnRobot
-    from snakeloco.sim.variations import Variation
+    from snakeloco.model.heads.physics_head import OnRobot
+    from snakeloco.sim.robot.variations import Variation
 
     out = physics_checkpoint[0]
     model = load_pretrained(out)
@@ -286,8 +286,13 @@ def test_design_on_a_covered_robot_searches_on_the_physics_heads_paths_for_it(
 def test_a_residual_physics_head_keeps_the_member_heads_path_at_nominal_physics_and_round_trips(tmp_path):
     import torch
 
-    from snakeloco.model.member_path import MemberHeadConfig, MemberPathHead, ResidualHead, fit_member_head
-    from snakeloco.model.physics_head import load_physics_head, save_physics_head
+    from snakeloco.model.heads.member_path import (
+        MemberHeadConfig,
+        MemberPathHead,
+        ResidualHead,
+        fit_member_head,
+    )
+    from snakeloco.model.heads.physics_head import load_physics_head, save_physics_head
 
     rng = np.random.default_rng(0)
     support = np.ones((2, 1), bool)
@@ -338,9 +343,9 @@ def test_the_robust_library_search_ranks_the_physics_heads_members_by_their_repl
 ):
     """``gait --search-robust``: every member the head was trained and scored on, its worst case
     read from its replays on the default set; the chosen gait per sector confirmed by replaying it."""
-    from snakeloco.model import robust_library
-    from snakeloco.model.physics_fit import PHYSICS_GAITS
-    from snakeloco.sim.robustness import robustness
+    from snakeloco.model.design import library as robust_library
+    from snakeloco.model.heads.physics_fit import PHYSICS_GAITS
+    from snakeloco.sim.scores.robustness import robustness
 
     out, cfg, _, _ = physics_checkpoint
     found = robust_library.candidates(out)

@@ -14,8 +14,8 @@ from snakeloco.app.bench.load_browser import wait_until
 from snakeloco.app.bench.load_protocol import server_problems
 from snakeloco.app.bench.protocol import DONE_STATES, ProtocolClient, stream_problems
 from snakeloco.app.bench.wire import parse_readout
-from snakeloco.app.readout import Readout, readout_html
-from snakeloco.app.server import DesignerServer
+from snakeloco.app.designer.readout import Readout, readout_html
+from snakeloco.app.server.lifecycle import DesignerServer
 
 from helpers import apply, connect_headless
 
@@ -132,7 +132,7 @@ def test_a_tab_whose_page_has_left_draws_nothing_more(checkpoint):
     and stop, where each draw would be dropped and viser would warn of it."""
     import warnings
 
-    from snakeloco.app.viser_patches import connection_closed
+    from snakeloco.app.server.viser_patches import connection_closed
 
     srv = DesignerServer(
         port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False

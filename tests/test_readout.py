@@ -1,10 +1,10 @@
-"""The readout's numbers as a person reads them (``app.readout``)."""
+"""The readout's numbers as a person reads them (``app.designer.readout``)."""
 
 from __future__ import annotations
 
 
 def test_the_readout_says_headings_in_half_turns_and_no_percentage_of_a_short_path():
-    from snakeloco.app.readout import PathEnd, Readout, heading_text, readout_html
+    from snakeloco.app.designer.readout import PathEnd, Readout, heading_text, readout_html
 
     assert (
         heading_text(402.0) == "+42° (1.1 turns left)" and heading_text(-607.0) == "+113° (1.7 turns right)"
@@ -31,11 +31,11 @@ def test_the_panel_says_each_error_where_it_has_a_base_and_no_r2_of_a_path_that_
 
     import numpy as np
 
-    from snakeloco.app.gui import PATH_PLOTS, PLOT_SCALE
-    from snakeloco.app.panel import error_text, gait_text, r2_text
-    from snakeloco.app.session import DecodedGait
-    from snakeloco.sim.gaits import PRESETS
-    from snakeloco.sim.members import Member
+    from snakeloco.app.designer.gui import PATH_PLOTS, PLOT_SCALE
+    from snakeloco.app.designer.panel import error_text, gait_text, r2_text
+    from snakeloco.app.designer.session import DecodedGait
+    from snakeloco.sim.gaits.library import PRESETS
+    from snakeloco.sim.gaits.members import Member
 
     no_roll = {"net_roll_simulated": 0.2, "net_roll_decoded": 0.03, "net_roll_err": 6.18}
     assert error_text("net_roll", no_roll, 1.0) == "0.17"  # rad, not 618%
@@ -58,8 +58,8 @@ def test_framing_keeps_the_paths_and_the_point_clouds_left_of_the_control_panel(
     """Issue 59, point 2: a path's end sat behind the panel and the point clouds were cut."""
     import numpy as np
 
-    from snakeloco.app.scene_geometry import SHAPE_CORNERS
-    from snakeloco.app.view import PANEL_PX, framing
+    from snakeloco.app.designer.scene_geometry import SHAPE_CORNERS
+    from snakeloco.app.designer.view import PANEL_PX, framing
 
     fov, width, height = np.radians(50), 1500, 950
     aspect, covered = width / height, PANEL_PX / width

@@ -1,4 +1,4 @@
-"""The robot as data (``sim.robot``) and its variations (``sim.variations``, ``sim.robustness``):
+"""The robot as data (``sim.robot.description``) and its variations (``sim.robot.variations``, ``sim.scores.robustness``):
 docs/robot.md, "Your robot", and docs/variations.md."""
 
 from __future__ import annotations
@@ -10,13 +10,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from snakeloco.app.cli import main
-from snakeloco.sim.command_rule import CommandRule, expand_commands
-from snakeloco.sim.gaits import PRESETS
-from snakeloco.sim.physics import Simulator
-from snakeloco.sim.robot import DEFAULT_ROBOT, MJCF_PATH, Robot, RobotError, load_robot
-from snakeloco.sim.robustness import change_table, readout_line, robustness
-from snakeloco.sim.variations import DEFAULT_SET, PHYSICAL_FIELDS, Variation, sampled_set
+from snakeloco.app.cli.main import main
+from snakeloco.sim.gaits.library import PRESETS
+from snakeloco.sim.physics.command_rule import CommandRule, expand_commands
+from snakeloco.sim.physics.simulator import Simulator
+from snakeloco.sim.robot.description import DEFAULT_ROBOT, MJCF_PATH, Robot, RobotError, load_robot
+from snakeloco.sim.robot.variations import DEFAULT_SET, PHYSICAL_FIELDS, Variation, sampled_set
+from snakeloco.sim.scores.robustness import change_table, readout_line, robustness
 
 
 def model_fields(model: mujoco.MjModel) -> dict[str, np.ndarray]:
@@ -248,7 +248,7 @@ def test_robustness_refuses_a_bad_gait_file(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_the_designer_streams_the_variations_fan_and_says_how_far_the_end_moves(checkpoint):
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     from helpers import apply, connect_headless
 
@@ -276,7 +276,7 @@ def test_the_designer_streams_the_variations_fan_and_says_how_far_the_end_moves(
 
 @pytest.mark.slow
 def test_robust_design_returns_only_candidates_whose_worst_case_it_replayed(checkpoint, tmp_path, capsys):
-    from snakeloco.app.gait_csv import read_gait_csv
+    from snakeloco.app.export.gait_csv import read_gait_csv
 
     quick = "--screen 64 --starts 2 --generations 8 --population 8 --candidates 2 --rounds 1".split()
     out = tmp_path / "robust"
@@ -302,7 +302,7 @@ def test_robust_design_returns_only_candidates_whose_worst_case_it_replayed(chec
 
 
 def test_the_shipped_example_robots_load_build_and_replay():
-    from snakeloco.sim.robot import ROBOTS_DIR
+    from snakeloco.sim.robot.description import ROBOTS_DIR
 
     twelve, planar = load_robot(ROBOTS_DIR / "twelve.yaml"), load_robot(ROBOTS_DIR / "planar6.yaml")
     assert twelve.n_joints == 12 and twelve.compile().nu == 12 and twelve.body_length == pytest.approx(0.95)

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import snakeloco.sim.physics as sim_physics
+import snakeloco.sim.physics.simulator as sim_physics
 from snakeloco.sim import CommandRule, SimulationError
-from snakeloco.sim.physics import Simulator, replay
+from snakeloco.sim.physics.simulator import Simulator, replay
 
 
 def test_large_batches_roll_out_in_chunks_with_the_same_results(tiny_dataset):
@@ -86,7 +86,7 @@ def test_low_priority_pool_gives_the_same_physics_and_leaves_the_caller_alone(ti
 
 
 def test_callers_sharing_a_simulator_roll_out_in_the_order_they_came():
-    from snakeloco.sim.threads import FifoLock
+    from snakeloco.sim.physics.threads import FifoLock
 
     lock, order, threads = FifoLock(), [], []
     with lock:
@@ -105,7 +105,7 @@ def test_callers_sharing_a_simulator_roll_out_in_the_order_they_came():
 
 def test_a_lock_of_two_slots_has_two_holders_and_a_line_in_order():
     from snakeloco.app.bench.load_driver import wait_until
-    from snakeloco.sim.threads import FifoLock
+    from snakeloco.sim.physics.threads import FifoLock
 
     lock, order, inside, most = FifoLock(slots=2), [], [0], [0]
     count, leave = threading.Lock(), [threading.Event() for _ in range(5)]
@@ -164,10 +164,10 @@ def test_a_batch_left_while_it_waits_for_its_turn_is_not_simulated(tiny_dataset)
 
 
 def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_left(monkeypatch):
-    from snakeloco.sim import threads
-    from snakeloco.sim.gaits import PRESETS
-    from snakeloco.sim.results import STREAM_FIRST
-    from snakeloco.sim.threads import RolloutThreads
+    from snakeloco.sim.gaits.library import PRESETS
+    from snakeloco.sim.physics import threads
+    from snakeloco.sim.physics.results import STREAM_FIRST
+    from snakeloco.sim.physics.threads import RolloutThreads
 
     simulator = Simulator(workers=1)
     commands = PRESETS["sidewind"].gait.commands()
@@ -229,7 +229,7 @@ def test_a_streamed_replay_holds_one_chunk_of_steps_not_the_whole_record():
     record's steps (41,200 x 51 float64, ~17 MB) stayed resident in every tab's replay as it ran."""
     import tracemalloc
 
-    from snakeloco.sim.gaits import PRESETS
+    from snakeloco.sim.gaits.library import PRESETS
 
     simulator = Simulator(workers=1)
     commands = PRESETS["sidewind"].gait.commands()

@@ -10,14 +10,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from snakeloco.app.gait_csv import read_gait_csv, read_member
-from snakeloco.model.density import LatentDensity, fit_density, name_components
+from snakeloco.app.export.gait_csv import read_gait_csv, read_member
+from snakeloco.model.heads.density import LatentDensity, fit_density, name_components
 from snakeloco.model.replays import Fit
 from snakeloco.sim import GenerateConfig
-from snakeloco.sim.generate import generate_dataset
-from snakeloco.sim.members import member_from_draw
-from snakeloco.sim.projection import project
-from snakeloco.sim.structured import STRUCTURED_PRESETS, draw_structured
+from snakeloco.sim.data.generate import generate_dataset
+from snakeloco.sim.gaits.members import member_from_draw
+from snakeloco.sim.gaits.projection import project
+from snakeloco.sim.gaits.structured import STRUCTURED_PRESETS, draw_structured
 
 UNDULATE = STRUCTURED_PRESETS["undulate"]
 MIXED = STRUCTURED_PRESETS["mixed"]
@@ -83,7 +83,7 @@ def _fit_toy_head(x, body, mean, std, **options):
     ``x``, all examples both train and validation; returns (head, fit record, its paths in metres)."""
     import torch
 
-    from snakeloco.model.member_path import fit_member_head
+    from snakeloco.model.heads.member_path import fit_member_head
 
     y = (body - mean) / std
     ones = np.ones((8, 8), bool)
@@ -97,7 +97,7 @@ def test_weighting_xy_by_each_paths_scale_fits_a_small_path_relative_to_its_size
     """Two kinds of member in one head: straight 10 m paths and 0.5 m circles. Scored in metres the
     head spends its capacity on the long paths; weighted by each path's own scale
     (``calibrate --sampler.xy-floor``) the circle's error relative to its size falls."""
-    from snakeloco.model.member_path import path_scales
+    from snakeloco.model.heads.member_path import path_scales
 
     rng = np.random.default_rng(0)
     n, t = 256, 50
@@ -130,7 +130,7 @@ def test_a_heading_head_draws_a_turn_in_place_round_the_circle_its_yaw_sets():
     swings round the circle as the turn's size grows. A heading head (``HeadPath``: body-frame
     velocities turned by the predicted yaw and summed) follows it; the direct head, fitted the same,
     misses by more. The body-frame velocities integrate back to the path exactly."""
-    from snakeloco.model.member_path import body_frame_velocities, fit_member_head
+    from snakeloco.model.heads.member_path import body_frame_velocities, fit_member_head
 
     rng = np.random.default_rng(1)
     n, t = 256, 60
@@ -199,7 +199,7 @@ def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predict
 @pytest.mark.slow
 def test_record_members_are_the_members_the_records_drew_and_a_non_member_is_refused(member_checkpoint):
     from snakeloco.model import load_pretrained
-    from snakeloco.model.sampler import record_members
+    from snakeloco.model.heads.sampler import record_members
     from snakeloco.sim import DatasetError, load_dataset
 
     family = load_pretrained(member_checkpoint[0]).config.members
@@ -218,7 +218,7 @@ def test_record_members_are_the_members_the_records_drew_and_a_non_member_is_ref
 def test_sampler_gaits_of_another_density_are_refused_and_a_named_mirrored_head_fits(
     member_checkpoint, tmp_path
 ):
-    from snakeloco.model.sampler import SamplerConfig, fit_sampler
+    from snakeloco.model.heads.sampler import SamplerConfig, fit_sampler
     from snakeloco.sim import DatasetError, read_npz, write_npz
 
     path, data = member_checkpoint
@@ -231,7 +231,7 @@ def test_sampler_gaits_of_another_density_are_refused_and_a_named_mirrored_head_
         fit_sampler(Fit(path, data, tmp_path / "c", gaits, workers=2, log=None), cfg)
     # The every family's head: named inputs, trained on every member and its mirror image too.
     from snakeloco.model import load_pretrained
-    from snakeloco.model.member_path import CURVE_INPUTS, NAMED_INPUTS
+    from snakeloco.model.heads.member_path import CURVE_INPUTS, NAMED_INPUTS
 
     named, fresh = cfg.model_copy(update={"head_inputs": "named"}), tmp_path / "fresh.npz"
     plain = fit_sampler(Fit(path, data, tmp_path / "d", fresh, workers=2, log=None), named)
@@ -263,8 +263,8 @@ def test_inverse_design_on_a_sampler_checkpoint_searches_on_the_data(member_chec
     the records are even when the target asks for more than any record does (its best one: the
     tiny model's density is far narrower than the 0.1 that makes a second candidate distinct)."""
     from snakeloco.model import load_pretrained
-    from snakeloco.model.design import design, path_end, prior_cost, search
-    from snakeloco.model.design_config import OUTSIDE_COST, DesignConfig, Target
+    from snakeloco.model.design.config import OUTSIDE_COST, DesignConfig, Target
+    from snakeloco.model.design.search import design, path_end, prior_cost, search
 
     m = load_pretrained(member_checkpoint[0])
     cfg = DesignConfig(candidates=2, screen=32, starts=2, generations=8, population=6)
@@ -293,7 +293,7 @@ def test_inverse_design_on_a_sampler_checkpoint_searches_on_the_data(member_chec
 
 @pytest.mark.slow
 def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_data(member_checkpoint):
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     from helpers import connect_headless
 
@@ -333,7 +333,7 @@ def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_
 def test_calibrate_sampler_density_only_gives_the_paper_family_a_sampler_and_a_flag(
     checkpoint, tiny_dataset_path, tmp_path, capsys
 ):
-    from snakeloco.app.cli import main
+    from snakeloco.app.cli.main import main
     from snakeloco.model import load_pretrained
 
     out = tmp_path / "with-density"
@@ -363,8 +363,8 @@ def test_the_shipped_structured_path_of_a_members_own_gait_beats_the_path_of_ano
     of these gaits'): the member, not z_B, must decide the path."""
     from snakeloco.model import load_pretrained
     from snakeloco.sim import BODY_DOWNSAMPLE
-    from snakeloco.sim.consistency import xy_r2
-    from snakeloco.sim.physics import Simulator
+    from snakeloco.sim.physics.simulator import Simulator
+    from snakeloco.sim.scores.consistency import xy_r2
 
     m = load_pretrained("structured")
     assert m.projects and m.member_head is not None

@@ -17,14 +17,14 @@ import numpy as np
 import pytest
 from conftest import TINY
 
-from snakeloco.app.cli import main
+from snakeloco.app.cli.main import main
 from snakeloco.model import TrainConfig, train
 from snakeloco.model.evaluate import ConsistencyConfig
 from snakeloco.sim import GenerateConfig, load_dataset
-from snakeloco.sim.backend import RAY_MISSING, BackendConfig
-from snakeloco.sim.dataset import ZARR_MISSING, DatasetError
-from snakeloco.sim.generate import generate_dataset
-from snakeloco.sim.structured import DEFAULT_PRESET, STRUCTURED_PRESETS
+from snakeloco.sim.data.dataset import ZARR_MISSING, DatasetError
+from snakeloco.sim.data.generate import generate_dataset
+from snakeloco.sim.gaits.structured import DEFAULT_PRESET, STRUCTURED_PRESETS
+from snakeloco.sim.physics.backend import RAY_MISSING, BackendConfig
 
 from helpers import SMALL
 
@@ -191,7 +191,7 @@ def test_ctrl_c_stops_the_ray_it_started_and_leaves_only_a_resumable_run(tmp_pat
     cmd = [
         sys.executable,
         "-m",
-        "snakeloco.app.cli",
+        "snakeloco.app.cli.main",
         "generate",
         "--num-samples",
         str(N_CTRL_C),

@@ -10,8 +10,8 @@ import time
 import numpy as np
 import pytest
 
-from snakeloco.sim.physics import Simulator
-from snakeloco.sim.scheduler import SEGMENT_SAMPLES, FairPhysics, OnTurns, Turn
+from snakeloco.sim.physics.scheduler import SEGMENT_SAMPLES, FairPhysics, OnTurns, Turn
+from snakeloco.sim.physics.simulator import Simulator
 
 
 def _blocked_pool() -> tuple[FairPhysics, threading.Event]:
@@ -202,7 +202,7 @@ def test_closing_cancels_queued_work_and_refuses_more():
 
 @pytest.mark.slow
 def test_replays_and_batches_on_the_pool_are_bit_identical_to_the_simulators_own():
-    from snakeloco.sim.gaits import PRESETS
+    from snakeloco.sim.gaits.library import PRESETS
 
     commands = np.stack([PRESETS[name].gait.commands() for name in list(PRESETS)[:3]])
     sim = Simulator(workers=2)
@@ -235,8 +235,8 @@ def test_tabs_decode_in_turns_each_its_newest_value(checkpoint):
     from contextlib import ExitStack
 
     from snakeloco.app.bench.load_driver import wait_until
-    from snakeloco.app.decode_process import IN_FLIGHT
-    from snakeloco.app.server import DesignerServer
+    from snakeloco.app.server.decode_process import IN_FLIGHT
+    from snakeloco.app.server.lifecycle import DesignerServer
 
     from helpers import connect_headless
 

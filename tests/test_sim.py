@@ -18,8 +18,8 @@ from snakeloco.sim import (
     joint_shape,
     shape_to_commands,
 )
-from snakeloco.sim.command_rule import expand_commands
-from snakeloco.sim.physics import Simulator, replay
+from snakeloco.sim.physics.command_rule import expand_commands
+from snakeloco.sim.physics.simulator import Simulator, replay
 
 from helpers import random_commands
 
@@ -213,7 +213,7 @@ def test_body_states_frame():
 
 def test_servo_response_averages_only_the_records_that_excite_a_frequency(tiny_dataset):
     from snakeloco.sim import servo_response
-    from snakeloco.sim.gaits import PRESETS
+    from snakeloco.sim.gaits.library import PRESETS
 
     u, q = tiny_dataset.commands.astype(np.float64), tiny_dataset.joint_angles.astype(np.float64)
     cu, cq = (joint_shape(x) for x in (u, q))
@@ -257,7 +257,7 @@ def test_servo_lag_compensation_brings_the_measured_shape_to_the_target(tiny_dat
 
 def test_the_scene_draws_the_links_as_the_mjcf_compiles_them():
     from snakeloco.sim import LINK_LENGTH, LINK_RADIUS
-    from snakeloco.sim.kinematics import LinkPoses
+    from snakeloco.sim.robot.kinematics import LinkPoses
 
     poses = LinkPoses()
     assert poses.capsule() == pytest.approx((LINK_RADIUS, LINK_LENGTH))

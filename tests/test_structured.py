@@ -8,17 +8,15 @@ import json
 import numpy as np
 import pytest
 
-from snakeloco.app.cli import main
+from snakeloco.app.cli.main import main
 from snakeloco.sim import GenerateConfig, SimulationError, joint_shape, load_dataset
-from snakeloco.sim.chunks import perturbed_shapes, simulate_structured
-from snakeloco.sim.consistency import ensemble_spread, perturbed_commands
-from snakeloco.sim.dataset import DatasetError
-from snakeloco.sim.gaits import GaitEquation
-from snakeloco.sim.generate import generate_dataset
-from snakeloco.sim.members import Member
-from snakeloco.sim.physics import Simulator
-from snakeloco.sim.projection import project
-from snakeloco.sim.structured import (
+from snakeloco.sim.data.chunks import perturbed_shapes, simulate_structured
+from snakeloco.sim.data.dataset import DatasetError
+from snakeloco.sim.data.generate import generate_dataset
+from snakeloco.sim.gaits.library import GaitEquation
+from snakeloco.sim.gaits.members import Member
+from snakeloco.sim.gaits.projection import project
+from snakeloco.sim.gaits.structured import (
     DEFAULT_PRESET,
     KINDS,
     STRUCTURED_PRESETS,
@@ -27,6 +25,8 @@ from snakeloco.sim.structured import (
     draw_structured,
     library_gait,
 )
+from snakeloco.sim.physics.simulator import Simulator
+from snakeloco.sim.scores.consistency import ensemble_spread, perturbed_commands
 
 CFG = GenerateConfig(
     num_samples=3, seed=3, family="structured", structured=STRUCTURED_PRESETS[DEFAULT_PRESET]
@@ -171,7 +171,7 @@ def test_a_screening_log_rebuilds_the_same_dataset_with_one_replay_per_record(tm
 
 
 def test_coefficient_noise_perturbs_the_shape_of_each_screened_replay():
-    from snakeloco.sim.chunks import _ensemble, draw_record
+    from snakeloco.sim.data.chunks import _ensemble, draw_record
 
     shape, _ = draw_structured(StructuredConfig(), 3, 0, 0)
     copies = perturbed_shapes(shape, 4, 0.1, np.random.default_rng(0))

@@ -8,10 +8,10 @@ import mujoco
 import numpy as np
 
 from snakeloco.app.bench.headless import HeadlessClient
-from snakeloco.app.server import DesignerServer, freeze_started, tune_process
+from snakeloco.app.server.lifecycle import DesignerServer, freeze_started, tune_process
 from snakeloco.sim import expand_commands, load_model
-from snakeloco.sim.consistency import ENSEMBLE_SIZE, perturbed_commands
-from snakeloco.sim.physics import Simulator
+from snakeloco.sim.physics.simulator import Simulator
+from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE, perturbed_commands
 
 
 def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, seed: int = 0) -> dict:

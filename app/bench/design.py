@@ -2,7 +2,7 @@
 
 Targets are the final positions (and, for every other target, the heading change) of held-out
 records, places this robot does reach; or (``reach``) final positions drawn uniformly between two
-distances in every direction. For each, ``model.design`` searches and verifies; the baseline spends
+distances in every direction. For each, ``model.design.search`` searches and verifies; the baseline spends
 the same number of replays on random gaits of the data (z_B from the shipped sampler, N(0, I)
 without one; z_k = 0, one replay each) and keeps the best by the same simulated objective. The
 design's best after its first round (the model's proposals alone, before physics corrects them) is
@@ -19,7 +19,8 @@ import time
 import numpy as np
 
 from snakeloco.model import load_pretrained
-from snakeloco.model.design import (
+from snakeloco.model.design.config import DesignConfig, Target
+from snakeloco.model.design.search import (
     Candidate,
     design,
     meets,
@@ -27,9 +28,8 @@ from snakeloco.model.design import (
     simulated_cost,
     verify,
 )
-from snakeloco.model.design_config import DesignConfig, Target
 from snakeloco.sim import load_dataset
-from snakeloco.sim.backend import open_backend
+from snakeloco.sim.physics.backend import open_backend
 
 UNREACHABLE = Target(forward=100.0, sideways=0.0)
 

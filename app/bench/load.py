@@ -62,8 +62,8 @@ from snakeloco.app.bench.processes import (
     slope_mb_per_min,
     split_cpus,
 )
-from snakeloco.app.server import DesignerServer, freeze_started, tune_process
-from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.app.server.lifecycle import DesignerServer, freeze_started, tune_process
+from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE
 
 BROWSER_NICE = {"browser": 10, "protocol": 19}
 """Nice of the browsers by driver (each browser process, its threads and scheduling group). The

@@ -13,14 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app import panel
 from snakeloco.app.bench import load_driver
 from snakeloco.app.bench.load_driver import CHROMIUM, wait_until
 from snakeloco.app.bench.processes import CpuSplit, rss_mb
-from snakeloco.app.gait_csv import read_gait_csv
-from snakeloco.app.gui import path_plot_values
-from snakeloco.app.server import DesignerServer
-from snakeloco.app.tab import DesignerClient
+from snakeloco.app.designer import panel
+from snakeloco.app.designer.gui import path_plot_values
+from snakeloco.app.designer.tab import DesignerClient
+from snakeloco.app.export.gait_csv import read_gait_csv
+from snakeloco.app.server.lifecycle import DesignerServer
 from snakeloco.sim import BODY_DOWNSAMPLE
 
 

@@ -29,9 +29,9 @@ from snakeloco.app.bench.load_browser import (
 )
 from snakeloco.app.bench.load_driver import wait_until
 from snakeloco.app.bench.processes import SPARED, CpuSplit, rss_mb
-from snakeloco.app.gui import path_plot_values
-from snakeloco.app.server import DesignerServer
-from snakeloco.app.tab import DesignerClient
+from snakeloco.app.designer.gui import path_plot_values
+from snakeloco.app.designer.tab import DesignerClient
+from snakeloco.app.server.lifecycle import DesignerServer
 
 CLIENT_NICE = 0
 """Nice of the protocol clients' process: the server's own (0.02 cores). They stand for users on

@@ -29,13 +29,13 @@ import numpy as np
 from PIL import Image
 
 from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
-from snakeloco.app.server import DesignerServer
-from snakeloco.app.view import in_view
+from snakeloco.app.designer.view import in_view
+from snakeloco.app.server.lifecycle import DesignerServer
 
 try:
-    from snakeloco.app.scene_geometry import path_points
+    from snakeloco.app.designer.scene_geometry import path_points
 except ImportError:  # a main before the scene's geometry had a module of its own
-    from snakeloco.app.scene import path_points
+    from snakeloco.app.designer.scene import path_points
 
 W, H = 1500, 950
 

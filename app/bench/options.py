@@ -1,5 +1,5 @@
 """The benchmarks' options (``snakeloco bench NAME``), beside the benchmarks they configure; the
-CLI (``app.cli``) parses them, the runner (``app.bench.report``) passes them by name."""
+CLI (``app.cli.main``) parses them, the runner (``app.bench.report``) passes them by name."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from snakeloco.app.bench.load_driver import DWELL_S
-from snakeloco.app.options import Checkpoint, Command, Ensemble, Json, Seed, Workers
-from snakeloco.model.design_config import DesignConfig
-from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.app.cli.options import Checkpoint, Command, Ensemble, Json, Seed, Workers
+from snakeloco.model.design.config import DesignConfig
+from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE
 
 
 class BenchSim(Command):
@@ -185,7 +185,7 @@ class BenchFit(Command):
     joints: bool = False
     """The synthetic runs measure the servos' joint angles too (0.5 deg noise), as a robot whose servos report their positions."""
     gaits: tuple[str, ...] = ("turn", "sidewind", "undulate")
-    """Library gaits whose runs are fitted (``sim.bench_fit.FIT_GAITS``); every other library gait and a slow undulation are held out."""
+    """Library gaits whose runs are fitted (``sim.fit.bench.FIT_GAITS``); every other library gait and a slow undulation are held out."""
     json: Json = False
 
 
@@ -206,9 +206,9 @@ BENCHES: dict[str, type[Command]] = {
     "fit": BenchFit,
 }
 BENCH_MODULES: dict[str, str] = {name: f"snakeloco.app.bench.{name}" for name in BENCHES} | {
-    "sim": "snakeloco.sim.bench",
+    "sim": "snakeloco.sim.physics.bench",
     "model": "snakeloco.model.bench",
-    "fit": "snakeloco.sim.bench_fit",
+    "fit": "snakeloco.sim.fit.bench",
 }
 """Where ``bench_NAME`` lives: the simulator's and the model's benchmarks in their own layers (they
 import nothing of ``app``), the designer's, load, design and data-engine ones in ``app/bench/``.

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.decode_process import decode_pids
+from snakeloco.app.server.decode_process import decode_pids
 
 
 def split_cpus() -> tuple[list[int], list[int]] | None:
@@ -35,7 +35,7 @@ def pin_process(cpus) -> None:
 
 
 def server_pids() -> list[int]:
-    """This process (the server) and its decode processes (``app.decode_process``)."""
+    """This process (the server) and its decode processes (``app.server.decode_process``)."""
     return [os.getpid(), *sorted(decode_pids())]
 
 

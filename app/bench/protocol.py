@@ -7,7 +7,7 @@ playback and turns light rendering on; drags as viser's slider does (a value eve
 trailing one), then rests.
 
 The frames' timestamps (``bench.wire``) split a latency into server time and delivery. A drag is
-matched to what it caused by the readout (``app.readout``), which carries its gait's slider values
+matched to what it caused by the readout (``app.designer.readout``), which carries its gait's slider values
 and the replay's state. Imports only numpy and viser's own dependencies (msgspec, zstandard,
 websockets).
 """

@@ -1,6 +1,6 @@
 """``snakeloco bench NAME``: the figures of a benchmark, printed for a person.
 
-``snakeloco bench NAME`` calls ``bench_NAME`` of ``BENCH_MODULES[NAME]`` (``app/bench/NAME.py``, ``sim/bench.py``, ``model/bench.py``) with the command's options
+``snakeloco bench NAME`` calls ``bench_NAME`` of ``BENCH_MODULES[NAME]`` (``app/bench/NAME.py``, ``sim/physics/bench.py``, ``model/bench.py``) with the command's options
 (``options``) and prints the figures it returns with the function ``NAME`` here (and as JSON with
 ``--json``).
 """
@@ -17,7 +17,7 @@ def options(cmd) -> dict:
 
 
 def sim(r: dict) -> None:
-    """The simulator against bare MuJoCo (``sim/bench.py``)."""
+    """The simulator against bare MuJoCo (``sim/physics/bench.py``)."""
     print(
         f"threads {r['workers']}, {r['samples']} records of {r['steps_per_sample']} steps\n"
         f"raw mujoco.rollout   {r['raw_steps_per_s']:12.0f} steps/s\n"
@@ -270,7 +270,7 @@ def screen(r: dict) -> None:
 
 
 def fit(r: dict) -> None:
-    """Robots of known physics fitted from synthetic runs (``sim/bench_fit.py``)."""
+    """Robots of known physics fitted from synthetic runs (``sim/fit/bench.py``)."""
     if "single_runs" in r:
         for gait, rows in r["single_runs"].items():
             said = "; ".join(

@@ -1,8 +1,8 @@
 """``snakeloco bench robust``: robust design against nominal design on the same targets.
 
 Targets: final positions at distances uniform in ``reach`` (m), directions uniform all round (as
-``bench design --reach``). For each, nominal design (``model.design``) and robust design
-(``model.robust_design``: with a physics head the search minimises the predicted fan's worst miss
+``bench design --reach``). For each, nominal design (``model.design.search``) and robust design
+(``model.design.robust``: with a physics head the search minimises the predicted fan's worst miss
 too) answer; the nominal design's best candidate is then replayed on every variation of the
 default set as the robust one's are, so both are judged by the same replayed worst case. Figures,
 relative to the target's distance: each answer's nominal error and worst-case error over the set
@@ -18,10 +18,10 @@ import numpy as np
 
 from snakeloco.app.bench.design import _uniform_targets
 from snakeloco.model import load_pretrained
-from snakeloco.model.design import design
-from snakeloco.model.design_config import DesignConfig
-from snakeloco.model.robust_design import robust_design, worst_case
-from snakeloco.sim.backend import open_backend
+from snakeloco.model.design.config import DesignConfig
+from snakeloco.model.design.robust import robust_design, worst_case
+from snakeloco.model.design.search import design
+from snakeloco.sim.physics.backend import open_backend
 
 
 def _summary(rows: list[dict], key: str) -> dict:

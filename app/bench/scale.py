@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from snakeloco.model import TrainConfig, train
-from snakeloco.model.config import TINY
+from snakeloco.model.vae.config import TINY
 from snakeloco.sim import GenerateConfig, load_dataset
-from snakeloco.sim.backend import BackendConfig, open_backend
-from snakeloco.sim.generate import default_chunk_size, generate_dataset
-from snakeloco.sim.writer import open_writer
+from snakeloco.sim.data.generate import default_chunk_size, generate_dataset
+from snakeloco.sim.data.writer import open_writer
+from snakeloco.sim.physics.backend import BackendConfig, open_backend
 
 KEYS = ("commands", "joint_angles", "body", "body_ds", "phases", "amplitude", "attempts", "shape")
 MEMORY_MODEL = TINY
@@ -107,7 +107,7 @@ def bench_scale(
     log=print,
 ) -> dict:
     """Run the three measurements in one go (see the module docstring); returns the figures."""
-    from snakeloco.sim.threads import resolve_workers
+    from snakeloco.sim.physics.threads import resolve_workers
 
     workers = resolve_workers(workers)
     cfg = GenerateConfig(num_samples=records, seed=seed, family=family)

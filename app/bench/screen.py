@@ -8,11 +8,11 @@ import time
 
 import numpy as np
 
-from snakeloco.sim.chunks import _ensemble, draw_record, simulate_structured
-from snakeloco.sim.consistency import ensemble_spread
-from snakeloco.sim.generate_config import GenerateConfig
-from snakeloco.sim.physics import Simulator
-from snakeloco.sim.structured import DEFAULT_PRESET, STRUCTURED_PRESETS, StructuredConfig
+from snakeloco.sim.data.chunks import _ensemble, draw_record, simulate_structured
+from snakeloco.sim.data.generate_config import GenerateConfig
+from snakeloco.sim.gaits.structured import DEFAULT_PRESET, STRUCTURED_PRESETS, StructuredConfig
+from snakeloco.sim.physics.simulator import Simulator
+from snakeloco.sim.scores.consistency import ensemble_spread
 
 CHUNK = 8
 """Records per timed chunk; the screens take turns chunk by chunk, so the machine's load falls on

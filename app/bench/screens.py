@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
-from snakeloco.app.server import DesignerServer
+from snakeloco.app.server.lifecycle import DesignerServer
 from snakeloco.sim import RECORD
 
 VIEWPORT = {"width": 1500, "height": 950}

@@ -36,9 +36,9 @@ from pathlib import Path
 from snakeloco.app.bench.load_browser import comment_numbers, percentile, require_browser
 from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.bench.processes import BrowserNice, RssSampler
-from snakeloco.app.gait_csv import read_gait_csv
-from snakeloco.app.server import DesignerServer, freeze_started, tune_process
-from snakeloco.sim.consistency import ENSEMBLE_SIZE
+from snakeloco.app.export.gait_csv import read_gait_csv
+from snakeloco.app.server.lifecycle import DesignerServer, freeze_started, tune_process
+from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE
 
 LAYOUT_TIMEOUT_S = 120.0
 """How long a page may take to lay out its controls before the rounds start."""

@@ -1,0 +1,1 @@
+"""The console script: subcommands, their options and the reports they print."""

@@ -1,0 +1,1 @@
+"""One browser tab of the designer: its state, jobs, GUI, scene and readout."""

@@ -1,0 +1,233 @@
+"""A tab's jobs, as a mixin of ``DesignerClient``: decode -> draw | replay -> draw -> ensemble -> draw ->
+variations -> draw.
+
+Each job runs on its own ``LatestWorker`` thread with the version of the request it serves, and
+draws only while that version is still the tab's newest (``is_current``), under the tab's draw lock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from snakeloco.app.designer import panel
+from snakeloco.app.designer.readout import STREAM_READOUT_PERIOD_S
+from snakeloco.app.designer.session import DecodedGait, SimulatedGait, Timing
+from snakeloco.sim import SimulationError
+from snakeloco.sim.physics.scheduler import Turn
+from snakeloco.sim.robot.variations import DEFAULT_SET
+from snakeloco.sim.scores.robustness import summarise
+
+SETTLED_S = 0.5
+"""A slider value the tab has held this long (no newer one) is one the user has let go of."""
+HELD_S = 0.06
+"""A slider value held this long (a dragged slider sends one every 50 ms) gets its first motion
+before other tabs' settled replays; a younger one's after them (``sim.physics.scheduler.LANES``). 80 ms
+until 2026-12-05: of the values 8 protocol clients sent while dragging, 4.0% came more than 80 ms
+after the one before and 4.8% more than 60 (most of those, 3.7%, over 100 ms), so 60 ms holds only
+a few more values a slider passes through and gives every first motion 20 ms back."""
+STREAM_PATH_PERIOD_S = 0.25
+"""How often a streaming replay's growing path is sent to the browser (the whole path is sent again
+each time; the snake's pose goes every animation frame)."""
+
+
+class TabJobs:
+    """The jobs of a ``DesignerClient`` (its session, workers, scene, controls and draw lock)."""
+
+    _varied_robots: tuple | None = None  # (the session's robot, its variations of the default set)
+
+    def _timing(self, version: int) -> Timing:
+        return self._timing_by_version.get(version) or Timing(version, time.perf_counter())
+
+    def _decode_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, latents = item
+        density = self.model.config.density
+        if (
+            not self.is_current(version)
+            or len(latents.z_b) != self.model.z_b_dim
+            or (
+                latents.component is not None and (density is None or latents.component >= len(density.names))
+            )
+        ):
+            return  # superseded (or sliders of a family this tab has just left)
+        with self._decoding.turns:  # in the order the tabs' values came
+            if not self.is_current(version):
+                return  # superseded while other tabs decoded: this worker has the newer value
+            timing = self._timing(version)
+            timing.started = time.perf_counter()
+            decoded = self._decoding.decode(self.session.model.path, latents, self.session.decode)
+            decoded = self._on_session_robot(decoded)
+            timing.decode_ms = decoded.decode_ms
+        with self._draw_lock:
+            if not self.is_current(version):
+                return
+            self.decoded, self.simulated, self.streaming = decoded, None, None
+            self._draw_decoded(decoded)
+            timing.decoded = time.perf_counter()
+            self.views_drawn += 1
+            self.physics.submit((version, ("gait", decoded)))
+        self._predict_variations(version, decoded)
+
+    def _on_session_robot(self, decoded: DecodedGait) -> DecodedGait:
+        """A member's path on the robot the tab replays on, where that is not the checkpoint's and
+        its physics head covers it (a fitted robot: ``serve --robot``); else ``decoded`` as it is."""
+        robot = self.session.robot
+        if decoded.member is None or robot.mjcf_sha256 == self.model.robot.mjcf_sha256:
+            return decoded
+        if not self.model.covers(robot):
+            return decoded
+        body = self.model.predict_variation_paths(decoded.member, [robot])[0]
+        return dataclasses.replace(decoded, body_ds=body)
+
+    def _predict_variations(self, version: int, decoded: DecodedGait) -> None:
+        """Draw the physics head's predicted Variations fan and say its line (a checkpoint with a
+        physics head, a gait that is a family member); the replays check it (``_variations``)."""
+        if not self.show_variations or decoded.member is None or self.model.physics_head is None:
+            return
+        robot = self.session.robot
+        if self._varied_robots is None or self._varied_robots[0] != robot:
+            self._varied_robots = (robot, [v.apply(robot) for v in DEFAULT_SET])
+        bodies = self.model.predict_variation_paths(decoded.member, self._varied_robots[1])
+        report = summarise(decoded.body_ds, DEFAULT_SET, list(bodies), [None] * len(bodies))
+        with self._draw_lock:
+            if not self.is_current(version):
+                return
+            self.predicted = (version, report)
+            with self.client.atomic():
+                self.scene.draw_predicted_variations(bodies)
+                if self.simulated is None:  # a finished replay's readout says it when it is drawn
+                    if self.streaming is not None:
+                        self.show_readout(decoded, "streaming", self.streaming.body)
+                    else:
+                        self.show_readout(decoded, "simulating")
+
+    def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, (kind, *payload) = item
+        if not self.is_current(version):
+            return
+        timing = self._timing(version)
+        is_current = lambda: self.is_current(version)  # noqa: E731
+        if kind == "load":
+            self._load_job(*payload, timing, is_current)
+        else:
+            self._simulate(payload[0], timing, is_current)
+
+    def _draw_part(self, part, timing: Timing, is_current) -> bool:
+        """Draw a streamed replay's first samples: the snake moves from t = 0 at once, the simulated
+        path grows. Returns whether the replay is still wanted (else it stops at this chunk)."""
+        if not np.isfinite(timing.first_chunk):
+            timing.first_chunk = time.perf_counter()
+        with self._draw_lock:
+            if not is_current():
+                return False
+            first = self.streaming is None
+            self.streaming = part
+            now = time.perf_counter()
+            if first or now - self._path_drawn > STREAM_PATH_PERIOD_S:  # the snake moves every frame
+                self._path_drawn = now
+                with self.client.atomic():
+                    self.scene.draw_streaming(part.body, part.qpos[0])
+            if (first or now - self._readout_drawn > STREAM_READOUT_PERIOD_S) and self.decoded is not None:
+                self._readout_drawn = now
+                self.show_readout(self.decoded, "streaming", part.body)
+            if first:
+                self.playback.restart()
+                self._draw_snake(0)
+                self.client.flush()
+                timing.first_motion = time.perf_counter()
+        return True
+
+    def _simulate(self, decoded: DecodedGait, timing: Timing, is_current) -> SimulatedGait | None:
+        try:
+            sim = self.session.replay_streamed(
+                decoded,
+                lambda part: self._draw_part(part, timing, is_current),
+                settled=lambda: time.perf_counter() - timing.submitted >= SETTLED_S,
+                wanted=is_current,
+                held_at=timing.submitted + HELD_S,
+            )
+        except SimulationError as exc:
+            timing.failed = str(exc)
+            with self._draw_lock:
+                if is_current():
+                    self.controls.panel.content = panel.failed_text(decoded, str(exc))
+                    self.show_readout(decoded, "failed", reason=str(exc))
+                    self.client.add_notification(
+                        "Replay failed", str(exc), color="red", auto_close_seconds=8.0
+                    )
+            return None
+        if sim is None:
+            return None  # superseded mid-stream
+        timing.replay_ms = sim.replay_ms
+        with self._draw_lock:
+            if not is_current():
+                return None
+            self.simulated, self.streaming = sim, None
+            self._draw_simulated(decoded, sim, ensemble=False)
+            timing.replayed = time.perf_counter()
+            self.ensembles.submit((timing.version, decoded, sim))
+        return sim
+
+    def _ensemble_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+        version, decoded, sim = item
+        if not self.is_current(version):
+            return
+        timing = self._timing(version)
+        is_current = lambda: self.is_current(version)  # noqa: E731
+        sim = self.session.run_ensemble(
+            decoded, sim, version, lambda b: self._draw_members(b, is_current), wanted=is_current
+        )
+        if sim is None:
+            return  # superseded between batches, or while a batch waited for other tabs' batches
+        timing.ensemble_ms = sim.ensemble_ms
+        with self._draw_lock:
+            if not is_current():
+                return
+            self._draw_simulated(decoded, sim, ensemble=True)
+            timing.ensembled = time.perf_counter()
+        if self.show_variations:
+            self._variations(version, decoded, sim, is_current)
+
+    def _variations(self, version: int, decoded: DecodedGait, sim: SimulatedGait, is_current) -> dict | None:
+        """Replay the gait on the default variation set (``sim.robot.variations``), a batch a physics thread
+        at a time on the pool's variations turn (after every tab's replays and ensembles), drawing
+        each batch as it comes (the Variations fan) and, at the end, the readout's line. Dropped
+        unrun once the gait changes."""
+        t0 = time.perf_counter()
+        robot = self.session.robot
+        robots = [v.apply(robot) for v in DEFAULT_SET]
+        simulator = self.session.simulator_for(Turn.VARIATIONS, is_current)
+        bodies, failures = [], []
+        for i in range(0, len(robots), simulator.workers):
+            part = robots[i : i + simulator.workers]
+            result = simulator.simulate(np.repeat(decoded.commands[None], len(part), axis=0), robots=part)
+            if result is None:
+                return None
+            bodies += list(result.body)
+            failures += result.failures
+            with self._draw_lock:
+                if not is_current():
+                    return None
+                with self.client.atomic():
+                    self.scene.draw_variations(
+                        [b for b, f in zip(result.body, result.failures, strict=True) if f is None]
+                    )
+        report = summarise(sim.body, DEFAULT_SET, bodies, failures)
+        report["seconds"] = time.perf_counter() - t0
+        with self._draw_lock:
+            if not is_current():
+                return None
+            self.variations = (version, report)
+            self.show_readout(decoded, "done", sim.body)
+        return report
+
+    def _draw_members(self, bodies: np.ndarray, is_current) -> bool:
+        """Draw the ensemble members in so far; whether the ensemble is still wanted."""
+        with self._draw_lock:
+            if not is_current():
+                return False
+            with self.client.atomic():
+                self.scene.draw_fan(bodies)
+        return True

@@ -1,0 +1,1 @@
+"""The designer's server: lifecycle, the decode process, viser's internals, workers."""

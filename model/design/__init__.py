@@ -1,0 +1,1 @@
+"""Inverse design: targets, the search, robust design and the robust library."""

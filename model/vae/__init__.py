@@ -1,0 +1,1 @@
+"""The hierarchical VAE: network, loss, config, training, tracing."""

@@ -1,0 +1,1 @@
+"""Datasets: generation chunk by chunk, the file format, its reader and writer."""

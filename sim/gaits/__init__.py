@@ -1,0 +1,1 @@
+"""Gaits as signals: the gait equation and library, spectra, excitation, the structured family."""

@@ -1,0 +1,1 @@
+"""Running the simulator: rollouts, the command rule, threads, the fair scheduler, backends."""

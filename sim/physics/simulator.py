@@ -1,0 +1,360 @@
+"""Open-loop simulation of joint commands in MuJoCo: batched rollouts and measurement.
+
+Commands become servo targets by the command rule (``sim.physics.command_rule``); the measured body states
+are those of ``sim.physics.body``. A rollout that diverges, is reset by MuJoCo or throws the snake counts
+as broken (``CommandRule`` holds the limits) and is named, never returned as data.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+
+from snakeloco.sim.gaits.excitation import ExcitationConfig
+from snakeloco.sim.physics.body import body_states
+from snakeloco.sim.physics.command_rule import CommandRule, expand_commands, why_broken
+from snakeloco.sim.physics.results import (
+    BatchResult,
+    Paused,
+    ReplayResult,
+    SimulationError,
+)
+from snakeloco.sim.physics.scheduler import FairRunner
+from snakeloco.sim.physics.stream import STATE_SPEC as _STATE_SPEC
+from snakeloco.sim.physics.stream import Streaming
+from snakeloco.sim.physics.threads import FifoLock, RolloutThreads, resolve_workers
+from snakeloco.sim.robot.description import BODY_SITE, Robot, resolve_robot
+
+VARIATION_MODELS_KEPT = 64
+"""Compiled variation models a simulator keeps (the default set is 12; a fit's candidates come and go)."""
+
+
+class Simulator(Streaming):
+    """Batched open-loop rollouts of the snake on ``workers`` threads (``RolloutThreads``: MuJoCo's
+    rollout with the GIL released).
+
+    ``nice`` > 0 runs the rollouts on threads at that much lower CPU priority (Linux), leaving the
+    calling thread's own priority alone: an interactive server keeps physics out of the way of
+    slider decoding. Those threads hold the GIL only to enter and leave a rollout (the wrapper's
+    argument checks), never during the physics. One Simulator is not for concurrent use from
+    several Python threads; make one per thread.
+    """
+
+    def __init__(
+        self,
+        workers: int | None = 1,
+        excitation: ExcitationConfig | None = None,
+        config: CommandRule | None = None,
+        nice: int = 0,
+        max_batch: int | None = None,
+        robot: Robot | None = None,
+    ) -> None:
+        self.excitation = excitation or ExcitationConfig()
+        self.config = config or CommandRule()
+        self.robot = resolve_robot(robot)
+        self.model = self.robot.compile()
+        self._variation_models: OrderedDict[Robot, mujoco.MjModel] = OrderedDict()
+        self.workers = resolve_workers(workers)
+        # Records rolled out per call: a rollout keeps every physics step (~16 MB per record), so a
+        # larger batch runs as consecutive calls of this many (2 per thread keeps both balanced).
+        self.max_batch = max(1, int(max_batch or 2 * self.workers))
+        self._data = mujoco.MjData(self.model)
+        self._pool = None  # one worker at the caller's priority: roll out on the calling thread
+        if self.workers > 1 or nice > 0:
+            self._pool = RolloutThreads(self.workers, int(nice), name="physics")
+        self._closed = False
+        self._lock = FifoLock()  # callers sharing one simulator roll out in the order they came
+        dt = self.model.opt.timestep
+        self.substeps = round(1.0 / (self.excitation.sample_rate * dt))
+        if abs(self.substeps * dt * self.excitation.sample_rate - 1.0) > 1e-9:
+            raise ValueError(f"timestep {dt} s does not divide the command period")
+        self.n_steps = (self.config.lead_in + self.excitation.n_samples) * self.substeps
+        self.delay = self.latency_steps(self.robot)
+        data = mujoco.MjData(self.model)  # reset state: straight snake resting on the floor
+        self.initial_state = np.empty(mujoco.mj_stateSize(self.model, _STATE_SPEC))
+        mujoco.mj_getState(self.model, data, self.initial_state, _STATE_SPEC)
+        sensor = {self.model.sensor(i).name: i for i in range(self.model.nsensor)}
+        adr = self.model.sensor_adr
+        self._q_cols = np.array([adr[sensor[f"q{k + 1}"]] for k in range(self.robot.n_joints)])
+        self._pos_cols = adr[sensor["body_pos"]] + np.arange(3)
+        self._quat_cols = adr[sensor["body_quat"]] + np.arange(4)
+        self._com_cols = adr[sensor["com_pos"]] + np.arange(3)
+        self._vel_cols = adr[sensor["com_vel"]] + np.arange(3)
+        assert self.model.site(BODY_SITE).id >= 0
+
+    def rollout(
+        self,
+        ctrl: np.ndarray,
+        wanted: Callable[[], bool] | None = None,
+        start: Paused | None = None,
+        warm_out: np.ndarray | None = None,
+        runner: FairRunner | None = None,
+        models: list[mujoco.MjModel] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Raw rollouts from the resting state (or from ``start``): ctrl (B, n_steps, 8) -> (state,
+        sensordata).
+
+        state is (B, n_steps, nstate) after each step; sensordata (B, n_steps, nsensordata) is
+        measured at the start of each step (about 16 MB per record: callers keep only samples).
+        ``wanted``: asked when the batch gets its turn; False: nothing is rolled out (None).
+        ``warm_out`` (B, nv): filled with each row's warm start after its last step. ``runner``: run
+        the rows on a shared pool's turns (``FairPhysics.runner``; None where one was dropped).
+        ``models``: one model per row (variations of this robot: one size signature), else this one.
+        """
+        batch = ctrl.shape[0]
+        if start is None:
+            initial = np.broadcast_to(self.initial_state, (batch, self.initial_state.size))
+            warm = np.zeros((batch, self.model.nv))  # as mj_resetData: no thread's history in it
+        else:
+            initial, warm = start.state, start.warm
+        m, n_steps = self.model, ctrl.shape[1]
+        state = np.empty((batch, n_steps, mujoco.mj_stateSize(m, _STATE_SPEC)))
+        sens = np.empty((batch, n_steps, m.nsensordata))
+        if runner is not None:
+            if self._closed:
+                raise SimulationError("the simulator was closed (the server is stopping)")
+            rows = runner.rollout(models or m, initial, ctrl, warm, state, sens, warm_out=warm_out)
+            return None if any(f.cancelled() for f in rows) else (state, sens)
+        with self._lock:
+            if self._closed:
+                raise SimulationError("the simulator was closed (the server is stopping)")
+            if wanted is not None and not wanted():
+                return None  # left while it waited for the callers before it
+            if self._pool is None and warm_out is None:
+                mj_rollout.rollout(
+                    models or m,
+                    self._data,
+                    initial,
+                    ctrl,
+                    initial_warmstart=warm,
+                    state=state,
+                    sensordata=sens,
+                )
+            elif self._pool is None:  # one row at a time, each one's final warm start kept
+                for i in range(batch):
+                    mj_rollout.rollout(
+                        m if models is None else models[i],
+                        self._data,
+                        initial[i : i + 1],
+                        ctrl[i : i + 1],
+                        initial_warmstart=warm[i : i + 1],
+                        state=state[i : i + 1],
+                        sensordata=sens[i : i + 1],
+                    )
+                    warm_out[i] = self._data.qacc_warmstart
+            else:
+                self._pool.rollout(models or m, initial, ctrl, warm, state, sens, warm_out=warm_out)
+        return state, sens
+
+    def latency_steps(self, robot: Robot) -> int:
+        """A robot's command latency in whole physics steps of this simulator."""
+        return round(robot.latency / self.model.opt.timestep)
+
+    def variation_model(self, robot: Robot) -> mujoco.MjModel:
+        """The compiled model of ``robot``, a variation of this simulator's robot (kept: a variation
+        set is a few models used again and again); ValueError where it changes more than physics."""
+        if robot == self.robot:
+            return self.model
+        model = self._variation_models.get(robot)
+        if model is None:
+            fixed = ("n_joints", "link_length", "link_radius", "joint_pattern", "timestep")
+            changed = [f for f in fixed if getattr(robot, f) != getattr(self.robot, f)]
+            if changed:
+                raise ValueError(f"a variation changes physics, not {', '.join(changed)}")
+            model = self._variation_models[robot] = robot.compile()
+            while len(self._variation_models) > VARIATION_MODELS_KEPT:  # a fit's candidates: each new
+                self._variation_models.popitem(last=False)
+        self._variation_models.move_to_end(robot)
+        return model
+
+    def close(self) -> None:
+        """Stop the rollout threads, if there are any (then the Simulator cannot roll out)."""
+        with self._lock:
+            self._closed = True
+            if self._pool is not None:
+                self._pool.close()
+
+    def simulate(
+        self,
+        commands: np.ndarray,
+        wanted: Callable[[], bool] | None = None,
+        samples: int | None = None,
+        resume: Paused | None = None,
+        runner: FairRunner | None = None,
+        robots: Sequence[Robot] | None = None,
+    ) -> BatchResult | None:
+        """Simulate a batch of records under the command rule and measure them.
+
+        Args:
+            commands: (B, T, 8) rad.
+            samples: simulate only the lead-in and the record's first this many samples (None: all
+                T); the results are then (B, samples, ...), the prefixes of the whole records',
+                and ``paused`` says where the rollouts stopped.
+            resume: carry on from an earlier call's ``paused`` (same commands, same rows) to
+                ``samples``: the results are the whole series from the record's start, bit-identical
+                to one uninterrupted call's (tested); only the steps after the pause are simulated.
+            wanted: asked each time a part of the batch gets its turn (callers sharing the
+                simulator roll out first come, first served); False: the rest is not simulated (None).
+            runner: on a shared pool's turns (``rollout``); None where a row was dropped.
+            robots: one description per record, each a variation of this simulator's robot (the
+                same geometry: ``variation_model``), e.g. one gait on a set of variations in one
+                batch; None: this robot.
+
+        Returns:
+            BatchResult with (B, T, 8) joint angles and (B, T, 6) body states; a failed row's
+            ``failures`` entry names the problem (its measurements are then meaningless).
+            Records are independent (same start, zero warm start): rolled out ``max_batch`` at a
+            time, the results are one call's.
+        """
+        commands = np.asarray(commands, dtype=np.float64)
+        expected = (self.excitation.n_samples, self.robot.n_joints)
+        if commands.ndim != 3 or commands.shape[1:] != expected:
+            raise ValueError(f"expected (B, {expected[0]}, {expected[1]}) commands, got {commands.shape}")
+        samples = expected[0] if samples is None else int(samples)
+        first = 0 if resume is None else resume.samples
+        if not first < samples <= expected[0]:
+            raise ValueError(f"samples must be {first + 1}-{expected[0]}, got {samples}")
+        if resume is not None and len(resume.state) != len(commands):
+            raise ValueError(f"resuming {len(resume.state)} paused rollouts with {len(commands)} records")
+        if robots is not None and len(robots) != len(commands):
+            raise ValueError(f"{len(robots)} robots for {len(commands)} records")
+        parts = []
+        for i in range(0, len(commands), self.max_batch):
+            rows = slice(i, i + self.max_batch)
+            start = None if resume is None else resume.rows(rows)
+            part_robots = None if robots is None else robots[rows]
+            parts.append(self._simulate(commands[rows], wanted, samples, start, runner, part_robots))
+            if parts[-1] is None:
+                return None
+        if len(parts) == 1:
+            return parts[0]
+        paused = None
+        if samples < expected[0]:
+            paused = Paused(
+                samples,
+                np.concatenate([r.paused.state for r in parts]),
+                np.concatenate([r.paused.warm for r in parts]),
+                tuple(np.concatenate(a) for a in zip(*(r.paused.measured for r in parts), strict=True)),
+                [f for r in parts for f in r.paused.failures],
+            )
+        return BatchResult(
+            joint_angles=np.concatenate([r.joint_angles for r in parts]),
+            body=np.concatenate([r.body for r in parts]),
+            failures=[f for r in parts for f in r.failures],
+            qpos=np.concatenate([r.qpos for r in parts]),
+            paused=paused,
+        )
+
+    def _simulate(
+        self,
+        commands: np.ndarray,
+        wanted: Callable[[], bool] | None,
+        samples: int,
+        start: Paused | None,
+        runner: FairRunner | None = None,
+        robots: Sequence[Robot] | None = None,
+    ) -> BatchResult | None:
+        first = 0 if start is None else start.samples
+        # Steps [begin, end): a resumed rollout starts where the paused one stopped.
+        begin = 0 if start is None else (self.config.lead_in + first) * self.substeps
+        end = (self.config.lead_in + samples) * self.substeps
+        models = None
+        if robots is None:
+            ctrl = expand_commands(commands, self.substeps, self.config, (begin, end), self.delay)
+        else:
+            models = [self.variation_model(r) for r in robots]
+            ctrl = np.concatenate(
+                [
+                    expand_commands(c[None], self.substeps, self.config, (begin, end), self.latency_steps(r))
+                    for c, r in zip(commands, robots, strict=True)
+                ]
+            )
+        pause = samples < self.excitation.n_samples
+        warm_out = np.empty((len(commands), self.model.nv)) if pause else None
+        rolled = self.rollout(ctrl, wanted, start, warm_out, runner, models)
+        if rolled is None:
+            return None
+        state, sens = rolled
+        failures = self._diagnose(state, sens, first=begin)
+        # Sample n is measured at the start of step record[n]; rows here are steps from `begin`.
+        record = self.config.lead_in * self.substeps + self.substeps * np.arange(first, samples) - begin
+        sampled = sens[:, record]  # (B, T, nsensordata), measured at the start of step `record`
+        # The state after step record-1: the same instant (the paused state where record is 0).
+        before = state[:, np.maximum(record - 1, 0)]
+        if start is not None:
+            before[:, record == 0] = start.state[:, None]
+        qpos = before[..., 1 : 1 + self.model.nq]
+        joint_angles = sampled[..., self._q_cols]
+        pos = sampled[..., self._pos_cols]
+        quat = sampled[..., self._quat_cols]
+        quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True).clip(min=1e-12)
+        if start is not None:  # the whole series from the record's start: its frame, its unwrapping
+            joint_angles, pos, quat, qpos = (
+                np.concatenate([a, b], axis=1)
+                for a, b in zip(start.measured, (joint_angles, pos, quat, qpos), strict=True)
+            )
+            failures = [f or g for f, g in zip(start.failures, failures, strict=True)]
+        with np.errstate(invalid="ignore"):
+            body = body_states(pos, quat)
+        paused = None
+        if pause:
+            paused = Paused(samples, state[:, -1].copy(), warm_out, (joint_angles, pos, quat, qpos), failures)
+        return BatchResult(joint_angles=joint_angles, body=body, failures=failures, qpos=qpos, paused=paused)
+
+    def _diagnose(self, state: np.ndarray, sens: np.ndarray, first: int = 0) -> list[str | None]:
+        dt = self.model.opt.timestep
+        failures: list[str | None] = []
+        for b in range(state.shape[0]):
+            failures.append(self._diagnose_one(state[b], sens[b], dt, first))
+        return failures
+
+    def _diagnose_one(self, state: np.ndarray, sens: np.ndarray, dt: float, first: int = 0) -> str | None:
+        """Why a rollout's steps (``state``/``sens`` rows are steps ``first``, ``first`` + 1, ...)
+        broke the simulation, or None. A stream checks each chunk's new steps once (``first``)."""
+        return why_broken(
+            self.config,
+            state,
+            sens[:, self._com_cols[2]],
+            np.linalg.norm(sens[:, self._vel_cols], axis=1),
+            dt,
+            first,
+            t0=self.config.lead_in / self.excitation.sample_rate,
+        )
+
+    def replay(self, commands: np.ndarray, runner: FairRunner | None = None) -> ReplayResult:
+        """Simulate one record exactly as data generation does (on ``runner``'s turns, as
+        ``simulate``); raise SimulationError if it breaks."""
+        commands = np.asarray(commands, dtype=np.float64)
+        result = self.simulate(commands[None], runner=runner)
+        if result.failures[0] is not None:
+            raise SimulationError(result.failures[0])
+        return ReplayResult(
+            commands=commands,
+            joint_angles=result.joint_angles[0],
+            body=result.body[0],
+            times=self.excitation.times,
+            qpos=result.qpos[0],
+        )
+
+
+_default_lock = threading.Lock()
+_default_simulator: Simulator | None = None
+
+
+def replay(commands: np.ndarray) -> ReplayResult:
+    """Replay one record of joint commands (T, 8) rad through the snake (``Simulator.replay``).
+    Raises ValueError (commands of the wrong shape or not finite) or SimulationError (the simulation
+    diverged or threw the snake; the message says how and when)."""
+    global _default_simulator
+    commands = np.asarray(commands, dtype=np.float64)
+    if not np.isfinite(commands).all():
+        raise ValueError("commands contain NaN or Inf")
+    with _default_lock:
+        if _default_simulator is None:
+            _default_simulator = Simulator(workers=1)
+        return _default_simulator.replay(commands)

@@ -1,0 +1,1 @@
+"""The robot as data: its description, its MuJoCo model, variations of its physics, link poses."""

@@ -1,0 +1,1 @@
+"""How a gait fares: consistency against the physics' spread, robustness over variations."""
