@@ -207,8 +207,12 @@ class Robustness(Command):
 
     gait: Annotated[Path, tyro.conf.Positional]
     """The gait CSV (Export CSV's format, or `snakeloco gait NAME --out`)."""
-    set: Literal["default", "sampled"] = "default"
-    """default: one change at a time, the reason for each in docs/variations.md; sampled: 16 robots with every change at once."""
+    set: str = "default"
+    """default: one change at a time, the reason for each in docs/variations.md; sampled: 16 robots with every change at once; FILE.yaml: a list of variations (name, scale, add, set of the robot's physical and sensing fields)."""
+    closed_loop: bool = False
+    """Play the gait with its steering loop following its nominal path (the '# steering:' comment's input, else one found by replays; docs/closed-loop.md): end error from the path's end, arrival time, cross-track error, time at the steering limit."""
+    end: Literal["arrive", "on_time"] = "arrive"
+    """--closed-loop: arrive stops at the path's end (capped at 2 records); on_time runs one record."""
     robot: Path | None = None
     """Robot description YAML the gait runs on (default: the paper's robot, sim/snake.xml)."""
     workers: Workers = None
@@ -221,10 +225,10 @@ class Export(Command):
 
     gait: Annotated[Path, tyro.conf.Positional]
     """The gait CSV (Export CSV's format, or `snakeloco gait NAME --out`)."""
-    format: Literal["ros2", "csv", "gait-equation", "dynamixel", "html"]
-    """ros2: trajectory_msgs/JointTrajectory YAML (positions and velocities); csv: commands at --rate; gait-equation: the gait's named parameters (structured-family members and library gaits); dynamixel: goal positions in ticks per servo id; html: a folder whose index.html plays the replay in any browser."""
+    format: Literal["ros2", "csv", "gait-equation", "dynamixel", "html", "controller"]
+    """ros2: trajectory_msgs/JointTrajectory YAML (positions and velocities); csv: commands at --rate; gait-equation: the gait's named parameters (structured-family members and library gaits); dynamixel: goal positions in ticks per servo id; html: a folder whose index.html plays the replay in any browser; controller: a folder that snakeloco.sim.control.PathFollower.load reads (the gait, its steering input, the path it follows and the follower's parameters)."""
     out: Path
-    """Destination file (a folder for html)."""
+    """Destination file (a folder for html and controller)."""
     rate: Annotated[float, Field(gt=0, le=1000)] = 100.0
     """Samples per second of ros2, csv and dynamixel (the command rule's straight lines between the 20 Hz samples)."""
     units: Literal["rad", "deg"] = "rad"

@@ -49,15 +49,23 @@ def run_robustness(cmd: Robustness) -> dict:
     """Replay a gait over a variation set and print where each variation ends (``sim.scores.robustness``)."""
     from snakeloco.app.export.gait_csv import GaitCSVError, read_gait_csv
     from snakeloco.sim.physics.simulator import Simulator
+    from snakeloco.sim.robot.description import RobotError
     from snakeloco.sim.robot.variations import variation_set
     from snakeloco.sim.scores.robustness import readout_line, robustness
 
     robot = _robot(cmd.robot)
     try:
-        table = read_gait_csv(cmd.gait.read_bytes(), robot)
-    except GaitCSVError as exc:
-        raise OptionError(f"{cmd.gait}: {exc}") from None
-    variations = variation_set(cmd.set)
+        text = cmd.gait.read_text()
+        table = read_gait_csv(text, robot)
+        variations = variation_set(cmd.set)
+    except (GaitCSVError, RobotError, ValueError) as exc:
+        raise OptionError(
+            f"{cmd.gait}: {exc}" if isinstance(exc, GaitCSVError) else f"--set: {exc}"
+        ) from None
+    if cmd.closed_loop:
+        from snakeloco.app.cli.closed_loop_report import closed_loop_report
+
+        return closed_loop_report(cmd, text, table.commands, robot, variations)
     t0 = time.perf_counter()
     report = robustness(table.commands, variations, Simulator(workers=cmd.workers, robot=robot))
     report.pop("bodies")
@@ -103,6 +111,21 @@ def run_export(cmd: Export) -> dict:
             print(
                 f"wrote {result['path']} ({result['bytes'] / 2**20:.2f} MiB, {result['frames']} frames) in "
                 f"{result['seconds']:.1f} s: open it in a browser, no server needed"
+            )
+            return result
+        if cmd.format == "controller":
+            from snakeloco.app.export.controller import export_controller
+
+            if cmd.out.exists() and not cmd.out.is_dir():
+                raise OptionError(
+                    f"--out {cmd.out}: exists and is not a directory (controller writes a folder)"
+                )
+            export.trajectory(table.commands, robot, clip=cmd.clip)  # refuses, naming the joint and time
+            result = export_controller(text, table.commands, cmd.out, robot, str(cmd.gait), cmd.workers)
+            print(
+                f"wrote {result['path']}/ ({', '.join(result['files'])}): {result['steering_line']} "
+                f"({result['steering_from']}); path {result['distance_m']:.2f} m. "
+                "Load it with snakeloco.sim.control.PathFollower.load (docs/closed-loop.md)"
             )
             return result
         body, clipped = export.export_gait(

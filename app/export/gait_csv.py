@@ -324,3 +324,29 @@ def read_member(text: str):
                     f"the '# {MEMBER_KEY}:' comment is not a gait's parameters: {exc}"
                 ) from None
     return None
+
+
+STEERING_KEY = "steering"
+"""The comment that carries a gait's steering input (JSON of ``sim.control.Steering``), as measured by
+``sim.control.find.find_steering`` for the robot it was found on."""
+
+
+def read_steering(text: str):
+    """The ``sim.control.Steering`` a gait CSV's ``# steering:`` comment names, or None without one.
+
+    Raises:
+        GaitCSVError: the comment is not a steering input.
+    """
+    from pydantic import ValidationError
+
+    from snakeloco.sim.control import Steering
+
+    for line in text.splitlines():
+        if line.startswith(f"# {STEERING_KEY}: "):
+            try:
+                return Steering.model_validate_json(line[len(STEERING_KEY) + 4 :])
+            except ValidationError as exc:
+                raise GaitCSVError(
+                    f"the '# {STEERING_KEY}:' comment is not a steering input: {exc}"
+                ) from None
+    return None

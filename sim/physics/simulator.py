@@ -151,6 +151,19 @@ class Simulator(Streaming):
                 self._pool.rollout(models or m, initial, ctrl, warm, state, sens, warm_out=warm_out)
         return state, sens
 
+    def poses(self, sens: np.ndarray) -> np.ndarray:
+        """The body frame's world pose (..., 3): x, y (m) and yaw (rad), from sensordata rows (..., n)."""
+        pos, q = sens[..., self._pos_cols], sens[..., self._quat_cols]
+        w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True).clip(min=1e-12), -1, 0)
+        yaw = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+        return np.stack([pos[..., 0], pos[..., 1], yaw], axis=-1)
+
+    def initial_sensors(self) -> np.ndarray:
+        """Sensordata (nsensordata,) at the resting start state (what a loop reads before its first step)."""
+        data = mujoco.MjData(self.model)
+        mujoco.mj_forward(self.model, data)
+        return data.sensordata.copy()
+
     def latency_steps(self, robot: Robot) -> int:
         """A robot's command latency in whole physics steps of this simulator."""
         return round(robot.latency / self.model.opt.timestep)
@@ -310,10 +323,10 @@ class Simulator(Streaming):
         dt = self.model.opt.timestep
         failures: list[str | None] = []
         for b in range(state.shape[0]):
-            failures.append(self._diagnose_one(state[b], sens[b], dt, first))
+            failures.append(self.diagnose_steps(state[b], sens[b], dt, first))
         return failures
 
-    def _diagnose_one(self, state: np.ndarray, sens: np.ndarray, dt: float, first: int = 0) -> str | None:
+    def diagnose_steps(self, state: np.ndarray, sens: np.ndarray, dt: float, first: int = 0) -> str | None:
         """Why a rollout's steps (``state``/``sens`` rows are steps ``first``, ``first`` + 1, ...)
         broke the simulation, or None. A stream checks each chunk's new steps once (``first``)."""
         return why_broken(

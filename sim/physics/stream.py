@@ -97,7 +97,7 @@ class Streaming:
                 chunk.result()
             warm = data.qacc_warmstart[None].copy()
             # Only this chunk's steps are new to the checks (the same verdict as the whole prefix's).
-            failure = self._diagnose_one(out_state[0], out_sens[0], m.opt.timestep, first=done)
+            failure = self.diagnose_steps(out_state[0], out_sens[0], m.opt.timestep, first=done)
             new = int(np.searchsorted(record, end))
             rows = record[n:new] - done  # sample i: sensed as step record[i] begins, qpos after the last
             sampled[n:new] = out_sens[0, rows]

@@ -24,6 +24,8 @@ from typing import TYPE_CHECKING, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from snakeloco.sim.robot.sensing import Sensing
+
 if TYPE_CHECKING:
     import mujoco
 
@@ -102,6 +104,7 @@ class Robot(BaseModel):
         0.0, ge=0, le=0.2, description="Command latency (s): each servo target arrives this much late."
     )
     timestep: float = Field(0.0025, gt=0, le=0.005, description="Physics step (s); divides 1/20 s.")
+    sensing: Sensing = Field(default_factory=Sensing, description="The pose estimate a steering loop gets.")
 
     @model_validator(mode="after")
     def _consistent(self) -> Robot:

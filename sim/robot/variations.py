@@ -17,12 +17,20 @@ lab floor is rarely level to better than a few degrees, and 5 degrees is a gentl
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from snakeloco.sim.robot.description import Robot, robot_from_dict
+from snakeloco.sim.robot.description import (
+    DEFAULT_ROBOT,
+    Robot,
+    RobotError,
+    robot_from_dict,
+    validation_message,
+)
+from snakeloco.sim.robot.sensing import SENSING_FIELDS
 
 PhysicalField = Literal[
     "link_mass",
@@ -38,6 +46,11 @@ PhysicalField = Literal[
     "slope_deg",
     "slope_direction_deg",
     "latency",
+    "pose_noise_m",
+    "pose_noise_deg",
+    "heading_drift_deg_per_min",
+    "pose_rate",
+    "pose_latency",
 ]
 PHYSICAL_FIELDS: tuple[str, ...] = PhysicalField.__args__
 
@@ -70,11 +83,13 @@ class Variation(BaseModel):
     def apply(self, robot: Robot) -> Robot:
         """The varied robot; RobotError (naming this variation) where the result is no robot."""
         values = robot.model_dump()
+        sensing = values["sensing"]
         for name, k in self.scale.items():
-            values[name] *= k
+            (sensing if name in SENSING_FIELDS else values)[name] *= k
         for name, v in self.add.items():
-            values[name] += v
-        values.update(self.set)
+            (sensing if name in SENSING_FIELDS else values)[name] += v
+        for name, v in self.set.items():
+            (sensing if name in SENSING_FIELDS else values)[name] = v
         values["name"] = f"{robot.name} ({self.name})"[:64]
         return robot_from_dict(values, f"variation {self.name!r} of {robot.name}")
 
@@ -190,9 +205,48 @@ VARIATION_SETS = ("default", "sampled")
 
 
 def variation_set(name: str) -> tuple[Variation, ...]:
-    """A named set: ``default`` (one change at a time) or ``sampled`` (16 combined changes, seed 0)."""
+    """A named set: ``default`` (one change at a time) or ``sampled`` (16 combined changes, seed 0), or
+    a YAML file of variations (``load_variations``)."""
     if name == "default":
         return DEFAULT_SET
     if name == "sampled":
         return sampled_set()
-    raise ValueError(f"unknown variation set {name!r}: one of {', '.join(VARIATION_SETS)}")
+    if name.endswith((".yaml", ".yml", ".json")):
+        return load_variations(name)
+    raise ValueError(f"unknown variation set {name!r}: one of {', '.join(VARIATION_SETS)}, or a FILE.yaml")
+
+
+def load_variations(path: str | Path) -> tuple[Variation, ...]:
+    """Variations from YAML: a list of ``Variation`` mappings (or ``{variations: [...]}``), each checked
+    on the default robot. RobotError names the file, the entry, the field and the reason."""
+    import yaml
+
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise RobotError(f"{path}: cannot read ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise RobotError(f"{path}: not YAML ({str(exc).splitlines()[0]})") from None
+    if isinstance(data, dict) and set(data) == {"variations"}:
+        data = data["variations"]
+    if not isinstance(data, list) or not data:
+        raise RobotError(
+            f"{path}: a variation file is a non-empty list of variations (name, scale, add, set)"
+        )
+    out = []
+    for i, entry in enumerate(data, start=1):
+        name = entry.get("name") if isinstance(entry, dict) else None
+        where = f"{path}: variation {i}" + (f" ({name!r})" if name else "")
+        if not isinstance(entry, dict):
+            raise RobotError(f"{where}: a variation is a mapping, got {type(entry).__name__}")
+        try:
+            v = Variation.model_validate(entry)
+        except ValidationError as exc:
+            raise RobotError(f"{where}: {validation_message(exc)}") from None
+        try:
+            v.apply(DEFAULT_ROBOT)  # a field pushed out of its range is refused here, naming it
+        except RobotError as exc:
+            raise RobotError(f"{where}: {str(exc).partition(': ')[2]}") from None
+        out.append(v)
+    return tuple(out)
