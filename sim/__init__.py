@@ -35,8 +35,6 @@ from snakeloco.sim.robot.description import (
     LINK_LENGTH,
     LINK_RADIUS,
     MJCF_PATH,
-    N_JOINTS,
-    N_LINKS,
     load_model,
     mjcf_sha256,
 )
@@ -53,8 +51,6 @@ __all__ = [
     "LINK_LENGTH",
     "LINK_RADIUS",
     "MJCF_PATH",
-    "N_JOINTS",
-    "N_LINKS",
     "RECORD",
     "SCHEMA_VERSION",
     "CommandRule",

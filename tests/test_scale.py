@@ -33,6 +33,9 @@ RAY = BackendConfig(backend="ray")
 needs_ray = pytest.mark.skipif(
     __import__("importlib").util.find_spec("ray") is None, reason="Ray is not installed (the scale extra)"
 )
+needs_zarr = pytest.mark.skipif(
+    __import__("importlib").util.find_spec("zarr") is None, reason="zarr is not installed (the scale extra)"
+)
 
 
 def assert_same(a, b) -> None:
@@ -68,6 +71,7 @@ def task_processes(name: str = "ray::_run_task") -> list[int]:
 # --- zarr stores ------------------------------------------------------------------------------------
 
 
+@needs_zarr
 def test_a_zarr_store_holds_the_npz_arrays_and_is_validated_like_it(tmp_path, tiny_dataset):
     store = load_dataset(generate_dataset(TINY, tmp_path / "d.zarr", workers=2, chunk_size=2))
     assert store.path.is_dir() and not (tmp_path / "d.zarr.partial").exists()
@@ -92,6 +96,7 @@ def test_a_zarr_store_holds_the_npz_arrays_and_is_validated_like_it(tmp_path, ti
     assert (tmp_path / "mine.zarr" / "notes.txt").read_text() == "keep me"
 
 
+@needs_zarr
 def test_training_from_a_zarr_store_equals_training_from_the_npz(tmp_path, tiny_dataset_path):
     store = generate_dataset(TINY, tmp_path / "d.zarr", workers=2)
     cfg = TrainConfig(epochs=1, batch_size=2, val_fraction=0.25)

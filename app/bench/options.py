@@ -189,8 +189,35 @@ class BenchFit(Command):
     json: Json = False
 
 
+class BenchLoop(Command):
+    """Benchmark closed-loop gaits against open loop on the same variations: the library's undulation and sidewinding over the default and sampled sets, with noisy sensing, started off their path, the closed loop's time against the open-loop batch's, and sampler gaits of the structured checkpoint (docs/closed-loop.md)."""
+
+    gaits: Annotated[int, Field(ge=1)] = 64
+    """Sampler gaits that travel at least --min-distance, scored over the default set."""
+    seed: Seed = 0
+    """Seed of the sampler's draws."""
+    min_distance: Annotated[float, Field(gt=0)] = 2.0
+    """Metres a sampler gait travels in its 100 s record to count."""
+    sampled: Annotated[int, Field(ge=0, le=64)] = 16
+    """Sampled variations beside the default set for the library gaits."""
+    repeats: Annotated[int, Field(ge=1)] = 2
+    """Timing: runs of each side, the best kept."""
+    sections: tuple[Literal["library", "sensing", "off_path", "timing", "sampler"], ...] = (
+        "library",
+        "sensing",
+        "off_path",
+        "timing",
+        "sampler",
+    )
+    checkpoint: Checkpoint = None
+    workers: Workers = None
+    out: Path | None = None
+    """Sampler rows written gait by gait to this JSON (a rerun with it skips the gaits done)."""
+    json: Json = False
+
+
 class Bench(Command):
-    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design,robust,screen,fit} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design,robust,screen,fit,loop} --help`."""
 
 
 BENCHES: dict[str, type[Command]] = {
@@ -204,6 +231,7 @@ BENCHES: dict[str, type[Command]] = {
     "robust": BenchRobust,
     "screen": BenchScreen,
     "fit": BenchFit,
+    "loop": BenchLoop,
 }
 BENCH_MODULES: dict[str, str] = {name: f"snakeloco.app.bench.{name}" for name in BENCHES} | {
     "sim": "snakeloco.sim.physics.bench",

@@ -305,3 +305,41 @@ def fit(r: dict) -> None:
         f"error median {100 * r['held_out_fitted_rel_median']:.1f}% fitted vs {100 * r['held_out_nominal_rel_median']:.0f}% "
         f"nominal, {100 * r['held_out_near_rel_median']:.1f}% with every field within 3% of the truth; fit time median {r['seconds_median']:.0f} s ({r['workers']} threads)"
     )
+
+
+def loop(r: dict) -> None:
+    """Closed loop against open loop (``bench/loop.py``)."""
+
+    def pct(v) -> str:
+        return "-" if v is None else f"{100 * v:.1f}%"
+
+    for name, f in r.get("library", {}).items():
+        print(
+            f"library {name}: {f['steering']}; path {f['distance_m']:.1f} m; open loop median {pct(f['open']['median'])}, "
+            f"worst {pct(f['open']['max'])}; closed loop arrived {f['arrived']}/{f['runs']}, "
+            f"{f['within_3pct_of_arrived']} of them within 3% (median {pct(f['closed_arrived']['median'])}, "
+            f"worst {pct(f['closed_arrived']['max'])}); late: {', '.join(f['late']) or 'none'}"
+        )
+    for name, f in r.get("sensing", {}).items():
+        print(
+            f"sensing {name}: end error median {f['clean_m']['median']:.3f} m -> {f['noisy_m']['median']:.3f} m "
+            f"(worst {f['clean_m']['max']:.3f} -> {f['noisy_m']['max']:.3f} m), arrived {f['arrived_clean']} / {f['arrived_noisy']}"
+        )
+    for name, f in r.get("off_path", {}).items():
+        bl = f["settled_body_lengths"]
+        print(
+            f"off path {name} (1 m, 30 deg): within 0.1 m for good after {'never' if bl is None else f'{bl:.1f} body lengths'}"
+            f", end {pct(f['end_error_rel'])} off"
+        )
+    if "timing" in r:
+        t = r["timing"]
+        print(
+            f"12 replays: open loop {t['open_s']:.1f} s, closed loop {t['closed_s']:.1f} s, ratio {t['ratio']:.2f} (goal <= 1.5)"
+        )
+    if "sampler" in r:
+        s = r["sampler"]
+        print(
+            f"sampler: {s['gaits']} gaits, {100 * s['steered_share']:.0f}% with a steering input; open loop median of "
+            f"medians {pct(s['open_median_of_medians'])}, of worsts {pct(s['open_median_of_worst'])}; closed loop "
+            f"{pct(s['closed_median_of_medians'])}, {pct(s['closed_median_of_worst'])}"
+        )

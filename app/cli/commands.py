@@ -136,6 +136,8 @@ class Design(Command):
     """Rank the verified candidates by their error over the default physics variations (each one replayed on every variation: docs/variations.md), not on the nominal robot alone."""
     robust_score: Literal["worst", "p90"] = "worst"
     """With --robust: rank by the worst or the 90th-percentile error over the variations."""
+    closed_loop: bool = False
+    """Rank the best verified candidates by where their steering loop ends on each default physics variation (each found its steering input and played closed loop following its own nominal path: docs/closed-loop.md); the candidate CSVs carry the steering input."""
     backend: Annotated[BackendConfig, Flat] = BackendConfig()
     json: bool = False
     """Print report.json as one JSON object on the last line."""

@@ -12,7 +12,7 @@ def write_design(cmd) -> dict:
     import sys
 
     from snakeloco.app.cli.options import OptionError
-    from snakeloco.app.export.gait_csv import write_gait_csv
+    from snakeloco.app.export.gait_csv import PATH_KEY, STEERING_KEY, write_gait_csv
     from snakeloco.model import load_pretrained
     from snakeloco.model.design.search import design
     from snakeloco.sim.robot.description import RobotError, resolve_robot
@@ -35,7 +35,15 @@ def write_design(cmd) -> dict:
         from snakeloco.model.heads.physics_head import OnRobot
 
         searched, searched_on = OnRobot(model, robot), f"the physics head's paths on {robot.name}"
-    if cmd.robust:
+    if cmd.robust and cmd.closed_loop:
+        raise OptionError("--robust and --closed-loop rank candidates two ways: choose one")
+    if cmd.closed_loop:
+        from snakeloco.model.design.closed_loop import closed_loop_design
+
+        result = closed_loop_design(
+            searched, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers, robot=robot
+        )
+    elif cmd.robust:
         from snakeloco.model.design.robust import robust_design
 
         result = robust_design(
@@ -70,10 +78,15 @@ def write_design(cmd) -> dict:
         }
         if robust is not None:
             r = robust[rank - 1]
+            loop = " closed loop" if r.get("closed_loop") else ""
             comments["on other robots"] = (
-                f"worst {r['worst_m']:.3f} m from the target ({r['worst_variation']}), p90 {r['p90_m']:.3f} m "
+                f"worst{loop} {r['worst_m']:.3f} m from the target ({r['worst_variation']}), p90 {r['p90_m']:.3f} m "
                 f"over {r['replayed']} physics variations"
             )
+            if "steering" in r:
+                comments[STEERING_KEY] = jsonlib.dumps(r["steering"], separators=(",", ":"))
+            if "path" in r:
+                comments[PATH_KEY] = jsonlib.dumps(r["path"], separators=(",", ":"))
         csv.write_text(write_gait_csv(model.commands(c.shape), comments, model.robot))
         candidates.append({"csv": str(csv), **c.report(), **({"robust": robust[rank - 1]} if robust else {})})
     report = {
@@ -90,11 +103,25 @@ def write_design(cmd) -> dict:
         "seconds": time.perf_counter() - t0,
         "robot": robot.name,
         "robust": None if robust is None else result.extra["score"],
+        "closed_loop": bool(result.extra.get("closed_loop")),
         "beyond_reach": result.extra.get("beyond_reach"),
     }
     (cmd.out / "report.json").write_text(jsonlib.dumps(report, indent=1))
     best = result.candidates[0] if result.candidates else None
-    if best is None or best.simulated is None:
+    if best is not None and robust and robust[0].get("closed_loop"):
+        r = robust[0]
+        verdict = (
+            "met"
+            if result.met
+            else ("not met on other robots" if r["nominal_m"] <= result.tolerance_m else "not met")
+        )
+        print(
+            f"{verdict}: closed loop ({r['steering_line']}), candidate 1 stops {r['nominal_m']:.2f} m from the target "
+            f"on the nominal robot and at most {r['worst_m']:.2f} m on the {r['replayed']} variations "
+            f"(worst: {r['worst_variation']}; tolerance {result.tolerance_m:.2f} m); its path turned "
+            f"{r['path']['turn_deg']:.0f} deg, cut at the target; {len(candidates)} candidates in {cmd.out}"
+        )
+    elif best is None or best.simulated is None:
         print(f"not met: every candidate broke the simulation; report in {cmd.out / 'report.json'}")
     else:
         where = f"forward {best.simulated[0]:.2f} m, sideways {best.simulated[1]:.2f} m"
@@ -112,8 +139,9 @@ def write_design(cmd) -> dict:
         )
         if robust:
             r = robust[0]
+            loop = f" closed loop ({r['steering_line']})" if r.get("closed_loop") else ""
             print(
-                f"on other robots candidate 1 ends at most {r['worst_m']:.2f} m from the target "
+                f"on other robots candidate 1{loop} ends at most {r['worst_m']:.2f} m from the target "
                 f"({r['worst_variation']}; p90 {r['p90_m']:.2f} m over {r['replayed']} variations)"
             )
     if cmd.json:

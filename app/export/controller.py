@@ -8,11 +8,12 @@ pose) and ``gait.csv`` (the gait CSV it came from). docs/closed-loop.md has the 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.export.gait_csv import read_steering
+from snakeloco.app.export.gait_csv import read_closed_loop_path, read_steering
 
 
 def gait_steering(text: str, commands: np.ndarray, simulator):
@@ -28,13 +29,16 @@ def gait_steering(text: str, commands: np.ndarray, simulator):
 
 def export_controller(text: str, commands: np.ndarray, out: Path, robot, source: str, workers=None) -> dict:
     """Write the controller folder of a gait (module docstring); returns what was written."""
-    from snakeloco.sim.control.closed_loop import make_follower, nominal_reference
+    from snakeloco.sim.control.closed_loop import cut_and_turn, make_follower, nominal_path
     from snakeloco.sim.physics.simulator import Simulator
 
     simulator = Simulator(workers=workers, robot=robot)
     try:
         steering, origin = gait_steering(text, commands, simulator)
-        reference = nominal_reference(commands, simulator, steering.period)
+        reference, record = nominal_path(commands, simulator, steering.period)
+        cut = read_closed_loop_path(text)  # a closed-loop design's candidate: to its target, turned
+        if cut is not None:
+            reference = cut_and_turn(reference, cut["until"], record[:2], math.radians(cut["turn_deg"]))
     finally:
         simulator.close()
     follower = make_follower(commands, reference, steering, simulator)

@@ -35,8 +35,6 @@ def header(n_joints: int) -> list[str]:
     return ["time_s", *[f"joint_{k}" for k in range(1, n_joints + 1)]]
 
 
-HEADER = header(DEFAULT_ROBOT.n_joints)
-"""The default robot's columns."""
 MAX_BYTES = 2 * 2**20
 """Largest accepted upload: a 2000-row gait written at full precision is ~0.4 MB."""
 
@@ -326,6 +324,10 @@ def read_member(text: str):
     return None
 
 
+PATH_KEY = "closed loop path"
+"""The comment of a closed-loop design candidate (JSON ``{"until": n, "turn_deg": a}``): its loop
+follows its nominal path's first n + 1 points, turned by a degrees about the record's start, and
+stops there (``model.design.closed_loop``; ``export --format controller`` writes that path)."""
 STEERING_KEY = "steering"
 """The comment that carries a gait's steering input (JSON of ``sim.control.Steering``), as measured by
 ``sim.control.find.find_steering`` for the robot it was found on."""
@@ -348,5 +350,19 @@ def read_steering(text: str):
             except ValidationError as exc:
                 raise GaitCSVError(
                     f"the '# {STEERING_KEY}:' comment is not a steering input: {exc}"
+                ) from None
+    return None
+
+
+def read_closed_loop_path(text: str) -> dict | None:
+    """A gait CSV's ``# closed loop path:`` (``PATH_KEY``) as ``{"until": int, "turn_deg": float}``, or None."""
+    for line in text.splitlines():
+        if line.startswith(f"# {PATH_KEY}: "):
+            try:
+                found = json.loads(line.partition(": ")[2])
+                return {"until": int(found["until"]), "turn_deg": float(found["turn_deg"])}
+            except (ValueError, KeyError, TypeError):
+                raise GaitCSVError(
+                    f'the \'# {PATH_KEY}:\' comment is not {{"until": n, "turn_deg": a}}'
                 ) from None
     return None

@@ -113,13 +113,14 @@ class PathFollower:
         self._ds = max(self.length / 4000.0, 0.005)
         s = np.linspace(0.0, self.length, max(2, int(self.length / self._ds) + 1))
         keep = np.concatenate([[True], seg > 0])  # repeated points have no direction
-        self._path = np.stack([np.interp(s, arc[keep], ref[keep, i]) for i in range(2)], axis=1)  # (m, 2)
+        self._xs, self._ys = (np.interp(s, arc[keep], ref[keep, i]) for i in range(2))  # (m,) m each
         self._s = s
 
     def reset(self) -> None:
         """Forget the run: the next ``step`` is a first call again."""
         self._origin: tuple[float, float, float] | None = None
         self._poses: deque[tuple[float, float, float]] = deque(maxlen=self._window)
+        self._sum = [0.0, 0.0, 0.0]
         self._last_yaw = 0.0
         self._index = 0
         self._y_int = 0.0
@@ -151,17 +152,30 @@ class PathFollower:
             return self.commands[len(self.commands) - self.lead_in + n] * self._fade[n]
         return self.commands[(n - self.lead_in) % len(self.commands)]
 
+    def in_frame(self, x: float, y: float, yaw: float) -> tuple[float, float, float]:
+        """A world pose in the frame of the first pose given (yaw wrapped to [-pi, pi))."""
+        x0, y0, yaw0 = self._origin if self._origin is not None else (x, y, yaw)
+        c, s = math.cos(yaw0), math.sin(yaw0)
+        dx, dy = x - x0, y - y0
+        return c * dx + s * dy, -s * dx + c * dy, _wrap(yaw - yaw0)
+
     def _frame(self, x: float, y: float, yaw: float) -> tuple[float, float, float]:
         if self._origin is None:
             self._origin = (x, y, yaw)
             self._last_yaw = 0.0
-        x0, y0, yaw0 = self._origin
-        c, s = math.cos(yaw0), math.sin(yaw0)
-        dx, dy = x - x0, y - y0
+        fx, fy, fyaw = self.in_frame(x, y, yaw)
         # Yaw unwrapped against the last one: the averaged heading never jumps by 2 pi.
-        rel = self._last_yaw + _wrap(yaw - yaw0 - self._last_yaw)
+        rel = self._last_yaw + _wrap(fyaw - self._last_yaw)
         self._last_yaw = rel
-        return c * dx + s * dy, -s * dx + c * dy, rel
+        return fx, fy, rel
+
+    def _remember(self, pose: tuple[float, float, float]) -> None:
+        """Add a pose to the last period's, keeping their sums (the averaged pose without a pass)."""
+        if len(self._poses) == self._window:
+            old = self._poses[0]
+            self._sum = [a - b for a, b in zip(self._sum, old, strict=True)]
+        self._poses.append(pose)
+        self._sum = [a + b for a, b in zip(self._sum, pose, strict=True)]
 
     def step(self, t: float, x: float, y: float, yaw: float) -> np.ndarray:
         """Servo targets (n_joints,) rad for the next 1 / rate s, from the pose (m, m, rad) at ``t`` s
@@ -170,7 +184,7 @@ class PathFollower:
             return self._target
         self.t = float(t)
         n = round(t * self.rate)
-        self._poses.append(self._frame(float(x), float(y), float(yaw)))
+        self._remember(self._frame(float(x), float(y), float(yaw)))
         record_t = t - self.lead_in_duration
         u = 0.0
         if (
@@ -199,27 +213,29 @@ class PathFollower:
 
     def _track(self) -> tuple[float, float]:
         """Update the averaged pose, progress and cross-track error; return (tangent angle, e)."""
-        poses = np.array(self._poses)  # (window, 3)
-        p = poses[:, :2].mean(axis=0)
-        self.averaged = p
-        path, look = self._path, self.config.look_ahead
+        px, py = self._sum[0] / self._window, self._sum[1] / self._window
+        self.averaged = np.array([px, py])
+        xs, ys, look = self._xs, self._ys, self.config.look_ahead
+        # The nearest path point a little behind to a look-ahead ahead of the last one: progress is
+        # monotone, so a path that passes near itself later is not jumped to.
         lo = max(self._index - int(0.1 / self._ds), 0)
-        hi = min(self._index + int(max(2.0, 4 * look) / self._ds) + 1, len(path))
-        d = np.linalg.norm(path[lo:hi] - p, axis=1)
-        i = lo + int(np.argmin(d))
-        if d.min() > 2 * look:  # lost: the nearest point ahead of where it was
-            ahead = np.linalg.norm(path[self._index :] - p, axis=1)
-            i = self._index + int(np.argmin(ahead))
-        self._index = max(self._index, i) if d.min() <= 2 * look else i
+        hi = min(self._index + int(max(0.5, look) / self._ds) + 1, len(xs))
+        d2 = (xs[lo:hi] - px) ** 2 + (ys[lo:hi] - py) ** 2
+        k = int(np.argmin(d2))
+        if d2[k] > (2 * look) ** 2:  # lost: the nearest point anywhere ahead of where it was
+            d2 = (xs[self._index :] - px) ** 2 + (ys[self._index :] - py) ** 2
+            self._index += int(np.argmin(d2))
+        else:
+            self._index = max(self._index, lo + k)
         i = self._index
-        j = min(i + max(1, int(0.5 * look / self._ds)), len(path) - 1)
-        a, b = (path[i], path[j]) if j > i else (path[max(i - 1, 0)], path[i])
-        gamma = math.atan2(b[1] - a[1], b[0] - a[0])
-        tangent = np.array([math.cos(gamma), math.sin(gamma)])
-        rel = p - path[i]
-        e = float(tangent[0] * rel[1] - tangent[1] * rel[0])
+        j = min(i + max(1, int(0.5 * look / self._ds)), len(xs) - 1)
+        a, b = (i, j) if j > i else (max(i - 1, 0), i)
+        gamma = math.atan2(ys[b] - ys[a], xs[b] - xs[a])
+        c, s = math.cos(gamma), math.sin(gamma)
+        rx, ry = px - xs[i], py - ys[i]
+        e = c * ry - s * rx
         self.cross_track, self.progress = e, float(self._s[i])
-        if i == len(path) - 1 and float(rel @ tangent) >= 0.0:
+        if i == len(xs) - 1 and c * rx + s * ry >= 0.0:
             self.arrived = True
         return gamma, e
 
@@ -228,7 +244,7 @@ class PathFollower:
         cfg, look = self.config, self.config.look_ahead
         self._y_int += dt * look * e / ((e + cfg.integral * self._y_int) ** 2 + look**2)
         chi_d = gamma - math.atan((e + cfg.integral * self._y_int) / look)
-        heading = float(np.mean(np.array(self._poses)[:, 2]))
+        heading = self._sum[2] / self._window
         err = _wrap(chi_d - heading - self.steering.travel_offset)
         # Facing nearly backwards either way round is as short: keep the way chosen, or the input
         # flips at the wrap every step and the snake circles on the spot.

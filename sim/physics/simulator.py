@@ -7,6 +7,7 @@ as broken (``CommandRule`` holds the limits) and is named, never returned as dat
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
@@ -153,16 +154,35 @@ class Simulator(Streaming):
 
     def poses(self, sens: np.ndarray) -> np.ndarray:
         """The body frame's world pose (..., 3): x, y (m) and yaw (rad), from sensordata rows (..., n)."""
+        if sens.ndim == 1:  # one row, each control period of a closed loop: plain floats are faster
+            (px, py, _), (w, x, y, z) = sens[self._pos_cols].tolist(), sens[self._quat_cols].tolist()
+            return np.array([px, py, math.atan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z)])
         pos, q = sens[..., self._pos_cols], sens[..., self._quat_cols]
-        w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True).clip(min=1e-12), -1, 0)
-        yaw = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+        w, x, y, z = np.moveaxis(q, -1, 0)  # yaw of R(q) is scale-free: no normalising needed
+        yaw = np.arctan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z)
         return np.stack([pos[..., 0], pos[..., 1], yaw], axis=-1)
+
+    def healthy(self, state: np.ndarray, sens: np.ndarray, first: int) -> bool:
+        """A cheap check that steps ``first``.. (``state``, ``sens`` rows) are sound: where it says
+        False, ``diagnose_steps`` names the problem (a closed loop checks every period)."""
+        dt = self.model.opt.timestep
+        return bool(
+            np.isfinite(state[-1]).all()
+            and abs(state[-1, 0] - (first + len(state)) * dt) <= 0.5 * dt
+            and sens[:, self._com_cols[2]].max() <= self.config.max_com_height
+            and (sens[:, self._vel_cols] ** 2).sum(axis=1).max() <= self.config.max_com_speed**2
+        )
 
     def initial_sensors(self) -> np.ndarray:
         """Sensordata (nsensordata,) at the resting start state (what a loop reads before its first step)."""
         data = mujoco.MjData(self.model)
         mujoco.mj_forward(self.model, data)
         return data.sensordata.copy()
+
+    @property
+    def pool(self):
+        """The rollout threads (``RolloutThreads``), or None where rollouts run on the caller's thread."""
+        return self._pool
 
     def latency_steps(self, robot: Robot) -> int:
         """A robot's command latency in whole physics steps of this simulator."""

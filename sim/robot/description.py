@@ -10,7 +10,7 @@ named partial change of the physical fields, ``sim.robot.variations``) and a rob
 Importing this module does not import MuJoCo (``build_spec`` and ``compile`` do): the model package
 reads the description and its hash without the simulator.
 
-The module-level constants (``N_JOINTS``, ``LINK_LENGTH`` ...) are the default robot's, kept for the
+The module-level constants (``LINK_LENGTH``, ``BODY_LENGTH`` ...) are the default robot's, kept for the
 code that has not yet been taught to read a description.
 """
 
@@ -362,9 +362,6 @@ def resolve_robot(robot: Robot | str | Path | None) -> Robot:
 
 
 # The default robot's figures, for the code that has not yet been taught to read a description.
-N_JOINTS = DEFAULT_ROBOT.n_joints
-"""Actuated hinge joints: odd joints pitch, even joints yaw (1-based, as in the MJCF names)."""
-N_LINKS = DEFAULT_ROBOT.n_links
 LINK_LENGTH = DEFAULT_ROBOT.link_length
 """Joint-to-joint distance along a link (m); the capsule runs from 0 to LINK_LENGTH on the link's x axis."""
 LINK_RADIUS = DEFAULT_ROBOT.link_radius
