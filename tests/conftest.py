@@ -74,11 +74,18 @@ def member_checkpoint(tmp_path_factory):
 
 @pytest.fixture
 def server(checkpoint):
-    """A designer on the tiny checkpoint on a free port (no variation replays), stopped after the test."""
+    """A designer on the tiny checkpoint on a free port (no variation or closed-loop replays), stopped
+    after the test."""
     from snakeloco.app.server.lifecycle import DesignerServer
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False, variations=False
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=3,
+        workers=2,
+        verbose=False,
+        variations=False,
+        closed_loop=False,
     )
     yield srv
     srv.stop()

@@ -106,7 +106,13 @@ def designer_page(checkpoint, viewport: dict | None = None, **page_options):
 
     sync_api = pytest.importorskip("playwright.sync_api")
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     try:
         with sync_api.sync_playwright() as p:

@@ -308,7 +308,13 @@ def test_server_stop_leaves_no_threads(checkpoint):
         ]
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=1, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=1,
+        verbose=False,
+        variations=False,
     )
     client, _designer = connect_headless(srv)
     assert ours()

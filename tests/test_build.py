@@ -156,7 +156,9 @@ def test_the_designer_switches_to_a_family_of_another_robot(member_checkpoint, t
     from snakeloco.app.server.lifecycle import DesignerServer
 
     families = {"structured": member_checkpoint[0], "twelve": twelve_checkpoint[0]}
-    srv = DesignerServer(port=0, families=families, ensemble=2, workers=2, verbose=False, variations=False)
+    srv = DesignerServer(
+        closed_loop=False, port=0, families=families, ensemble=2, workers=2, verbose=False, variations=False
+    )
     client, d = connect_headless(srv)
     try:
         assert d.session.robot.n_joints == 8 and d.scene.kinematics.robot.n_links == 9
@@ -253,7 +255,13 @@ def test_build_quick_goes_from_a_description_to_a_served_five_joint_designer(tmp
     # Served: the tab decodes and replays on the 5-joint robot; its CSV has 5 joint columns and
     # replays when imported again.
     srv = DesignerServer(
-        port=0, families={"five": out / "model"}, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        families={"five": out / "model"},
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     client, d = connect_headless(srv)
     try:

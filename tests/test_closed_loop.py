@@ -182,3 +182,39 @@ def test_pose_estimate_holds_at_its_rate_arrives_late_and_drifts():
 def test_follower_config_refuses_bad_values():
     with pytest.raises(ValueError, match="look_ahead"):
         FollowerConfig(look_ahead=-1)
+
+
+@pytest.mark.slow
+def test_the_designer_plays_a_steerable_gait_closed_loop_and_says_what_it_did(checkpoint):
+    """With Closed loop ticked, a replayed gait (the library's undulation as the baseline) gets its
+    steering input and a closed-loop fan of 13 runs (nominal and 12 variations), its line and the
+    steering plot; a gait no input steers (rolling) says so and draws no fan; unticking clears it."""
+    from snakeloco.app.designer.scene import LOOP_COLOR
+    from snakeloco.app.server.lifecycle import DesignerServer
+
+    from helpers import apply, connect_headless
+
+    srv = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+    )
+    client, d = connect_headless(srv)
+    try:
+        assert apply(d, d.controls.baseline, "undulate", 120)
+        assert d.loop.done.wait(240), d.controls.loop.status.content
+        status = d.controls.loop.status.content
+        assert "steers by yaw offset" in status and "closed loop on other robots" in status, status
+        assert len(d.loop.report["variations"]) == 12 and d.loop.report["nominal"]["arrived"]
+        (fan,) = d.scene.loop_fan
+        assert tuple(fan.colors.reshape(-1, 3)[0]) == LOOP_COLOR
+        t, u = d.controls.loop.plot.data
+        assert len(t) == len(u) > 100 and np.nanmax(np.abs(u)) > 0  # it steered
+        assert apply(d, d.controls.baseline, "roll", 120)
+        assert d.loop.done.wait(240)
+        assert "no steering input" in d.controls.loop.status.content and not d.scene.loop_fan
+        assert apply(d, d.controls.baseline, "undulate", 120)
+        d.controls.loop.enabled.value = False
+        d.loop._toggled()
+        assert not d.scene.loop_fan and "off" in d.controls.loop.status.content
+    finally:
+        client.close()
+        srv.stop()

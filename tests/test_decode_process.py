@@ -105,7 +105,13 @@ def test_a_server_decodes_in_its_process_and_carries_on_when_it_dies(checkpoint)
     from helpers import apply, connect_headless
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     client = None
     try:

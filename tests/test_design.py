@@ -196,7 +196,13 @@ def test_designer_panel_designs_on_its_own_worker_and_a_picked_candidate_becomes
     from helpers import apply, connect_headless
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=3,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     client = None
     try:
@@ -348,7 +354,13 @@ def test_the_designer_designs_robust_to_other_robots_when_asked(checkpoint):
     from helpers import connect_headless
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     client = None
     try:

@@ -223,7 +223,13 @@ def test_the_designer_exports_for_the_robot_and_shares_its_replay(checkpoint, tm
     from helpers import connect_headless
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=3, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=3,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     client, d = connect_headless(srv)
     try:

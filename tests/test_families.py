@@ -34,7 +34,14 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
     assert load_pretrained(structured_checkpoint).family == "structured"  # recorded from its data
     families = {"paper": checkpoint, "structured": structured_checkpoint}
     srv = DesignerServer(
-        port=0, checkpoint="paper", families=families, ensemble=3, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint="paper",
+        families=families,
+        ensemble=3,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     clients = []
     try:
@@ -88,7 +95,7 @@ def test_a_newcomers_designer_opens_on_the_structured_family(tmp_path):
 
     models, default = load_families(None)
     assert default == "structured" and list(models) == ["structured", "paper"]
-    srv = DesignerServer(port=0, ensemble=2, workers=2, verbose=False, variations=False)
+    srv = DesignerServer(closed_loop=False, port=0, ensemble=2, workers=2, verbose=False, variations=False)
     client, d = connect_headless(srv)
     try:
         assert d.model.family == "structured" and d.controls.family.value == "structured"

@@ -179,7 +179,13 @@ def test_the_designer_fits_a_measured_run_and_replays_on_the_fitted_robot(checkp
     from helpers import connect_headless
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     client, d = connect_headless(srv)
     try:

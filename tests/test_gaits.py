@@ -109,7 +109,13 @@ def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
     from snakeloco.app.server.lifecycle import DesignerServer
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     client, d = connect_headless(srv)
     try:

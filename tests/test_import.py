@@ -28,7 +28,13 @@ def test_the_export_comments_name_the_latents_exactly():
 @pytest.mark.slow
 def test_an_exported_gait_imports_as_it_was_exported(member_checkpoint):
     srv = DesignerServer(
-        port=0, checkpoint=member_checkpoint[0], ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=member_checkpoint[0],
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     client, d = connect_headless(srv)
     try:

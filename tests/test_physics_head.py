@@ -124,7 +124,9 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     assert "physics head" not in model.robot_warning(icy)
 
     # Served on the covered robot: the model's path is the physics head's for it, the fan its variations'.
-    srv = DesignerServer(port=0, checkpoint=out, ensemble=2, workers=2, verbose=False, robot=slippery)
+    srv = DesignerServer(
+        closed_loop=False, port=0, checkpoint=out, ensemble=2, workers=2, verbose=False, robot=slippery
+    )
     client, d = connect_headless(srv, timeout=180)  # replay, ensemble and 12 variations on 2 cores
     try:
         assert d.predicted[0] == d.version and d.scene.predicted_fan.visible

@@ -34,7 +34,13 @@ def test_the_readout_says_which_sliders_and_state_it_is_for():
 
 def test_a_protocol_client_joins_drags_and_reads_the_decoded_view_and_replay(checkpoint):
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
 
     async def run() -> dict:
@@ -76,7 +82,13 @@ def test_each_view_is_sent_once_drawn_not_at_the_end_of_a_window(checkpoint):
     """viser holds a client's messages up to 1/60 s for more to come unless flushed: the decoded
     view, the replay's first motion and the finished replay each flush once drawn."""
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     client, d = connect_headless(srv)
     try:
@@ -100,7 +112,13 @@ def test_a_client_that_stops_reading_does_not_stall_the_others_and_is_closed(che
     pings go unanswered and the websocket library closes it (websockets' 20 s ping interval and
     20 s timeout)."""
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
 
     async def run() -> tuple[ProtocolClient, float]:
@@ -135,7 +153,13 @@ def test_a_tab_whose_page_has_left_draws_nothing_more(checkpoint):
     from snakeloco.app.server.viser_patches import connection_closed
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     try:
         c, d = connect_headless(srv)

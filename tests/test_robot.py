@@ -252,7 +252,9 @@ def test_the_designer_streams_the_variations_fan_and_says_how_far_the_end_moves(
 
     from helpers import apply, connect_headless
 
-    srv = DesignerServer(port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False)
+    srv = DesignerServer(
+        closed_loop=False, port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False
+    )
     client, d = connect_headless(srv)
     try:
         version, report = d.variations

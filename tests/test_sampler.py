@@ -298,7 +298,9 @@ def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_
     from helpers import connect_headless
 
     path, _ = member_checkpoint
-    srv = DesignerServer(port=0, checkpoint=path, ensemble=2, workers=2, verbose=False, variations=False)
+    srv = DesignerServer(
+        closed_loop=False, port=0, checkpoint=path, ensemble=2, workers=2, verbose=False, variations=False
+    )
     client = None
     try:
         client, d = connect_headless(srv)

@@ -35,6 +35,7 @@ def test_replays_go_before_any_ensemble_and_tabs_take_turns_within_a_kind():
                 ("a", Turn.ENSEMBLE, "a-ens-3"),
                 ("b", Turn.ENSEMBLE, "b-ens-1"),
                 ("c", Turn.DESIGN, "c-design"),
+                ("c", Turn.CLOSED_LOOP, "c-closed-loop"),
                 ("b", Turn.VARIATIONS, "b-variations"),
                 ("b", Turn.DRAGGED, "b-dragged"),
                 ("c", Turn.SETTLED, "c-settled"),
@@ -47,6 +48,7 @@ def test_replays_go_before_any_ensemble_and_tabs_take_turns_within_a_kind():
             Turn.DRAGGED: 1,
             Turn.ENSEMBLE: 4,
             Turn.VARIATIONS: 1,
+            Turn.CLOSED_LOOP: 1,
             Turn.DESIGN: 1,
             Turn.FIT: 1,
         }
@@ -65,6 +67,7 @@ def test_replays_go_before_any_ensemble_and_tabs_take_turns_within_a_kind():
         "a-ens-2",
         "a-ens-3",
         "b-variations",
+        "c-closed-loop",
         "c-design",
         "a-fit",
     ]
@@ -241,7 +244,13 @@ def test_tabs_decode_in_turns_each_its_newest_value(checkpoint):
     from helpers import connect_headless
 
     srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
+        closed_loop=False,
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=2,
+        workers=2,
+        verbose=False,
+        variations=False,
     )
     try:
         tabs = [connect_headless(srv) for _ in range(2)]

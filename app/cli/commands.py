@@ -202,6 +202,8 @@ class Serve(Command):
     """Robot description YAML every replay runs on (a fitted robot: `snakeloco fit-robot`); default: the robot the first checkpoint was trained on."""
     variations: bool = True
     """Replay each gait on the default physics variations after its ensemble (the Variations fan, at the lowest priority); --no-variations on a slow machine."""
+    closed_loop: bool = True
+    """Play each replayed gait with its steering loop on those variations (the closed-loop fan; each tab can turn it off); --no-closed-loop on a slow machine."""
 
 
 class Robustness(Command):

@@ -223,6 +223,7 @@ def run_serve(cmd: Serve) -> None:
         cmd.ensemble,
         robot=None if cmd.robot is None else _robot(cmd.robot),
         variations=cmd.variations,
+        closed_loop=cmd.closed_loop,
     )
 
 

@@ -166,6 +166,7 @@ class GaitFiles:
                 self._programmatic_z = self._write_z(z_b)
                 self._shown_z = tuple(float(v) for v in z_b)
             timing.replayed = time.perf_counter()
+            self.loop.request(timing.version, gait, sim)
         sim = self.session.run_ensemble(gait, sim, seed=timing.version)
         with self._draw_lock:
             if is_current():

@@ -10,6 +10,7 @@ import viser
 import viser.uplot as uplot
 
 from snakeloco.app.designer.fit_panel import FitControls, build_fit_controls
+from snakeloco.app.designer.loop_panel import LoopControls, build_loop_controls
 from snakeloco.app.designer.scene import GEN_COLOR, LAYERS, LIGHT_RENDERING, SIM_COLOR
 from snakeloco.app.designer.scene_geometry import joint_colors
 from snakeloco.app.export.formats import ROBOT_FORMATS
@@ -130,6 +131,7 @@ class Controls:
     share_button: viser.GuiButtonHandle
     import_button: viser.GuiUploadButtonHandle
     fit: FitControls
+    loop: LoopControls
     panel: viser.GuiMarkdownHandle
     plots: dict[str, viser.GuiUplotHandle]
     plots_folder: viser.GuiFolderHandle
@@ -306,6 +308,7 @@ def build_controls(
             hint="Download a page that plays this replay (snake, paths, fan, figures) in any browser, with no server",
         )
     fit = build_fit_controls(gui)
+    loop = build_loop_controls(gui)
     with gui.add_folder("Consistency"):
         panel = gui.add_markdown("Decoding...")
     with gui.add_folder("Plots", expand_by_default=wide) as plots_folder:
@@ -354,6 +357,7 @@ def build_controls(
         share_button=share_button,
         import_button=import_button,
         fit=fit,
+        loop=loop,
         panel=panel,
         plots=plots,
         plots_folder=plots_folder,

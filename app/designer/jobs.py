@@ -168,6 +168,7 @@ class TabJobs:
             self._draw_simulated(decoded, sim, ensemble=False)
             timing.replayed = time.perf_counter()
             self.ensembles.submit((timing.version, decoded, sim))
+            self.loop.request(timing.version, decoded, sim)
         return sim
 
     def _ensemble_job(self, _worker_version: int, item: tuple, _is_newest) -> None:

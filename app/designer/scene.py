@@ -31,6 +31,8 @@ SIM_COLOR = (30, 100, 220)
 FAN_COLOR = (150, 150, 150)
 VARIATION_COLOR = (150, 90, 210)
 """The variations fan (violet): the replay on other robots (``sim.robot.variations.DEFAULT_SET``)."""
+LOOP_COLOR = (20, 150, 110)
+"""The closed-loop fan (teal): the steering loop's runs on the variations, each stopped at its path's end."""
 PREDICTED_VARIATION_COLOR = (205, 180, 240)
 """The predicted variations fan (pale violet): where the physics head (``model.heads.physics_head``) says
 the gait ends on those robots, drawn at decode time; the replays then check it."""
@@ -91,6 +93,7 @@ class TabScene:
         self._fan_segments: list[np.ndarray] = []  # what those nodes draw (to merge them into one)
         self._fan_drawn = 0  # ensemble members the fan shows
         self.variation_fan: list[viser.LineSegmentsHandle] = []  # one node per batch of variations
+        self.loop_fan: list[viser.LineSegmentsHandle] = []  # the closed-loop runs, one node
         self.predicted_fan: viser.LineSegmentsHandle | None = None  # the physics head's fan, one node
         self._predicted_shown = False  # whether it shows the current gait's prediction
         self._sim_drawn = 0  # replay samples the simulated path shows
@@ -152,7 +155,7 @@ class TabScene:
             node.visible = on["Simulated path"] and simulated
         for node in self.fan:
             node.visible = on["Ensemble fan"] and simulated
-        for node in self.variation_fan:
+        for node in self.variation_fan + self.loop_fan:
             node.visible = on["Variations fan"] and simulated
         if self.predicted_fan is not None:
             self.predicted_fan.visible = on["Variations fan"] and self._predicted_shown
@@ -203,10 +206,10 @@ class TabScene:
                 if node is not None:
                     node.visible = False
         self._sim_points = None
-        for node in self.sim_parts + self.fan + self.variation_fan:
+        for node in self.sim_parts + self.fan + self.variation_fan + self.loop_fan:
             node.remove()
         self.sim_parts, self.fan, self._fan_segments, self._fan_drawn = [], [], [], 0
-        self.variation_fan = []
+        self.variation_fan, self.loop_fan = [], []
         self._sim_drawn = 0
         self._measured = None
         self._cloud("decoded", gait.shape)
@@ -322,6 +325,22 @@ class TabScene:
         z0 = float(self.start[0][2])
         name = f"variations/{len(self.variation_fan)}"
         self.variation_fan.append(self._line(name, segments, VARIATION_COLOR, 1.0, "Variations fan", z0))
+
+    def draw_closed_loop(self, paths: list[np.ndarray]) -> None:
+        """The steering loop's runs (each (n, 2) forward, sideways m in the start frame, averaged over
+        a wave period) as the closed-loop fan: one node in the Variations fan's layer, the last one's
+        replaced."""
+        for node in self.loop_fan:
+            node.remove()
+        self.loop_fan = []
+        paths = [p[np.isfinite(p).all(axis=1)][::FAN_STEP] for p in paths]
+        paths = [p for p in paths if len(p) > 1]
+        if not paths:
+            return
+        points = [np.column_stack([p, np.zeros(len(p))]) for p in paths]
+        segments = np.concatenate([polyline(q) for q in points])
+        z0 = float(self.start[0][2])
+        self.loop_fan.append(self._line("closed_loop", segments, LOOP_COLOR, 2.0, "Variations fan", z0))
 
     def draw_predicted_variations(self, bodies: np.ndarray) -> None:
         """The physics head's predicted paths of the current gait on the variations (V, 500, 6), at

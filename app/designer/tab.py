@@ -28,6 +28,7 @@ from snakeloco.app.designer.gait_files import GaitFiles
 from snakeloco.app.designer.gui import NO_BASELINE, SLIDER_RANGE, WIDE_PX, build_controls
 from snakeloco.app.designer.jobs import TabJobs
 from snakeloco.app.designer.latent_moves import LatentMoves
+from snakeloco.app.designer.loop_panel import LoopPanel
 from snakeloco.app.designer.playback import PAUSE_WHEN_HIDDEN_JS, SOFTWARE_RENDERING_JS, Playback
 from snakeloco.app.designer.readout import TabReadout
 from snakeloco.app.designer.scene import END_SPREAD, TabScene
@@ -83,6 +84,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         physics: FairPhysics | None = None,
         decoding: DecodePool | None = None,
         variations: bool = True,
+        closed_loop: bool = True,
     ):
         self.client = client
         self.show_variations = variations
@@ -141,6 +143,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self._wire()
         self.design = DesignPanel(self, self.controls.design)
         self.fit = FitPanel(self, self.controls.fit)
+        self.loop = LoopPanel(self, self.controls.loop, enabled=closed_loop)
         report = lambda exc: self._report(f"{type(exc).__name__}: {exc}")  # noqa: E731
         self.decoder = LatestWorker(self._decode_job, name=f"decode-{client.client_id}", on_error=report)
         self.physics = LatestWorker(self._physics_job, name=f"physics-{client.client_id}", on_error=report)
@@ -381,6 +384,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self._closed.set()
         self.design.close()
         self.fit.close()
+        self.loop.close()
         self.decoder.close()
         self.physics.close()
         self.ensembles.close()

@@ -209,9 +209,10 @@ class DesignerServer:
         families: dict[str, str | Path] | None = None,
         robot: Robot | None = None,
         variations: bool = True,
+        closed_loop: bool = True,
     ) -> None:
         check_bindable(host, port)
-        self.variations = variations
+        self.variations, self.closed_loop = variations, closed_loop
         self.models, default = load_families(checkpoint, families)
         self.model = self.models[default]
         """The model a new tab starts with (``checkpoint``'s); ``models``: all its Gait family dropdown offers."""
@@ -276,6 +277,7 @@ class DesignerServer:
                 physics=self.physics,
                 decoding=self.decoding,
                 variations=self.variations,
+                closed_loop=self.closed_loop,
             )
         except Exception as exc:  # a tab that could not be set up must not take the server down
             traceback.print_exc()
@@ -309,12 +311,16 @@ def serve(
     ensemble: int = ENSEMBLE_SIZE,
     robot: Robot | None = None,
     variations: bool = True,
+    closed_loop: bool = True,
 ) -> None:
     """Run the designer until Ctrl-C or SIGTERM; then stop cleanly (port freed, threads joined);
     ``robot``: the robot every replay runs on (default: the first checkpoint's); ``variations``: replay each
-    gait on the default physics variations (the Variations fan)."""
+    gait on the default physics variations (the Variations fan); ``closed_loop``: and with its steering
+    loop (the closed-loop fan), where the tab's Closed loop box stays ticked."""
     tune_process()
-    app = DesignerServer(host, port, checkpoint, ensemble, robot=robot, variations=variations)
+    app = DesignerServer(
+        host, port, checkpoint, ensemble, robot=robot, variations=variations, closed_loop=closed_loop
+    )
     freeze_started()
     stop = threading.Event()
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from snakeloco.sim.control.follower import FollowerConfig, PathFollower
 from snakeloco.sim.control.steering import Steering
-from snakeloco.sim.physics.results import Paused, SimulationError
+from snakeloco.sim.physics.results import Dropped, Paused, SimulationError
 from snakeloco.sim.robot.description import Robot
 from snakeloco.sim.robot.sensing import PoseEstimate
 
@@ -118,6 +118,10 @@ def run_closed_loop(
             done, _ = wait_futures(pending, return_when=FIRST_COMPLETED)
             for future in done:
                 row = pending.pop(future)
+                if future.cancelled():  # dropped on a shared pool's turns: the caller moved on
+                    for other in pending:
+                        other.cancel()
+                    raise Dropped("the closed-loop replays were dropped")
                 future.result()
                 if row.finish():
                     pending[row.submit(pool)] = row

@@ -19,6 +19,7 @@ import numpy as np
 
 from snakeloco.sim.control.closed_loop import make_follower, nominal_reference, run_closed_loop, trailing_mean
 from snakeloco.sim.control.steering import PROBE, STEERING_KINDS, Steering, apply, steering_pattern
+from snakeloco.sim.physics.results import Dropped
 
 MIN_TURN = math.radians(2.0)
 """rad/s: the least turn rate both ways at the probe amplitude for an input to count (a 100 s record
@@ -68,6 +69,8 @@ def find_steering(commands: np.ndarray, simulator, seconds: float = 30.0, check:
                 names.append((kind, u))
     samples = min(len(commands), round(seconds * rate))
     result = simulator.simulate(np.stack(rows), samples=samples)
+    if result is None:  # dropped on a shared pool's turns: the caller moved on
+        raise Dropped("the steering probes were dropped")
     if result.failures[0] is not None:
         return Steering(period=period, why=f"its open-loop replay broke ({result.failures[0]})")
     figures = [

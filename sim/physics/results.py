@@ -11,6 +11,10 @@ import numpy as np
 from snakeloco.sim.physics.body import body_states
 
 
+class Dropped(Exception):
+    """The work was dropped before it ran: its caller no longer wants it (a tab's gait changed)."""
+
+
 class SimulationError(RuntimeError):
     """A simulation diverged or threw the snake (``command_rule.why_broken``), or the simulator
     was closed under it; the message says how and when."""

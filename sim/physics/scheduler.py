@@ -46,8 +46,9 @@ class Turn(IntEnum):
     DRAGGED = 2  # later chunks of a gait a slider is still passing through
     ENSEMBLE = 3  # the perturbed copies that score a finished replay
     VARIATIONS = 4  # the replay on other robots (physics variations)
-    DESIGN = 5  # inverse design's candidate replays (a search of several seconds)
-    FIT = 6  # fitting the robot's physics to a measured run (minutes of replays)
+    CLOSED_LOOP = 5  # the steering loop's probes and replays on those robots
+    DESIGN = 6  # inverse design's candidate replays (a search of several seconds)
+    FIT = 7  # fitting the robot's physics to a measured run (minutes of replays)
 
 
 @dataclass
@@ -88,6 +89,7 @@ LANES = (
     (Turn.FIRST_MOTION, False),
     (Turn.ENSEMBLE, False),
     (Turn.VARIATIONS, False),
+    (Turn.CLOSED_LOOP, False),
     (Turn.DESIGN, False),
     (Turn.FIT, False),
 )
@@ -306,6 +308,11 @@ class OnTurns:
             if result is None:
                 return None
         return result
+
+    @property
+    def pool(self) -> FairRunner:
+        """Where a closed loop's rows go (``sim.control.closed_loop``): this tab's turns."""
+        return self._runner
 
     def replay(self, commands):
         """``Simulator.replay`` on the pool's turns."""
