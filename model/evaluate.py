@@ -29,6 +29,7 @@ from snakeloco.model.vae.stats import median_relative_errors
 from snakeloco.sim import BODY_CHANNELS, BODY_RATE, load_dataset
 from snakeloco.sim.gaits.structured import KINDS
 from snakeloco.sim.physics.backend import BackendConfig, open_backend
+from snakeloco.sim.scores.closed_loop import closed_loop_table
 from snakeloco.sim.scores.consistency import (
     ENSEMBLE_NOISE,
     PREDICTABLE,
@@ -139,6 +140,7 @@ def consistency(
     replays: str | Path | None = None,
     backend: BackendConfig | None = None,
     robustness: int = 0,
+    closed_loop: int = 0,
 ) -> dict:
     """Decode ``cfg.prior_samples`` z_B from the sampler (or the N(0, I) prior, ``positions``; z_k = 0 and z_k
     sampled), replay each as an ensemble, score. Per mode also: the share of z_B the density flags
@@ -147,13 +149,11 @@ def consistency(
     Returns per mode: medians of each figure over the gaits whose own (unperturbed) replay
     simulated cleanly, the count of those that broke (``n_broken``), and the fraction of all
     replays that broke; perturbed members that broke are left out of their gait's ensemble, as
-    the designer does. ``replays``: an .npz of the ensembles' replays, read when it exists (it must
-    hold the same draw of this checkpoint's decodes: ``model.replays``), else written after
-    replaying. A calibration that leaves the decoded shapes alone (``snakeloco calibrate``) is
-    then re-scored in seconds instead of replaying 2 x prior_samples ensembles. ``backend``: where the
-    replays run (``sim.physics.backend``; default this machine's ``workers`` threads). ``robustness``: the
-    first that many gaits of each mode are also replayed on the default variation set
-    (``robustness_by_kind``, under the mode's ``"robustness"``).
+    the designer does. ``replays``: an .npz of the ensembles' replays, read when it exists (the same
+    draw of this checkpoint's decodes: ``model.replays``), else written after replaying (re-scores a
+    recalibrated checkpoint in seconds). ``backend``: where replays run (``sim.physics.backend``).
+    ``robustness`` / ``closed_loop``: the first that many gaits of each mode also replayed on the
+    default variation set open loop (``robustness_by_kind``) / closed loop (``closed_loop_table``).
     """
     cfg = cfg or ConsistencyConfig()
     n_prior, ensemble, seed, positions = cfg.prior_samples, cfg.ensemble, cfg.seed, cfg.positions
@@ -277,6 +277,14 @@ def consistency(
                     sim_ok[:n],
                     robust_runner,
                 )
+            if closed_loop > 0:
+                n = min(closed_loop, n_prior)
+                summary["closed_loop"] = closed_loop_table(
+                    model.commands(decoded[name][0][:n]),
+                    (kinds[name] or ["gait"] * n)[:n],
+                    model.robot,
+                    workers,
+                )
             summary["gaits"] = rows
             report[name] = summary
     return report
@@ -360,9 +368,10 @@ def evaluate(
     backend: BackendConfig | None = None,
     floor_records: int = 0,
     robustness: int = 0,
+    closed_loop: int = 0,
 ) -> dict:
     """All evaluation figures for a checkpoint on a (held-out) dataset (``replays``, ``backend``,
-    ``robustness``: ``consistency``; ``floor_records``: how many of the dataset's records
+    ``robustness``, ``closed_loop``: ``consistency``; ``floor_records``: how many of the dataset's records
     ``physics_floor`` replays, 0 none)."""
     cfg = cfg or ConsistencyConfig()
     model = load_pretrained(checkpoint)
@@ -370,13 +379,8 @@ def evaluate(
     shape, body_ds = ds.shape.astype(np.float64), ds.body_ds.astype(np.float64)
     rec = reconstruction(model, shape, body_ds)
     z_b, z_j = rec.pop("z_b"), rec.pop("z_j")
-    out = {
-        "checkpoint": str(model.path),
-        "data": str(data),
-        "n_samples": len(ds),
-        "robot_warning": model.robot_warning(),
-        **rec,
-    }
+    out = {"checkpoint": str(model.path), "data": str(data), "n_samples": len(ds), **rec}
+    out["robot_warning"] = model.robot_warning()
     out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=cfg.seed))
     if floor_records > 0:
         n = min(floor_records, len(ds))
@@ -387,5 +391,7 @@ def evaluate(
             runner.close()
         out.update(repeated_channels(out))
     if cfg.prior_samples > 0:
-        out["consistency"] = consistency(model, cfg, workers, progress, replays, backend, robustness)
+        out["consistency"] = consistency(
+            model, cfg, workers, progress, replays, backend, robustness, closed_loop
+        )
     return out

@@ -163,6 +163,15 @@ def test_export_controller_writes_a_folder_the_follower_loads(tmp_path, capsys):
     assert f.rate == 20.0 and f.n_joints == 8 and f.steering.kind == "yaw_offset"
     assert f.reference.shape[1] == 2 and np.linalg.norm(f.reference[-1] - f.reference[0]) > 30
     assert "steers by yaw offset" in capsys.readouterr().out
+    import yaml
+
+    path = yaml.safe_load((out / "path.yaml").read_text())  # nav_msgs/Path, the follower's parameters above
+    assert len(path["poses"]) > 100 and '# steering: {"kind":"yaw_offset"' in (out / "path.yaml").read_text()
+    last = path["poses"][-1]["pose"]["position"]
+    np.testing.assert_allclose([last["x"], last["y"]], f.reference[::2][-1], atol=1e-9)
+    with pytest.raises(SystemExit):  # --closed-loop is the ros2 format's
+        main(["export", str(gait), "--format", "csv", "--closed-loop", "--out", str(tmp_path / "x.csv")])
+    assert "--closed-loop is for --format ros2" in capsys.readouterr().err
     (out / "commands.csv").write_text("nonsense")
     with pytest.raises(ValueError, match="not a controller directory"):
         PathFollower.load(out)
@@ -218,3 +227,22 @@ def test_the_designer_plays_a_steerable_gait_closed_loop_and_says_what_it_did(ch
     finally:
         client.close()
         srv.stop()
+
+
+@pytest.mark.slow
+def test_closed_loop_table_per_kind_counts_the_gaits_without_an_input():
+    """``evaluate --closed-loop``'s table: per kind, the share with a steering input and the steered
+    gaits' closed-loop errors; a kind no gait of which steers says so with None."""
+    from snakeloco.app.cli.evaluate_report import closed_loop_lines
+    from snakeloco.sim.robot.description import DEFAULT_ROBOT
+    from snakeloco.sim.robot.variations import DEFAULT_SET
+    from snakeloco.sim.scores.closed_loop import closed_loop_table
+
+    commands = np.stack([PRESETS[n].gait.commands() for n in ("sidewind", "roll")])
+    table = closed_loop_table(
+        commands, ["sidewind", "roll"], DEFAULT_ROBOT, 2, [DEFAULT_SET[0], DEFAULT_SET[5]]
+    )
+    assert table["all"]["n"] == 2 and table["all"]["steered"] == 0.5
+    assert table["sidewind"]["steered"] == 1.0 and table["sidewind"]["closed_worst"] < 0.03
+    assert table["roll"]["steered"] == 0.0 and table["roll"]["closed_median"] is None
+    assert "    roll: 1 gaits, 0% steered; no gait steered" in closed_loop_lines(table)

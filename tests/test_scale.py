@@ -269,3 +269,33 @@ def test_bench_scale_reports_ratios_measured_side_by_side(capsys):
     assert 0.01 < r["ratio"] < 5 and 0.1 < r["ray_startup_s"] < 120, r
     for fmt in ("npz", "zarr"):  # a Python process with torch and numpy holds 100s of MiB
         assert 50 < r["memory"][fmt]["peak_rss_after_write_mib"] <= r["memory"][fmt]["peak_rss_mib"] < 8192
+
+
+@needs_ray
+@pytest.mark.slow
+def test_closed_loop_replays_as_ray_tasks_equal_the_local_ones():
+    """The closed-loop rows as Ray tasks (a few rows a task, each on its worker's simulator) give the
+    runs of the local batch, to the bit."""
+    from snakeloco.sim.control import Steering
+    from snakeloco.sim.control.closed_loop import nominal_reference
+    from snakeloco.sim.gaits.library import PRESETS
+    from snakeloco.sim.physics.backend import open_backend
+    from snakeloco.sim.physics.simulator import Simulator
+    from snakeloco.sim.robot.variations import DEFAULT_SET
+    from snakeloco.sim.scores.closed_loop import closed_loop_robustness
+
+    steering = Steering(kind="yaw_offset", turn_rate=2.096, limit=0.3, period=1.0753, speed=0.326)
+    commands = PRESETS["undulate"].gait.commands()
+    variations = [*DEFAULT_SET[:2], DEFAULT_SET[5]]
+    sim = Simulator(workers=2)
+    runner = open_backend(RAY, workers=2)
+    try:
+        path = nominal_reference(commands, sim, steering.period)
+        local = closed_loop_robustness(commands, variations, sim, steering, path, "on_time")
+        remote = closed_loop_robustness(commands, variations, sim, steering, path, "on_time", runner=runner)
+    finally:
+        runner.close()
+        sim.close()
+    for a, b in zip(local["runs"], remote["runs"], strict=True):
+        np.testing.assert_array_equal(a.poses, b.poses)
+        np.testing.assert_array_equal(a.steering, b.steering)

@@ -12,16 +12,20 @@ import numpy as np
 def closed_loop_report(cmd, text: str, commands: np.ndarray, robot, variations) -> dict:
     """Run and print the closed-loop table; returns the report (JSON-ready, ``runs`` dropped)."""
     from snakeloco.app.export.controller import gait_steering
+    from snakeloco.sim.physics.backend import open_backend
     from snakeloco.sim.physics.simulator import Simulator
     from snakeloco.sim.scores.closed_loop import closed_loop_robustness
 
     simulator = Simulator(workers=cmd.workers, robot=robot)
+    runner = None if cmd.backend.backend == "local" else open_backend(cmd.backend, cmd.workers, robot=robot)
     t0 = time.perf_counter()
     try:
         steering, origin = gait_steering(text, commands, simulator)
-        report = closed_loop_robustness(commands, variations, simulator, steering, end=cmd.end)
+        report = closed_loop_robustness(commands, variations, simulator, steering, end=cmd.end, runner=runner)
     finally:
         simulator.close()
+        if runner is not None:
+            runner.close()
     report.pop("runs")
     report["steering_from"] = origin
     report["seconds"] = round(time.perf_counter() - t0, 2)

@@ -94,6 +94,8 @@ class Evaluate(Command):
     """Replay this many of the dataset's records with 1e-3 relative command noise and report the body R^2 physics allows beside the model's (0 skips it)."""
     robustness: Annotated[int, Field(ge=0)] = 0
     """Also replay the first this many generated gaits of each z_k mode on the default variation set and report, per kind, how far each variation moves the end point against the command noise's move (0 skips it; 12 replays a gait)."""
+    closed_loop: Annotated[int, Field(ge=0)] = 0
+    """Also play the first this many generated gaits of each z_k mode with their steering loop on the default variation set and report, per kind, the share with a steering input and their closed-loop end errors (0 skips it; ~40 s a gait)."""
 
 
 class Calibrate(Command):
@@ -217,6 +219,7 @@ class Robustness(Command):
     """Play the gait with its steering loop following its nominal path (the '# steering:' comment's input, else one found by replays; docs/closed-loop.md): end error from the path's end, arrival time, cross-track error, time at the steering limit."""
     end: Literal["arrive", "on_time"] = "arrive"
     """--closed-loop: arrive stops at the path's end (capped at 2 records); on_time runs one record."""
+    backend: Annotated[BackendConfig, Flat] = BackendConfig()
     robot: Path | None = None
     """Robot description YAML the gait runs on (default: the paper's robot, sim/snake.xml)."""
     workers: Workers = None
@@ -245,6 +248,8 @@ class Export(Command):
     """Start with the command rule's 3 s lead-in from the straight rest pose, as the simulation does."""
     clip: bool = False
     """Clip commands beyond the robot's command limit and slow those beyond its joint speed limit (and say what was clipped) instead of refusing."""
+    closed_loop: bool = False
+    """ros2: also write OUT's stem + .path.yaml, the nav_msgs/Path the gait's steering loop follows with the follower's parameters (the '# steering:' comment's input, else one found by replays; docs/closed-loop.md)."""
     robot: Path | None = None
     """Robot description YAML: joint names, limits, servo ids and home offsets (default: the paper's robot)."""
     workers: Workers = None

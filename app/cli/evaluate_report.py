@@ -113,6 +113,21 @@ def consistency_lines(consistency: dict) -> list[str]:
         if c.get("robustness"):
             lines.append("  end-point change on other robots, |d_var - d_nom| / max(|d_nom|, 0.5 m), median:")
             lines += ["    " + line for line in change_lines(c["robustness"])]
+        if c.get("closed_loop"):
+            lines += closed_loop_lines(c["closed_loop"])
+    return lines
+
+
+def closed_loop_lines(table: dict) -> list[str]:
+    """``sim.scores.closed_loop.closed_loop_table`` as lines, a kind a line."""
+    lines = ["  closed loop on the default set (steered share; median of medians / of worsts; arrived):"]
+    for kind, k in table.items():
+        figures = (
+            f"{100 * k['closed_median']:.1f}% / {100 * k['closed_worst']:.1f}%; {100 * k['arrived']:.0f}% arrived"
+            if k["closed_median"] is not None
+            else "no gait steered"
+        )
+        lines.append(f"    {kind}: {k['n']} gaits, {100 * k['steered']:.0f}% steered; {figures}")
     return lines
 
 

@@ -160,6 +160,7 @@ def run_evaluate(cmd: Evaluate) -> dict:
             backend=cmd.backend,
             floor_records=cmd.floor_records,
             robustness=cmd.robustness,
+            closed_loop=cmd.closed_loop,
         )
     print(format_report(report))
     if cmd.report is not None:

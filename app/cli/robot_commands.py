@@ -99,6 +99,8 @@ def run_export(cmd: Export) -> dict:
     from snakeloco.app.export.gait_csv import GaitCSVError, read_gait_csv
 
     robot = _robot(cmd.robot)
+    if cmd.closed_loop and cmd.format != "ros2":
+        raise OptionError("--closed-loop is for --format ros2 (--format controller writes the whole loop)")
     try:
         text = cmd.gait.read_text()
         table = read_gait_csv(text, robot, limit=np.inf)  # the export checks the limits, saying where
@@ -145,6 +147,17 @@ def run_export(cmd: Export) -> dict:
     cmd.out.parent.mkdir(parents=True, exist_ok=True)
     cmd.out.write_text(body)
     print(f"wrote {cmd.out} ({cmd.format}, {len(body) / 1024:.0f} kB)")
+    if cmd.closed_loop:
+        if cmd.format != "ros2":
+            raise OptionError(
+                "--closed-loop is for --format ros2 (--format controller writes the whole loop)"
+            )
+        from snakeloco.app.export.controller import follower_for, follower_parameters, ros2_path
+
+        follower, origin = follower_for(text, table.commands, robot, cmd.workers)
+        path = cmd.out.with_name(cmd.out.stem + ".path.yaml")
+        path.write_text(ros2_path(follower.reference, follower_parameters(follower)))
+        print(f"wrote {path} (nav_msgs/Path, {follower.steering.line()}, {origin})")
     for line in clipped:
         print(f"clipped {line}")
     return {"path": str(cmd.out), "bytes": len(body), "clipped": clipped}

@@ -8,6 +8,7 @@ pose) and ``gait.csv`` (the gait CSV it came from). docs/closed-loop.md has the 
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -27,8 +28,9 @@ def gait_steering(text: str, commands: np.ndarray, simulator):
     return find_steering(commands, simulator), f"found by replays on {simulator.robot.name}"
 
 
-def export_controller(text: str, commands: np.ndarray, out: Path, robot, source: str, workers=None) -> dict:
-    """Write the controller folder of a gait (module docstring); returns what was written."""
+def follower_for(text: str, commands: np.ndarray, robot, workers=None):
+    """The ``PathFollower`` of a gait CSV on ``robot`` (its steering input and the path it follows,
+    cut and turned where a closed-loop design says so), and where its input came from in words."""
     from snakeloco.sim.control.closed_loop import cut_and_turn, make_follower, nominal_path
     from snakeloco.sim.physics.simulator import Simulator
 
@@ -41,11 +43,19 @@ def export_controller(text: str, commands: np.ndarray, out: Path, robot, source:
             reference = cut_and_turn(reference, cut["until"], record[:2], math.radians(cut["turn_deg"]))
     finally:
         simulator.close()
-    follower = make_follower(commands, reference, steering, simulator)
+    return make_follower(commands, reference, steering, simulator), origin
+
+
+def export_controller(text: str, commands: np.ndarray, out: Path, robot, source: str, workers=None) -> dict:
+    """Write the controller folder of a gait (module docstring) and its path as ``path.yaml``
+    (``nav_msgs/Path``); returns what was written."""
+    follower, origin = follower_for(text, commands, robot, workers)
+    steering, reference = follower.steering, follower.reference
     follower.save(
         out, about={"gait": source, "robot": robot.name, "steering": origin, "line": steering.line()}
     )
     (out / "gait.csv").write_text(text)
+    (out / "path.yaml").write_text(ros2_path(reference, follower_parameters(follower)))
     return {
         "path": str(out),
         "steering": steering.model_dump(),
@@ -55,3 +65,38 @@ def export_controller(text: str, commands: np.ndarray, out: Path, robot, source:
         "distance_m": float(np.linalg.norm(reference[-1] - reference[0])),
         "files": sorted(p.name for p in out.iterdir()),
     }
+
+
+def follower_parameters(follower) -> dict:
+    """What a ROS 2 node needs besides the path: the steering input and the follower's config."""
+    return {
+        "steering": follower.steering.model_dump(),
+        "follower": follower.config.model_dump(),
+        "rate_hz": follower.rate,
+    }
+
+
+def ros2_path(reference: np.ndarray, follower: dict, frame_id: str = "odom") -> str:
+    """A ``nav_msgs/Path`` YAML of ``reference`` (n, 2) m, every pose facing along the path, with the
+    follower's parameters (``controller.json``'s) in the comments above it."""
+    import yaml
+
+    step = max(1, len(reference) // 1000)  # at most ~1000 poses: a 5 Hz path of the 100 s record
+    xy = reference[::step]
+    heading = np.arctan2(*np.gradient(xy, axis=0)[:, ::-1].T)  # (n,) rad: atan2(dy, dx)
+    poses = [
+        {
+            "header": {"frame_id": frame_id},
+            "pose": {
+                "position": {"x": float(x), "y": float(y), "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": float(np.sin(h / 2)), "w": float(np.cos(h / 2))},
+            },
+        }
+        for (x, y), h in zip(xy, heading, strict=True)
+    ]
+    head = "".join(f"# {k}: {json.dumps(v, separators=(',', ':'))}\n" for k, v in follower.items())
+    msg = {"header": {"frame_id": frame_id}, "poses": poses}
+    return (
+        "# snakeloco export: nav_msgs/Path the gait's steering loop follows, m, in the frame of the robot's "
+        "first pose\n" + head + yaml.safe_dump(msg, sort_keys=False, default_flow_style=None, width=1 << 16)
+    )

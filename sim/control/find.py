@@ -4,11 +4,12 @@ the loop then follow a path with it (``find_steering``).
 Probes: the unsteered gait and each input of ``sim.control.steering`` at its probe amplitude and twice
 it, each way, replayed open loop for ``seconds`` (one batch, 13 rows). The turn rate of a probe is the
 slope of its averaged heading (over one wave period) against time, less the unsteered gait's. An input
-is usable where both signs turn the gait opposite ways, the weaker at least a third of the stronger
-and at least ``MIN_TURN`` rad/s, and the steered gait keeps a third of its speed. The usable inputs,
-fastest first, are then checked in closed loop on the nominal robot: each must follow its nominal path
-turned 20 deg either way about the start and end within 10% of that path's distance of its end; the
-first that does is kept. A gait none passes is played open loop, and its ``Steering`` says why.
+is usable where both signs turn the gait opposite ways, the weaker at least a quarter of the stronger
+(``PROPORTION``), at least ``MIN_TURN`` and tightly enough for its speed (``TURN_RADIUS``), and the
+steered gait keeps a third of its speed. The usable inputs, fastest first, are then checked in closed
+loop on the nominal robot: each must follow its nominal path turned 20 deg either way about the start
+and end within 15% of that path's distance of its end; the first that does is kept. A gait none
+passes is played open loop, and its ``Steering`` says why.
 """
 
 from __future__ import annotations
@@ -21,11 +22,17 @@ from snakeloco.sim.control.closed_loop import make_follower, nominal_reference, 
 from snakeloco.sim.control.steering import PROBE, STEERING_KINDS, Steering, apply, steering_pattern
 from snakeloco.sim.physics.results import Dropped
 
-MIN_TURN = math.radians(2.0)
-"""rad/s: the least turn rate both ways at the probe amplitude for an input to count (a 100 s record
-turned by a steady 2 deg/s bias drifts 200 deg: below this the loop cannot hold a heading)."""
+MIN_TURN = math.radians(0.5)
+"""rad/s: the least turn rate both ways at the probe amplitude for an input to count, whatever the
+gait's speed (below it the probes' own scatter, ~0.3 deg/s over 20 s, decides the sign)."""
+TURN_RADIUS = 5.0
+"""Body lengths: an input must also turn the gait at least as tightly as this at the probe amplitude
+both ways (turn rate >= speed / radius), so that it can hold a path against a drift: a slow gait
+needs a slow turn, a fast one a fast turn."""
+PROPORTION = 4.0
+"""The stronger way may turn the gait at most this many times faster than the weaker."""
 CHECK_TURN = math.radians(20.0)
-CHECK_TOLERANCE = 0.10
+CHECK_TOLERANCE = 0.15
 
 
 def gait_period(commands: np.ndarray, sample_rate: float) -> float:
@@ -94,7 +101,8 @@ def find_steering(commands: np.ndarray, simulator, seconds: float = 30.0, check:
         both = plus[0] * minus[0] < 0
         weak, strong = sorted([abs(plus[0]), abs(minus[0])])
         slow = min(plus[1], minus[1]) < base["speed"] / 3
-        if not both or weak < max(MIN_TURN, strong / 3) or slow:
+        least = max(MIN_TURN, base["speed"] / (TURN_RADIUS * robot.body_length))
+        if not both or weak < max(least, strong / PROPORTION) or slow:
             why = (
                 "turns it one way only"
                 if not both
@@ -153,7 +161,7 @@ def check_in_closed_loop(
     commands: np.ndarray, candidates: list[Steering], simulator
 ) -> tuple[Steering | None, list[str]]:
     """The first candidate whose loop follows the nominal path turned +-20 deg about its start to
-    within 10% of its distance, and a line per candidate that failed."""
+    within ``CHECK_TOLERANCE`` of its distance, and a line per candidate that failed."""
     reference = nominal_reference(commands, simulator, candidates[0].period)
     followers = []
     for steering in candidates:

@@ -21,6 +21,19 @@ from snakeloco.sim.robot.variations import Variation
 from snakeloco.sim.scores.robustness import MIN_DISTANCE
 
 
+def closed_loop_rows(simulator, job: tuple) -> list:
+    """A backend job: rows of a closed-loop batch (``closed_loop_robustness``) on this worker's
+    simulator; each row's pose-noise seed is its index in the whole batch, as in one local batch."""
+    from snakeloco.sim.robot.description import Robot
+
+    commands, reference, steering_json, config_json, end, robots_json, seeds = job
+    steering = Steering.model_validate_json(steering_json)
+    config = FollowerConfig.model_validate_json(config_json)
+    robots = [Robot.model_validate_json(r) for r in robots_json]
+    followers = [make_follower(commands, reference, steering, simulator, end, config) for _ in robots]
+    return run_closed_loop(simulator, followers, robots, seeds)
+
+
 def run_row(run, reference: np.ndarray, lead_in_s: float) -> dict:
     """One run's figures against its path (see ``closed_loop_robustness``)."""
     if run.failure is not None:
@@ -59,9 +72,11 @@ def closed_loop_robustness(
     reference: np.ndarray | None = None,
     end: str = "arrive",
     config: FollowerConfig | None = None,
+    runner=None,
 ) -> dict:
     """Play ``commands`` with ``steering`` on the nominal robot and each variation, following
-    ``reference`` (None: ``nominal_reference``), in one batch.
+    ``reference`` (None: ``nominal_reference``), in one batch (``runner``: a backend, ``sim.physics.backend``,
+    whose jobs each run a few rows on its own simulator of the same robot; None: ``simulator``'s threads).
 
     Returns ``{"steering", "reference_end", "distance_m", "nominal": row, "variations": [row + name,
     params], "worst_end_error_m", "worst_rel", "worst", "broken", "late"}``; a row has the averaged end
@@ -74,8 +89,28 @@ def closed_loop_robustness(
         reference = nominal_reference(commands, simulator, steering.period)
     nominal = simulator.robot
     robots = [nominal, *(v.apply(nominal) for v in variations)]
-    followers = [make_follower(commands, reference, steering, simulator, end, config) for _ in robots]
-    runs = run_closed_loop(simulator, followers, robots)
+    if runner is None:
+        followers = [make_follower(commands, reference, steering, simulator, end, config) for _ in robots]
+        runs = run_closed_loop(simulator, followers, robots)
+    else:  # chunks of rows as backend jobs (Ray tasks): the same rows, the same numbers
+        per = max(1, getattr(runner, "replays_per_job", 4) // 4)
+        spec = (
+            commands,
+            reference,
+            steering.model_dump_json(),
+            (config or FollowerConfig()).model_dump_json(),
+            end,
+        )
+        jobs = [
+            (
+                *spec,
+                [r.model_dump_json() for r in robots[i : i + per]],
+                list(range(i, min(i + per, len(robots)))),
+            )
+            for i in range(0, len(robots), per)
+        ]
+        parts = dict(runner.map(closed_loop_rows, jobs))
+        runs = [run for i in range(len(jobs)) for run in parts[i]]
     lead = simulator.config.lead_in / simulator.excitation.sample_rate
     rows = [run_row(r, reference, lead) for r in runs]
     if rows[0]["failure"] is not None:
@@ -105,3 +140,53 @@ def closed_loop_robustness(
         ],
         "runs": runs,
     }
+
+
+def closed_loop_table(
+    commands: np.ndarray, kinds, robot, workers: int | None = None, variations=None
+) -> dict:
+    """Many gaits closed loop, per kind: ``commands`` (N, T, J) rad, ``kinds`` (N,). Each gait gets its
+    steering input (``find_steering``) and, where it has one, its loop over ``variations`` (default:
+    the default set) on ``robot`` (``workers`` threads). Per kind and for ``"all"``: ``n``,
+    ``steered`` (share with an input), and over the steered gaits the median of each gait's median and
+    of its worst relative end error (``closed_median``, ``closed_worst``) and the share of runs that
+    arrived."""
+    from snakeloco.sim.control.find import find_steering
+    from snakeloco.sim.physics.simulator import Simulator
+    from snakeloco.sim.robot.variations import DEFAULT_SET
+
+    variations = DEFAULT_SET if variations is None else variations
+    simulator = Simulator(workers=workers, robot=robot)
+    rows = []
+    try:
+        for cmd, kind in zip(np.asarray(commands, np.float64), kinds, strict=True):
+            steering = find_steering(cmd, simulator)
+            row = {"kind": str(kind), "steering": steering.kind}
+            if steering.steers:
+                rep = closed_loop_robustness(cmd, variations, simulator, steering)
+                rel = [r["rel"] for r in rep["variations"] if r["rel"] is not None]
+                arrived = [r["arrived"] for r in rep["variations"]]
+                row |= {
+                    "median": float(np.median(rel)),
+                    "worst": float(max(rel)),
+                    "arrived": float(np.mean(arrived)),
+                }
+            rows.append(row)
+    finally:
+        simulator.close()
+    out = {}
+    for kind in ["all", *dict.fromkeys(r["kind"] for r in rows)]:
+        mine = [r for r in rows if kind in ("all", r["kind"])]
+        steered = [r for r in mine if "median" in r]
+
+        def median(key: str, steered=steered) -> float | None:
+            return float(np.median([r[key] for r in steered])) if steered else None
+
+        out[kind] = {
+            "n": len(mine),
+            "steered": len(steered) / len(mine),
+            "closed_median": median("median"),
+            "closed_worst": median("worst"),
+            "arrived": median("arrived"),
+        }
+    return out
