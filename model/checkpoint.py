@@ -47,9 +47,7 @@ SHIPPED: dict[str, Path] = {"structured": STRUCTURED_DIR, "paper": PRETRAINED_DI
 names as well as a directory."""
 DEFAULT_FAMILY = "structured"
 """The checkpoint a command uses when none is named: the family whose promise holds (its slider gaits
-replay as drawn, docs/evaluation.md). The paper family was the default until 2026-12-06: a newcomer's
-first screen then showed a 0.59 m model path beside a 4.72 m replay (its paths are a spread: random
-multisines are chaotic on this robot), and design on it missed a 3 m / 2 m target by 1.37 m."""
+replay as drawn; docs/evaluation.md, and docs/load.md "DEFAULT_FAMILY" for why it changed)."""
 
 
 def resolve_checkpoint(directory: str | Path | None) -> Path:

@@ -10,7 +10,7 @@ import pytest
 from snakeloco.sim import GenerateConfig, load_dataset
 from snakeloco.sim.data.generate import generate_dataset
 
-from helpers import SMALL
+from helpers import SMALL, quiet_server
 
 TINY = GenerateConfig(num_samples=4, seed=11)
 
@@ -76,16 +76,7 @@ def member_checkpoint(tmp_path_factory):
 def server(checkpoint):
     """A designer on the tiny checkpoint on a free port (no variation or closed-loop replays), stopped
     after the test."""
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    srv = DesignerServer(
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=3,
-        workers=2,
-        verbose=False,
-        variations=False,
-        closed_loop=False,
-    )
+    srv = quiet_server(checkpoint, ensemble=3)
     yield srv
     srv.stop()

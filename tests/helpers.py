@@ -102,18 +102,9 @@ def designer_page(checkpoint, viewport: dict | None = None, **page_options):
     """A designer server (ensemble 2) and one Chromium page on it whose tab has settled: yields the
     Playwright module, the server, the page and the tab's ``DesignerClient``; all closed after."""
     from snakeloco.app.bench.load_driver import CHROMIUM_ARGS, wait_until
-    from snakeloco.app.server.lifecycle import DesignerServer
 
     sync_api = pytest.importorskip("playwright.sync_api")
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
     try:
         with sync_api.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
@@ -128,3 +119,19 @@ def designer_page(checkpoint, viewport: dict | None = None, **page_options):
                 browser.close()
     finally:
         srv.stop()
+
+
+def quiet_server(checkpoint=None, **overrides):
+    """A designer server for a test: a free port, 2 physics threads, an ensemble of 2, no log, and no
+    variation or closed-loop replays unless ``overrides`` ask (any ``DesignerServer`` option)."""
+    from snakeloco.app.server.lifecycle import DesignerServer
+
+    options = {
+        "port": 0,
+        "ensemble": 2,
+        "workers": 2,
+        "verbose": False,
+        "variations": False,
+        "closed_loop": False,
+    }
+    return DesignerServer(checkpoint=checkpoint, **(options | overrides))

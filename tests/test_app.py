@@ -16,11 +16,10 @@ from snakeloco.app.designer.scene import FAN_STEP
 from snakeloco.app.designer.scene_geometry import shape_points
 from snakeloco.app.designer.session import Latents
 from snakeloco.app.export.gait_csv import read_gait_csv, write_gait_csv
-from snakeloco.app.server.lifecycle import DesignerServer
 from snakeloco.sim.physics.scheduler import Turn
 from snakeloco.sim.physics.simulator import replay
 
-from helpers import apply, connect_headless
+from helpers import apply, connect_headless, quiet_server
 
 
 def _record_notifications(d) -> list[tuple[str, str]]:
@@ -307,15 +306,7 @@ def test_server_stop_leaves_no_threads(checkpoint):
             if t.name.startswith(("decode-", "physics-", "animate-", "headless-viser-client"))
         ]
 
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=1,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint, workers=1)
     client, _designer = connect_headless(srv)
     assert ours()
     srv.stop()

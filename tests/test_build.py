@@ -20,7 +20,7 @@ from snakeloco.sim.gaits.projection import project
 from snakeloco.sim.gaits.structured import STRUCTURED_PRESETS, draw_structured
 from snakeloco.sim.robot.description import DEFAULT_ROBOT, ROBOTS_DIR, load_robot
 
-from helpers import SMALL, apply, connect_headless
+from helpers import SMALL, apply, connect_headless, quiet_server
 
 TWELVE = load_robot(ROBOTS_DIR / "twelve.yaml")
 PLANAR = load_robot(ROBOTS_DIR / "planar6.yaml")
@@ -153,12 +153,9 @@ def test_bench_design_replays_on_the_checkpoints_robot(twelve_checkpoint, capsys
 
 @pytest.mark.slow
 def test_the_designer_switches_to_a_family_of_another_robot(member_checkpoint, twelve_checkpoint):
-    from snakeloco.app.server.lifecycle import DesignerServer
 
     families = {"structured": member_checkpoint[0], "twelve": twelve_checkpoint[0]}
-    srv = DesignerServer(
-        closed_loop=False, port=0, families=families, ensemble=2, workers=2, verbose=False, variations=False
-    )
+    srv = quiet_server(families=families)
     client, d = connect_headless(srv)
     try:
         assert d.session.robot.n_joints == 8 and d.scene.kinematics.robot.n_links == 9
@@ -234,7 +231,7 @@ FIVE = DEFAULT_ROBOT.model_copy(update={"name": "five", "n_joints": 5})
 def test_build_quick_goes_from_a_description_to_a_served_five_joint_designer(tmp_path, capsys):
     """A 5-joint robot through ``build --quick`` to a served decode, a 5-column CSV export and its
     replay; a second run skips every stage, other sizes are refused."""
-    from snakeloco.app.server.lifecycle import DesignerServer, load_families
+    from snakeloco.app.server.lifecycle import load_families
     from snakeloco.model import load_pretrained
 
     robot_file, out = tmp_path / "five.yaml", tmp_path / "runs" / "five"
@@ -254,15 +251,7 @@ def test_build_quick_goes_from_a_description_to_a_served_five_joint_designer(tmp
 
     # Served: the tab decodes and replays on the 5-joint robot; its CSV has 5 joint columns and
     # replays when imported again.
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        families={"five": out / "model"},
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(families={"five": out / "model"})
     client, d = connect_headless(srv)
     try:
         assert d.session.robot == FIVE and d.scene.kinematics.robot.n_links == 6

@@ -199,13 +199,10 @@ def test_the_designer_plays_a_steerable_gait_closed_loop_and_says_what_it_did(ch
     steering input and a closed-loop fan of 13 runs (nominal and 12 variations), its line and the
     steering plot; a gait no input steers (rolling) says so and draws no fan; unticking clears it."""
     from snakeloco.app.designer.scene import LOOP_COLOR
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    from helpers import apply, connect_headless
+    from helpers import apply, connect_headless, quiet_server
 
-    srv = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False, variations=False
-    )
+    srv = quiet_server(checkpoint, closed_loop=True)
     client, d = connect_headless(srv)
     try:
         assert apply(d, d.controls.baseline, "undulate", 120)
@@ -217,6 +214,7 @@ def test_the_designer_plays_a_steerable_gait_closed_loop_and_says_what_it_did(ch
         assert tuple(fan.colors.reshape(-1, 3)[0]) == LOOP_COLOR
         t, u = d.controls.loop.plot.data
         assert len(t) == len(u) > 100 and np.nanmax(np.abs(u)) > 0  # it steered
+        assert '# steering: {"kind":"yaw_offset"' in d.export_text()  # kept with the gait it was found for
         assert apply(d, d.controls.baseline, "roll", 120)
         assert d.loop.done.wait(240)
         assert "no steering input" in d.controls.loop.status.content and not d.scene.loop_fan

@@ -100,19 +100,10 @@ def test_a_pool_without_processes_decodes_in_the_callers_thread_one_at_a_time():
 
 @pytest.mark.slow
 def test_a_server_decodes_in_its_process_and_carries_on_when_it_dies(checkpoint):
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    from helpers import apply, connect_headless
+    from helpers import apply, connect_headless, quiet_server
 
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
     client = None
     try:
         (process,) = srv.decoding.processes

@@ -191,19 +191,10 @@ def test_designer_panel_designs_on_its_own_worker_and_a_picked_candidate_becomes
 
     from snakeloco.app.bench.load_driver import wait_until
     from snakeloco.app.designer.design_panel import ground_point
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    from helpers import apply, connect_headless
+    from helpers import apply, connect_headless, quiet_server
 
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=3,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint, ensemble=3)
     client = None
     try:
         client, d = connect_headless(srv)
@@ -349,19 +340,10 @@ def test_a_target_beyond_the_familys_reach_is_answered_at_once(checkpoint, tmp_p
 def test_the_designer_designs_robust_to_other_robots_when_asked(checkpoint):
     """Issue 55: the Design panel's "Robust to other robots" ranks candidates by their worst end over
     the variations, each replayed, and says where candidate 1 ends on them."""
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    from helpers import connect_headless
+    from helpers import connect_headless, quiet_server
 
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
     client = None
     try:
         client, d = connect_headless(srv)
@@ -384,3 +366,24 @@ def test_the_designer_designs_robust_to_other_robots_when_asked(checkpoint):
         if client is not None:
             client.close()
         srv.stop()
+
+
+def test_a_verdict_names_the_criterion_that_failed_first():
+    """Issue 71: 'not met on other robots: worst 9.51 m (anisotropy 8:1); nominal 0.37 m, within the
+    tolerance', not a 'closest reached' line whose next sentence says why."""
+    from snakeloco.model.design.targets import Candidate, DesignResult
+
+    c = Candidate(z_b=np.zeros(3), predicted=np.zeros(4), cost=0.0, shape=np.zeros((8, 8, 2)))
+    c.simulated, c.error_m = np.array([4.64, 0.11, 0.0, 0.0]), 0.37
+    target = Target(forward=5.0, sideways=0.0)
+    robust = {"worst_m": 9.51, "worst_variation": "anisotropy 8:1"}
+    result = DesignResult(target, 0.5, [c], False, 1.0, 1.0, extra={"robust": [robust]})
+    assert result.verdict() == (
+        "not met on other robots: worst 9.51 m (anisotropy 8:1); nominal 0.37 m, within the tolerance 0.50 m"
+    )
+    c.error_m = 1.2
+    assert result.verdict().startswith("not met: the closest reached ends 1.20 m from the target")
+    result.extra = {}
+    assert result.verdict().startswith("not met: the closest reached ends (4.64, 0.11) m, 1.20 m")
+    c.error_m, result.met = 0.3, True
+    assert result.verdict().startswith("met: candidate 1 ends (4.64, 0.11) m, 0.30 m from the target")

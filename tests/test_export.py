@@ -18,7 +18,7 @@ from snakeloco.sim.gaits.members import Member
 from snakeloco.sim.physics.command_rule import CommandRule, expand_commands
 from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
 
-from helpers import BROWSER, random_commands
+from helpers import BROWSER, quiet_server, random_commands
 
 SIDEWIND = PRESETS["sidewind"].gait.commands()
 
@@ -218,19 +218,10 @@ def test_html_export_opens_from_disk_with_no_server(sidewind_csv, tmp_path):
 @pytest.mark.slow
 def test_the_designer_exports_for_the_robot_and_shares_its_replay(checkpoint, tmp_path):
     from snakeloco.app.export.formats import ROBOT_FORMATS
-    from snakeloco.app.server.lifecycle import DesignerServer
 
     from helpers import connect_headless
 
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=3,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint, ensemble=3)
     client, d = connect_headless(srv)
     try:
         notes = []

@@ -7,12 +7,11 @@ import numpy as np
 import pytest
 
 from snakeloco.app.export.gait_csv import read_gait_csv
-from snakeloco.app.server.lifecycle import DesignerServer
 from snakeloco.model import TrainConfig, load_pretrained, train
 from snakeloco.sim import GenerateConfig
 from snakeloco.sim.data.generate import generate_dataset
 
-from helpers import SMALL, apply, connect_headless
+from helpers import SMALL, apply, connect_headless, quiet_server
 
 
 @pytest.fixture(scope="module")
@@ -33,16 +32,7 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
 ):
     assert load_pretrained(structured_checkpoint).family == "structured"  # recorded from its data
     families = {"paper": checkpoint, "structured": structured_checkpoint}
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint="paper",
-        families=families,
-        ensemble=3,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server("paper", families=families, ensemble=3)
     clients = []
     try:
         c1, d1 = connect_headless(srv)
@@ -95,7 +85,7 @@ def test_a_newcomers_designer_opens_on_the_structured_family(tmp_path):
 
     models, default = load_families(None)
     assert default == "structured" and list(models) == ["structured", "paper"]
-    srv = DesignerServer(closed_loop=False, port=0, ensemble=2, workers=2, verbose=False, variations=False)
+    srv = quiet_server()
     client, d = connect_headless(srv)
     try:
         assert d.model.family == "structured" and d.controls.family.value == "structured"

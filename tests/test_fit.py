@@ -174,19 +174,10 @@ def test_fit_robot_writes_a_robot_description_that_loads_and_replays(tmp_path, c
 
 @pytest.mark.slow
 def test_the_designer_fits_a_measured_run_and_replays_on_the_fitted_robot(checkpoint):
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    from helpers import connect_headless
+    from helpers import connect_headless, quiet_server
 
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
     client, d = connect_headless(srv)
     try:
         body = Simulator(workers=1, robot=Robot(servo_kp=24.0)).replay(d.decoded.commands).body

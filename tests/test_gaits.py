@@ -15,7 +15,7 @@ from snakeloco.sim import RECORD, joint_shape
 from snakeloco.sim.gaits.library import PRESETS, GaitEquation, measure_gait
 from snakeloco.sim.physics.simulator import Simulator, replay
 
-from helpers import apply, connect_headless
+from helpers import apply, connect_headless, quiet_server
 
 
 def test_gait_equation_is_a_joint_shape_on_one_excited_bin():
@@ -106,17 +106,8 @@ def test_gait_command_writes_and_lists_the_library(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
     client, d = connect_headless(srv)
     try:
         assert apply(d, d.controls.baseline, "undulate", 120)

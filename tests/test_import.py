@@ -6,9 +6,8 @@ from __future__ import annotations
 import pytest
 
 from snakeloco.app.export.gait_csv import exported_latents, library_gait_csv
-from snakeloco.app.server.lifecycle import DesignerServer
 
-from helpers import apply, connect_headless
+from helpers import apply, connect_headless, quiet_server
 
 
 def test_the_export_comments_name_the_latents_exactly():
@@ -27,15 +26,7 @@ def test_the_export_comments_name_the_latents_exactly():
 
 @pytest.mark.slow
 def test_an_exported_gait_imports_as_it_was_exported(member_checkpoint):
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=member_checkpoint[0],
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(member_checkpoint[0])
     client, d = connect_headless(srv)
     try:
         assert apply(d, d.sliders[0], 0.37)  # somewhere off the slider grid's zero

@@ -80,14 +80,13 @@ def physics_checkpoint(member_checkpoint, tmp_path_factory):
 def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_in_the_designer(
     member_checkpoint, physics_checkpoint
 ):
-    from snakeloco.app.server.lifecycle import DesignerServer
     from snakeloco.model.api import load_pretrained
     from snakeloco.model.checkpoint import CheckpointError
     from snakeloco.model.heads.physics_fit import NOISE, fit_physics_head, replay_count
     from snakeloco.model.heads.physics_head import PHYSICS_HEAD_WEIGHTS
     from snakeloco.model.replays import Fit
 
-    from helpers import connect_headless
+    from helpers import connect_headless, quiet_server
 
     checkpoint, _ = member_checkpoint
     out, cfg, summary, done = physics_checkpoint
@@ -124,9 +123,7 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     assert "physics head" not in model.robot_warning(icy)
 
     # Served on the covered robot: the model's path is the physics head's for it, the fan its variations'.
-    srv = DesignerServer(
-        closed_loop=False, port=0, checkpoint=out, ensemble=2, workers=2, verbose=False, robot=slippery
-    )
+    srv = quiet_server(out, robot=slippery, variations=True)
     client, d = connect_headless(srv, timeout=180)  # replay, ensemble and 12 variations on 2 cores
     try:
         assert d.predicted[0] == d.version and d.scene.predicted_fan.visible

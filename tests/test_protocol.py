@@ -15,9 +15,8 @@ from snakeloco.app.bench.load_protocol import server_problems
 from snakeloco.app.bench.protocol import DONE_STATES, ProtocolClient, stream_problems
 from snakeloco.app.bench.wire import parse_readout
 from snakeloco.app.designer.readout import Readout, readout_html
-from snakeloco.app.server.lifecycle import DesignerServer
 
-from helpers import apply, connect_headless
+from helpers import apply, connect_headless, quiet_server
 
 
 def _settled(c: ProtocolClient) -> bool:
@@ -33,15 +32,7 @@ def test_the_readout_says_which_sliders_and_state_it_is_for():
 
 
 def test_a_protocol_client_joins_drags_and_reads_the_decoded_view_and_replay(checkpoint):
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
 
     async def run() -> dict:
         c = ProtocolClient(f"http://127.0.0.1:{srv.port}", seed=1)
@@ -81,15 +72,7 @@ def test_a_protocol_client_joins_drags_and_reads_the_decoded_view_and_replay(che
 def test_each_view_is_sent_once_drawn_not_at_the_end_of_a_window(checkpoint):
     """viser holds a client's messages up to 1/60 s for more to come unless flushed: the decoded
     view, the replay's first motion and the finished replay each flush once drawn."""
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
     client, d = connect_headless(srv)
     try:
         flushed, flush = [], d.client.flush
@@ -111,15 +94,7 @@ def test_a_client_that_stops_reading_does_not_stall_the_others_and_is_closed(che
     """The server's send to a client that stops reading waits on that client's socket alone; its
     pings go unanswered and the websocket library closes it (websockets' 20 s ping interval and
     20 s timeout)."""
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
 
     async def run() -> tuple[ProtocolClient, float]:
         stuck, live = (ProtocolClient(f"http://127.0.0.1:{srv.port}", seed=s) for s in (1, 2))
@@ -152,15 +127,7 @@ def test_a_tab_whose_page_has_left_draws_nothing_more(checkpoint):
 
     from snakeloco.app.server.viser_patches import connection_closed
 
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
     try:
         c, d = connect_headless(srv)
         assert d.simulated is not None

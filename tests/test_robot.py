@@ -248,13 +248,10 @@ def test_robustness_refuses_a_bad_gait_file(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_the_designer_streams_the_variations_fan_and_says_how_far_the_end_moves(checkpoint):
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    from helpers import apply, connect_headless
+    from helpers import apply, connect_headless, quiet_server
 
-    srv = DesignerServer(
-        closed_loop=False, port=0, checkpoint=checkpoint, ensemble=2, workers=2, verbose=False
-    )
+    srv = quiet_server(checkpoint, variations=True)
     client, d = connect_headless(srv)
     try:
         version, report = d.variations

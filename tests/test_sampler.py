@@ -293,14 +293,11 @@ def test_inverse_design_on_a_sampler_checkpoint_searches_on_the_data(member_chec
 
 @pytest.mark.slow
 def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_data(member_checkpoint):
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    from helpers import connect_headless
+    from helpers import connect_headless, quiet_server
 
     path, _ = member_checkpoint
-    srv = DesignerServer(
-        closed_loop=False, port=0, checkpoint=path, ensemble=2, workers=2, verbose=False, variations=False
-    )
+    srv = quiet_server(path)
     client = None
     try:
         client, d = connect_headless(srv)

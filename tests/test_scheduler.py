@@ -239,19 +239,10 @@ def test_tabs_decode_in_turns_each_its_newest_value(checkpoint):
 
     from snakeloco.app.bench.load_driver import wait_until
     from snakeloco.app.server.decode_process import IN_FLIGHT
-    from snakeloco.app.server.lifecycle import DesignerServer
 
-    from helpers import connect_headless
+    from helpers import connect_headless, quiet_server
 
-    srv = DesignerServer(
-        closed_loop=False,
-        port=0,
-        checkpoint=checkpoint,
-        ensemble=2,
-        workers=2,
-        verbose=False,
-        variations=False,
-    )
+    srv = quiet_server(checkpoint)
     try:
         tabs = [connect_headless(srv) for _ in range(2)]
         assert all(d._decoding is srv.decoding for _, d in tabs)

@@ -25,7 +25,9 @@ def bench_app(checkpoint=None, moves: int = 20, ensemble: int = ENSEMBLE_SIZE, s
     tune_process()  # as `snakeloco serve` runs it
     # Without the Variations fan: the figures stay comparable with docs/load.md (the fan runs after
     # the ensemble at the pool's lowest turn but design; docs/variations.md has its own timing).
-    server = DesignerServer(port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False, variations=False)
+    server = DesignerServer(
+        port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False, variations=False, closed_loop=False
+    )
     freeze_started()  # as `snakeloco serve` does
     client = HeadlessClient(server.port)
     try:

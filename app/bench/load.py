@@ -127,10 +127,16 @@ def bench_load(
     if split:
         pin_process(split[0])  # before the server starts: its threads inherit the server half
     tune_process()  # as `snakeloco serve` runs it
-    # Without the Variations fan unless asked (--variations): the figures stay comparable with
-    # docs/load.md (the fan runs after the ensemble at the pool's lowest turn but design and fits).
+    # Without the Variations fan unless asked (--variations), and then with the closed-loop fan too:
+    # the figures stay comparable with docs/load.md (the fans run after the ensemble at the pool's
+    # lowest turns but design and fits).
     server = DesignerServer(
-        port=0, checkpoint=checkpoint, ensemble=ensemble, verbose=False, variations=variations
+        port=0,
+        checkpoint=checkpoint,
+        ensemble=ensemble,
+        verbose=False,
+        variations=variations,
+        closed_loop=variations,
     )
     freeze_started()  # as `snakeloco serve` does
     rss = RssSampler()

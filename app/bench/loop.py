@@ -10,6 +10,8 @@ Sections, each measured side by side in one run (docs/closed-loop.md has the fig
   along the path, in body lengths, after which it stays within 0.1 m.
 - ``timing``: 12 closed-loop variation replays (*on time*, 100 s) against the open-loop batch of the
   same 12, best of ``repeats``.
+- ``designer``: one client on ``snakeloco serve``'s designer: seconds from a library gait's request
+  of its closed-loop fan (when its replay is drawn) to the fan drawn.
 - ``sampler``: ``gaits`` gaits of the structured checkpoint's slider density that travel at least
   ``min_distance`` m: the share with a steering input, open- and closed-loop end errors over the default
   set. Written gait by gait to ``out`` (resumable: a rerun with the same file skips the gaits in it).
@@ -167,6 +169,48 @@ def _timing(sim: Simulator, repeats: int, log) -> dict:
     return out
 
 
+def _designer(checkpoint, gaits: tuple[str, ...], log) -> dict:
+    """The designer's closed-loop fan with one client: seconds from a library gait's replay drawn to
+    its fan drawn, with the Variations fan on too (as ``snakeloco serve`` runs)."""
+    from snakeloco.app.bench.headless import HeadlessClient
+    from snakeloco.app.server.lifecycle import DesignerServer, freeze_started, tune_process
+
+    tune_process()
+    server = DesignerServer(port=0, checkpoint=checkpoint, verbose=False)
+    freeze_started()
+    client = HeadlessClient(server.port)
+    out = {}
+    try:
+        for _ in range(200):
+            if server.clients:
+                break
+            time.sleep(0.05)
+        tab = next(iter(server.clients.values()))
+        tab.wait_idle(120)
+        tab.loop.done.wait(600)
+        for name in gaits:
+            version = tab.load_baseline(name)
+            deadline = time.monotonic() + 900
+            while (
+                not (tab.loop.version == version and tab.loop.done.is_set()) and time.monotonic() < deadline
+            ):
+                time.sleep(0.2)
+            if tab.loop.seconds is None or tab.loop.version != version:
+                out[name] = {"seconds": None, "status": tab.controls.loop.status.content}
+                continue
+            replayed = tab.timings[-1].replayed
+            out[name] = {
+                "seconds": tab.loop.seconds,
+                "after_replay_s": time.perf_counter() - replayed if tab.loop.seconds is not None else None,
+                "status": tab.controls.loop.status.content.splitlines()[0],
+            }
+            log(f"designer {name}: closed-loop fan {tab.loop.seconds} s after its request")
+    finally:
+        client.close()
+        server.stop()
+    return out
+
+
 def _sampler(
     sim: Simulator, gaits: int, seed: int, min_distance: float, checkpoint, out: Path | None, log
 ) -> dict:
@@ -244,7 +288,7 @@ def bench_loop(
     min_distance: float = 2.0,
     sampled: int = 16,
     repeats: int = 2,
-    sections: tuple[str, ...] = ("library", "sensing", "off_path", "timing", "sampler"),
+    sections: tuple[str, ...] = ("library", "sensing", "off_path", "timing", "sampler", "designer"),
     checkpoint=None,
     workers: int | None = None,
     out: Path | None = None,
@@ -265,6 +309,8 @@ def bench_loop(
             result["timing"] = _timing(sim, repeats, log)
         if "sampler" in sections:
             result["sampler"] = _sampler(sim, gaits, seed, min_distance, checkpoint, out, log)
+        if "designer" in sections:
+            result["designer"] = _designer(checkpoint, ("undulate", "sidewind"), log)
     finally:
         sim.close()
     result["seconds"] = time.perf_counter() - t0

@@ -202,12 +202,13 @@ class BenchLoop(Command):
     """Sampled variations beside the default set for the library gaits."""
     repeats: Annotated[int, Field(ge=1)] = 2
     """Timing: runs of each side, the best kept."""
-    sections: tuple[Literal["library", "sensing", "off_path", "timing", "sampler"], ...] = (
+    sections: tuple[Literal["library", "sensing", "off_path", "timing", "sampler", "designer"], ...] = (
         "library",
         "sensing",
         "off_path",
         "timing",
         "sampler",
+        "designer",
     )
     checkpoint: Checkpoint = None
     workers: Workers = None

@@ -343,3 +343,8 @@ def loop(r: dict) -> None:
             f"medians {pct(s['open_median_of_medians'])}, of worsts {pct(s['open_median_of_worst'])}; closed loop "
             f"{pct(s['closed_median_of_medians'])}, {pct(s['closed_median_of_worst'])}"
         )
+    for name, f in r.get("designer", {}).items():
+        s = f["seconds"]
+        print(
+            f"designer {name}: closed-loop fan drawn {'never' if s is None else f'{s:.1f} s'} after the replay (goal <= 15 s)"
+        )

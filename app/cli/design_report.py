@@ -108,18 +108,15 @@ def write_design(cmd) -> dict:
     }
     (cmd.out / "report.json").write_text(jsonlib.dumps(report, indent=1))
     best = result.candidates[0] if result.candidates else None
-    if best is not None and robust and robust[0].get("closed_loop"):
+    if best is not None and robust and best.simulated is not None:
         r = robust[0]
-        verdict = (
-            "met"
-            if result.met
-            else ("not met on other robots" if r["nominal_m"] <= result.tolerance_m else "not met")
-        )
         print(
-            f"{verdict}: closed loop ({r['steering_line']}), candidate 1 stops {r['nominal_m']:.2f} m from the target "
-            f"on the nominal robot and at most {r['worst_m']:.2f} m on the {r['replayed']} variations "
-            f"(worst: {r['worst_variation']}; tolerance {result.tolerance_m:.2f} m); its path turned "
-            f"{r['path']['turn_deg']:.0f} deg, cut at the target; {len(candidates)} candidates in {cmd.out}"
+            f"{result.verdict()}; {len(candidates)} candidates in {cmd.out}"
+            + (
+                f" ({r['steering_line']}; its path turned {r['path']['turn_deg']:.0f} deg, cut at the target)"
+                if "path" in r
+                else ""
+            )
         )
     elif best is None or best.simulated is None:
         print(f"not met: every candidate broke the simulation; report in {cmd.out / 'report.json'}")

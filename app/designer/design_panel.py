@@ -157,24 +157,18 @@ class DesignPanel:
         labels = tuple(candidate_label(i + 1, c) for i, c in enumerate(self.candidates))
         best = self.candidates[0]
         far = result.extra.get("beyond_reach")
-        if result.met:
-            verdict = f"**Met**: candidate 1 ends {best.error_m:.2f} m from the target"
-        elif far is not None and best.simulated is not None:
+        if (far := result.extra.get("beyond_reach")) is not None and best.simulated is not None:
             verdict = (
                 f"**Beyond reach**: the target is {far['distance_m']:.3g} m away; this family's gaits end at most "
                 f"{far['reach_m']:.1f} m from the start. Its nearest gait ends at ({best.simulated[0]:.2f}, "
                 f"{best.simulated[1]:.2f}) m"
             )
-        elif best.simulated is None:
-            verdict = "**Not met**: every candidate's replay broke"
-        else:
-            verdict = (
-                f"**Not met**: the closest reached ends at ({best.simulated[0]:.2f}, {best.simulated[1]:.2f}) m, "
-                f"{best.error_m:.2f} m from the target"
-            )
+        else:  # the criterion that decided it first: "**Not met on other robots**: worst ..."
+            head, _, rest = result.verdict().partition(": ")
+            verdict = f"**{head[0].upper()}{head[1:]}**: {rest}"
         with self.tab.client.atomic():
             self.controls.status.content = (
-                f"{verdict} (tolerance {result.tolerance_m:.2f} m; {result.rounds} rounds, search "
+                f"{verdict} ({result.rounds} rounds, search "
                 f"{result.search_s:.1f} s, physics {result.physics_s:.1f} s for {result.replays} replays). "
                 "Spread: where physics itself scatters the end." + robust_line(result)
             )

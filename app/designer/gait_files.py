@@ -9,7 +9,13 @@ import time
 import numpy as np
 
 from snakeloco.app.designer.session import DecodedGait, Latents, Timing, decode_latents
-from snakeloco.app.export.gait_csv import GaitCSVError, gait_comments, read_gait_csv, write_gait_csv
+from snakeloco.app.export.gait_csv import (
+    STEERING_KEY,
+    GaitCSVError,
+    gait_comments,
+    read_gait_csv,
+    write_gait_csv,
+)
 from snakeloco.sim import SimulationError, joint_shape
 from snakeloco.sim.gaits.library import PRESETS as GAIT_PRESETS
 
@@ -23,6 +29,10 @@ class GaitFiles:
             raise RuntimeError("no gait yet")
         encoded = self._shown_z if self._programmatic_z is not None else None
         comments = gait_comments(self.decoded, self.simulated, self.model.hash, encoded)
+        if (
+            steering := self.loop.steering_for(self.version)
+        ) is not None:  # found for this gait: kept with it
+            comments[STEERING_KEY] = steering.model_dump_json()
         return write_gait_csv(self.decoded.commands, comments, self.session.robot)
 
     def export(self) -> None:

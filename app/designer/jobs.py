@@ -24,10 +24,8 @@ SETTLED_S = 0.5
 """A slider value the tab has held this long (no newer one) is one the user has let go of."""
 HELD_S = 0.06
 """A slider value held this long (a dragged slider sends one every 50 ms) gets its first motion
-before other tabs' settled replays; a younger one's after them (``sim.physics.scheduler.LANES``). 80 ms
-until 2026-12-05: of the values 8 protocol clients sent while dragging, 4.0% came more than 80 ms
-after the one before and 4.8% more than 60 (most of those, 3.7%, over 100 ms), so 60 ms holds only
-a few more values a slider passes through and gives every first motion 20 ms back."""
+before other tabs' settled replays; a younger one's after them (``sim.physics.scheduler.LANES``;
+docs/load.md, "HELD_S")."""
 STREAM_PATH_PERIOD_S = 0.25
 """How often a streaming replay's growing path is sent to the browser (the whole path is sent again
 each time; the snake's pose goes every animation frame)."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,6 +92,9 @@ class LoopPanel:
         controls.enabled.value = enabled  # before the callback: setting it from here requests nothing
         self.report: dict | None = None
         self.version = 0  # the gait version the last request was for
+        self.found: tuple[int, object] | None = None  # (gait version, its Steering) once found
+        self.seconds: float | None = None  # request to fan drawn, the last time
+        self._asked = 0.0
         self.done = threading.Event()  # set when the last request's fan is drawn (or it said why not)
         c, g = controls, tab._guarded
         c.enabled.on_update(g(lambda _e: self._toggled()))
@@ -104,9 +108,15 @@ class LoopPanel:
     def enabled(self) -> bool:
         return bool(self.controls.enabled.value)
 
+    def steering_for(self, version: int):
+        """The steering input found for gait ``version`` (``Steering``), or None if not (yet)."""
+        found = self.found
+        return found[1] if found is not None and found[0] == version else None
+
     def request(self, version: int, decoded, sim) -> None:
         """Play the replayed gait ``decoded`` closed loop (its open-loop replay ``sim``) if enabled."""
-        self.version, self.report = version, None
+        self.version, self.report, self.seconds = version, None, None
+        self._asked = time.perf_counter()
         self.done.clear()
         if not self.enabled:
             self.done.set()
@@ -128,6 +138,8 @@ class LoopPanel:
         simulator = tab.session.simulator_for(Turn.CLOSED_LOOP, wanted)
         try:
             steering = find_steering(decoded.commands, simulator, seconds=PROBE_SECONDS, check=False)
+            if wanted():
+                self.found = (version, steering)
             if not steering.steers:
                 if wanted():
                     self.controls.status.content = f"**{steering.line()}**: this gait plays open loop."
@@ -170,6 +182,7 @@ class LoopPanel:
             tab.scene.draw_closed_loop(paths)
             self.controls.status.content = loop_summary(report, open_line)
             set_plot_data(self.controls.plot, (times, nominal.steering[::PLOT_STEP]))
+            self.seconds = time.perf_counter() - self._asked
         self.done.set()
 
     @staticmethod

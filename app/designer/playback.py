@@ -19,9 +19,7 @@ SCRUBBER_PERIOD_S = 0.5
 """How often the playing animation moves the time scrubber (the snake itself moves every frame)."""
 PAUSED_WAIT_S = 1.0
 """A paused animation thread sleeps until played again, waking this often only to see whether its tab
-has closed. It woke 20 times a second to find itself paused: the 9 tabs of an 8-client bench load
-took 0.009 cores and waited 0.042 thread-seconds a second for a core beside the decodes and draws;
-asleep, 0.003 and 0.005 (2026-12-05, docs/load.md)."""
+has closed (docs/load.md, "PAUSED_WAIT_S")."""
 
 PAUSE_WHEN_HIDDEN_JS = """
 (() => {

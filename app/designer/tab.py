@@ -43,30 +43,20 @@ from snakeloco.sim.physics.simulator import Simulator
 from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE
 
 PHYSICS_NICE = 10
-"""Nice increment of the physics threads (``sim.physics.scheduler.FairPhysics``: a server's one pool, whose
-turns put every tab's replays before any tab's ensemble): below the server's own threads (decoding
-and drawing for every tab come first). They hold the GIL only to enter and leave a rollout. At +5
-(bench load, 4 clients, 2026-12-03, replays on threads of their own): decoded view worst / single p95
-2.05, replay ready 3.64, against 1.39-2.18 and 3.46-3.75 at +10: no gain for the replays, less room
-for decoding."""
+"""Nice increment of the physics threads (``sim.physics.scheduler.FairPhysics``): below the server's own
+threads, so decoding and drawing for every tab come first (docs/load.md, "PHYSICS_NICE")."""
 
 FIRST_MOTION_THREADS_PER_CORE = 1
-"""The server's first-motion threads (``FairPhysics(first_threads=...)``) per physics thread: they run
-held first motions alone, and while they run the pool's threads start no new chunk. With 8 tabs the
-two physics threads were always busy with replays: a held first motion waited for one to finish its
-chunk (p95 ~65 ms after its hold), then ran beside the other (~40 ms of physics took 82 ms p50, 156
-p95)."""
+"""The server's first-motion threads (``FairPhysics(first_threads=...)``) per physics thread: held
+first motions run alone there, not behind a replay's chunk (docs/load.md, "FIRST_MOTION_THREADS_PER_CORE")."""
 
 FIRST_MOTION_NICE = 5
-"""Nice increment of the first-motion threads: above the replays and ensembles (3 to 1 where they
-share a core for the rest of a chunk), below decoding and drawing (1 to 3). 8 clients (bench load,
-2026-12-05), the worst client's first motion p95: 204-289 ms at +5 (3 runs), 261-326 at +10 (2), 306
-without these threads; its decoded view 46-61 ms, 46-48 and 42 (docs/load.md)."""
+"""Nice increment of the first-motion threads: above the replays and ensembles, below decoding and
+drawing (docs/load.md, "FIRST_MOTION_NICE")."""
 
 TIMINGS_KEPT = 1000
-"""Request timings a tab keeps (its newest; ``DesignerClient.timings``), for the benchmarks: a 60 s
-drag phase sends 310-333 a tab. With 2000 kept (and up to 4000 indexed), 8 tabs of a 10-minute
-run filled theirs only in its sixth minute, ~6 MB in all (docs/load.md)."""
+"""Request timings a tab keeps (its newest; ``DesignerClient.timings``) for the benchmarks: more than
+a drag phase sends (docs/load.md, "TIMINGS_KEPT")."""
 
 
 class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):

@@ -88,6 +88,14 @@ def sample_curve(knots: np.ndarray, rate: float, count: int) -> tuple[np.ndarray
     return positions, velocities
 
 
+def _refuse(bad: np.ndarray, clip: bool, why) -> None:
+    """ExportError at the first (sample n, joint k) of ``bad`` (S, J), unless ``clip``: 'joint_K at
+    t = T s: ' and ``why(n, k)``."""
+    if bad.any() and not clip:
+        n, k = np.argwhere(bad)[0]
+        raise ExportError(f"joint_{k + 1} at t = {n / RECORD.sample_rate:.2f} s: {why(n, k)}")
+
+
 def trajectory(
     commands: np.ndarray,
     robot: Robot,
@@ -116,14 +124,15 @@ def trajectory(
     clipped: list[str] = []
     limit, speed = robot.command_limit, robot.joint_speed_limit
     over = np.abs(knots) > limit + 1e-12
+    _refuse(
+        over,
+        clip,
+        lambda n, k: (
+            f"{knots[n, k]:+.4f} rad is beyond the robot's command limit +/-{limit} rad (joint range "
+            f"+/-{robot.joint_range} rad); --clip clips it"
+        ),
+    )
     if over.any():
-        if not clip:
-            n, k = np.argwhere(over)[0]
-            raise ExportError(
-                f"joint_{k + 1} at t = {n / RECORD.sample_rate:.2f} s: {knots[n, k]:+.4f} rad is beyond the "
-                f"robot's command limit +/-{limit} rad (joint range +/-{robot.joint_range} rad); "
-                "--clip clips it"
-            )
         for k in np.flatnonzero(over.any(axis=0)):
             worst = float(np.abs(knots[:, k]).max() - limit)
             clipped.append(
@@ -132,13 +141,14 @@ def trajectory(
         knots = np.clip(knots, -limit, limit)
     slope = np.abs(np.diff(knots, axis=0)) * RECORD.sample_rate
     fast = slope > speed * (1 + 1e-9)
+    _refuse(
+        fast,
+        clip,
+        lambda n, k: (
+            f"{slope[n, k]:.2f} rad/s is beyond the robot's joint speed limit {speed} rad/s; --clip slows it"
+        ),
+    )
     if fast.any():
-        if not clip:
-            n, k = np.argwhere(fast)[0]
-            raise ExportError(
-                f"joint_{k + 1} at t = {n / RECORD.sample_rate:.2f} s: {slope[n, k]:.2f} rad/s is beyond the "
-                f"robot's joint speed limit {speed} rad/s; --clip slows it"
-            )
         step = speed / RECORD.sample_rate
         limited = knots.copy()
         for n in range(1, len(limited)):

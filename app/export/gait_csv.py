@@ -303,25 +303,33 @@ def exported_latents(text: str) -> tuple[dict | None, str]:
     return latents, ""
 
 
-def read_member(text: str):
-    """The ``sim.gaits.members.Member`` a gait CSV's ``# member:`` comment names, or None without one.
+def comment(text: str, key: str) -> str | None:
+    """The value of a gait CSV's first ``# key: value`` comment, or None without one."""
+    for line in text.splitlines():
+        if line.startswith(f"# {key}: "):
+            return line[len(key) + 4 :]
+    return None
 
-    Raises:
-        GaitCSVError: the comment is not a valid member's parameters.
-    """
+
+def _comment_model(text: str, key: str, model, what: str):
+    """The pydantic ``model`` a ``# key:`` comment holds as JSON, or None; GaitCSVError names it."""
     from pydantic import ValidationError
 
+    value = comment(text, key)
+    if value is None:
+        return None
+    try:
+        return model.model_validate_json(value)
+    except ValidationError as exc:
+        raise GaitCSVError(f"the '# {key}:' comment is not {what}: {exc}") from None
+
+
+def read_member(text: str):
+    """The ``sim.gaits.members.Member`` a gait CSV's ``# member:`` comment names, or None without one;
+    GaitCSVError where it is not a valid member's parameters."""
     from snakeloco.sim.gaits.members import Member
 
-    for line in text.splitlines():
-        if line.startswith(f"# {MEMBER_KEY}: "):
-            try:
-                return Member.model_validate_json(line[len(MEMBER_KEY) + 4 :])
-            except ValidationError as exc:
-                raise GaitCSVError(
-                    f"the '# {MEMBER_KEY}:' comment is not a gait's parameters: {exc}"
-                ) from None
-    return None
+    return _comment_model(text, MEMBER_KEY, Member, "a gait's parameters")
 
 
 PATH_KEY = "closed loop path"
@@ -334,35 +342,20 @@ STEERING_KEY = "steering"
 
 
 def read_steering(text: str):
-    """The ``sim.control.Steering`` a gait CSV's ``# steering:`` comment names, or None without one.
-
-    Raises:
-        GaitCSVError: the comment is not a steering input.
-    """
-    from pydantic import ValidationError
-
+    """The ``sim.control.Steering`` a gait CSV's ``# steering:`` comment names, or None without one;
+    GaitCSVError where it is not a steering input."""
     from snakeloco.sim.control import Steering
 
-    for line in text.splitlines():
-        if line.startswith(f"# {STEERING_KEY}: "):
-            try:
-                return Steering.model_validate_json(line[len(STEERING_KEY) + 4 :])
-            except ValidationError as exc:
-                raise GaitCSVError(
-                    f"the '# {STEERING_KEY}:' comment is not a steering input: {exc}"
-                ) from None
-    return None
+    return _comment_model(text, STEERING_KEY, Steering, "a steering input")
 
 
 def read_closed_loop_path(text: str) -> dict | None:
     """A gait CSV's ``# closed loop path:`` (``PATH_KEY``) as ``{"until": int, "turn_deg": float}``, or None."""
-    for line in text.splitlines():
-        if line.startswith(f"# {PATH_KEY}: "):
-            try:
-                found = json.loads(line.partition(": ")[2])
-                return {"until": int(found["until"]), "turn_deg": float(found["turn_deg"])}
-            except (ValueError, KeyError, TypeError):
-                raise GaitCSVError(
-                    f'the \'# {PATH_KEY}:\' comment is not {{"until": n, "turn_deg": a}}'
-                ) from None
-    return None
+    value = comment(text, PATH_KEY)
+    if value is None:
+        return None
+    try:
+        found = json.loads(value)
+        return {"until": int(found["until"]), "turn_deg": float(found["turn_deg"])}
+    except (ValueError, KeyError, TypeError):
+        raise GaitCSVError(f'the \'# {PATH_KEY}:\' comment is not {{"until": n, "turn_deg": a}}') from None

@@ -39,13 +39,11 @@ from snakeloco.sim.robot.description import Robot
 from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE
 
 DECODE_THREADS = 1
-"""torch intra-op threads of a designer server process. Four threads decoding at once on 2 cores:
-p50 21-23 ms per decode with 1 intra-op thread, 21-31 ms with 2 (two runs each)."""
+"""torch intra-op threads of a designer server process: more did not decode faster on 2 cores
+(docs/load.md, "DECODE_THREADS")."""
 DECODE_PROCESSES = 1
-"""Child processes a designer server decodes in (``app.server.decode_process``). Two (bench load, 8
-clients, 2026-12-04): the wait for a turn fell (p95 15 ms against 26-35) but two decodes and the
-draws beside them shared the 2 cores (decode 12 ms p95 against 7-9, draw 15-21 against 10-14), and
-the decoded view was no faster (worst / single p95 3.34 against 2.87-4.15), for ~250 MB more."""
+"""Child processes a designer server decodes in (``app.server.decode_process``): a second one made no
+decoded view faster for ~250 MB more (docs/load.md, "DECODE_PROCESSES")."""
 SWITCH_INTERVAL_S = 0.001
 """Python's GIL switch interval in a designer server (default 0.005 s)."""
 _M_MMAP_THRESHOLD = -3  # glibc malloc.h
@@ -54,17 +52,13 @@ _M_ARENA_MAX = -8
 
 MMAP_THRESHOLD = 256 << 10
 """Bytes from which a designer server's allocations get mappings of their own
-(``return_freed_buffers_to_the_os``). A stream's reused chunk buffers are 270-390 kB: at 1 MB they
-came from glibc's 16 arenas, which held ~50 MB more of freed pages (8 clients, the server process
-~530 MB against ~495 at 256 kB; 2026-12-05, docs/load.md)."""
+(``return_freed_buffers_to_the_os``): a stream's reused chunk buffers then go back to the OS when
+freed (docs/load.md, "MMAP_THRESHOLD")."""
 
 
 MALLOC_ARENAS = 2
-"""glibc malloc arenas of a designer server process (``limit_malloc_arenas``). By default glibc
-makes up to 8 a core, and the server's ~65 threads filled 16 on 2 cores, each keeping freed pages of
-its own. 8 protocol clients (2026-12-05, docs/load.md), from the second to the sixth minute: the
-server process's RSS ~490-500 MB, +2.4 MB a minute (its malloc heap ~206-212 MB, +1.3); with 2,
-~483-488 MB, +1.3 (heap ~192-194 MB, +0.5)."""
+"""glibc malloc arenas of a designer server process (``limit_malloc_arenas``): fewer arenas keep fewer
+freed pages (docs/load.md, "MALLOC_ARENAS")."""
 
 
 def _mallopt(param: int, value: int) -> bool:

@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from snakeloco.model.design.config import DesignConfig, Target
-from snakeloco.model.design.robust import worst_case
+from snakeloco.model.design.robust import rank_by_worst, worst_case
 from snakeloco.model.design.search import DesignResult, design
 from snakeloco.sim.physics.backend import open_backend
 from snakeloco.sim.robot.variations import DEFAULT_SET, Variation
@@ -154,16 +154,8 @@ def closed_loop_design(
     finally:
         runner.close()
         simulator.close()
-    order = sorted(
-        range(len(kept)), key=lambda i: (scores[i]["nominal_m"] > result.tolerance_m, scores[i]["worst_m"])
-    )
-    ranked = [kept[i] for i in order][: cfg.candidates]
-    robust = [scores[i] for i in order][: cfg.candidates]
-    met = (
-        bool(ranked)
-        and robust[0]["nominal_m"] <= result.tolerance_m
-        and robust[0]["worst_m"] <= result.tolerance_m
-    )
+    nominal = [s["nominal_m"] for s in scores]
+    ranked, robust, met = rank_by_worst(kept, scores, nominal, result.tolerance_m, cfg.candidates)
     return DesignResult(
         target=target,
         tolerance_m=result.tolerance_m,

@@ -110,6 +110,18 @@ def worst_case(
     return out
 
 
+def rank_by_worst(
+    candidates: list, scores: list[dict], nominal: list[float], tolerance: float, n: int, key: str = "worst_m"
+):
+    """The best ``n`` candidates, those that meet the target on the nominal robot (``nominal`` m within
+    ``tolerance``) first, then by ``scores[i][key]``: (candidates, their scores, met), met where the
+    best one's nominal error and worst case are both within the tolerance."""
+    order = sorted(range(len(candidates)), key=lambda i: (nominal[i] > tolerance, scores[i][key]))[:n]
+    ranked, robust = [candidates[i] for i in order], [scores[i] for i in order]
+    met = bool(ranked) and nominal[order[0]] <= tolerance and robust[0]["worst_m"] <= tolerance
+    return ranked, robust, met
+
+
 def _among(c: Candidate, others: list[Candidate]) -> bool:
     return any(np.array_equal(c.z_b, o.z_b) for o in others)
 
@@ -166,21 +178,14 @@ def robust_design(
     key = "worst_m" if score == "worst" else "p90_m"
     # Those that reach the target on the nominal robot first: robustness is not bought with the
     # nominal error.
-    order = sorted(
-        range(len(verified)), key=lambda i: (verified[i].error_m > result.tolerance_m, scores[i][key])
-    )[: cfg.candidates]
-    ranked = [verified[i] for i in order]
-    robust = [scores[i] for i in order]
+    ranked, robust, met = rank_by_worst(
+        verified, scores, [c.error_m for c in verified], result.tolerance_m, cfg.candidates, key
+    )
     if fan is not None and ranked:  # what the search expected of each, beside what the replays said
         misses = fan.misses(fan.ends(np.stack([c.z_b for c in ranked])), target)
         for r, m in zip(robust, misses, strict=True):
             r["predicted_worst_m"] = float(m.max())
             r["predicted_p90_m"] = float(np.percentile(m, 90))
-    met = (
-        bool(ranked)
-        and ranked[0].error_m <= result.tolerance_m
-        and robust[0]["worst_m"] <= result.tolerance_m
-    )
     return DesignResult(
         target=target,
         tolerance_m=result.tolerance_m,

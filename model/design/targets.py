@@ -113,3 +113,26 @@ class DesignResult:
     replays: int = 0  # MuJoCo replays run: each round's candidates once, the reported ones' noisy copies
     rounds: int = 0  # rounds of search and verification run
     extra: dict = field(default_factory=dict)
+
+    def verdict(self) -> str:
+        """The result in one line, the criterion that decided it first: 'met: ...', 'not met: the
+        closest reached ends 1.20 m from the target ...', or 'not met on other robots: worst 9.51 m
+        (anisotropy 8:1); nominal 0.37 m, within the tolerance 0.50 m'."""
+        best = self.candidates[0] if self.candidates else None
+        tol = self.tolerance_m
+        if best is None or best.simulated is None:
+            return "not met: no candidate's replay ran (each broke the simulation)"
+        robust = (self.extra.get("robust") or [None])[0]
+        nominal = robust.get("nominal_m", best.error_m) if robust else best.error_m
+        where = f"ends ({best.simulated[0]:.2f}, {best.simulated[1]:.2f}) m"
+        if robust is None:
+            if self.met:
+                return f"met: candidate 1 {where}, {nominal:.2f} m from the target (tolerance {tol:.2f} m)"
+            return f"not met: the closest reached {where}, {nominal:.2f} m from the target (tolerance {tol:.2f} m)"
+        loop = " closed loop" if robust.get("closed_loop") else ""
+        worst = f"worst {robust['worst_m']:.2f} m ({robust['worst_variation']})"
+        if self.met:
+            return f"met on other robots{loop}: {worst}; nominal {nominal:.2f} m (tolerance {tol:.2f} m)"
+        if nominal > tol:
+            return f"not met: the closest reached ends {nominal:.2f} m from the target (tolerance {tol:.2f} m); {worst}{loop}"
+        return f"not met on other robots{loop}: {worst}; nominal {nominal:.2f} m, within the tolerance {tol:.2f} m"

@@ -63,8 +63,7 @@ STREAM_CHUNK = 50
 STREAM_POLL_S = 0.05
 """How often a stream in flight asks whether it is still wanted (``Simulator.stream``'s ``wanted``):
 the shared pool drops an unwanted chunk at its turn anyway, so this only bounds how long a left
-stream's thread lingers. Every poll takes the GIL: at 2 ms (until 2026-12-04) four tabs' streams
-woke 2000 times a second beside their decodes (docs/load.md)."""
+stream's thread lingers; every poll takes the GIL (docs/load.md, "STREAM_POLL_S")."""
 STREAM_FIRST = 20
 """Record samples in a stream's first chunk, after the 3 s lead-in: ~27 ms of physics to the first
 pose (100 samples took ~55 ms)."""

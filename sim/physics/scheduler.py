@@ -276,9 +276,8 @@ class FairRunner(RowRunner):
 
 SEGMENT_SAMPLES = 125
 """Record samples (6.25 s) of a batch row per task on the pool (~0.06 s of physics for a compass
-gait; a whole 100 s row is 0.75-1.6 s): how long a new gait's first motion can wait for a thread
-behind an ensemble. 500 until 2026-12-04: a stream's next chunk, submitted a moment after its last
-one ended, often found both threads just started on 0.2-0.4 s ensemble segments."""
+gait): how long a new gait's first motion can wait for a thread behind an ensemble (docs/load.md,
+"SEGMENT_SAMPLES")."""
 
 
 class OnTurns:
