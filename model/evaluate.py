@@ -232,7 +232,7 @@ def consistency(
             keys = [
                 k
                 for k in (rows[0] if rows else {})
-                if k not in ("heading_deg", "rolls", "component", "off_data", "kind")
+                if k not in ("direction_deg", "rolls", "component", "off_data", "kind")
             ]
             summary = {k: float(np.median([r[k] for r in rows])) for k in keys}
             summary["diversity"] = diversity(rows)

@@ -166,7 +166,11 @@ def figures(
     plt.close(fig8)
     if report is not None:
         paths.append(consistency_figure(report_data, out / "fig9_consistency.png"))
-        if all("heading_deg" in g for c in report_data["consistency"].values() for g in c["gaits"]):
+        if all(
+            {"direction_deg", "heading_deg"} & set(g)
+            for c in report_data["consistency"].values()
+            for g in c["gaits"]
+        ):  # heading_deg: a report written before the direction of travel had its one name
             paths.append(diversity_figure(report_data, out / "fig10_diversity.png"))
     return paths
 
@@ -237,7 +241,7 @@ def diversity_figure(report: dict, path: Path) -> Path:
         gaits = c["gaits"]
         if not gaits:
             continue
-        heading = np.radians([g["heading_deg"] for g in gaits])
+        heading = np.radians([g.get("direction_deg", g.get("heading_deg")) for g in gaits])
         dist = np.array([g["displacement_m"] for g in gaits])
         rolls = np.array([g["rolls"] for g in gaits], bool)
         x, y = dist * np.cos(heading), dist * np.sin(heading)

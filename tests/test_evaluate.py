@@ -79,7 +79,7 @@ def _straight(heading_deg: float, speed: float, roll_rate: float = 0.0) -> np.nd
 
 def test_where_gaits_went_and_their_diversity():
     w = where_it_went(_straight(120.0, 0.2, roll_rate=0.1), 5.0)
-    assert w["heading_deg"] == pytest.approx(120.0)
+    assert w["direction_deg"] == pytest.approx(120.0)
     assert w["displacement_m"] == pytest.approx(0.2 * 99.8)
     assert w["speed_bl_s"] == pytest.approx(0.2 / 0.95, rel=0.01)  # the body is 0.95 m long
     assert w["rolls"] == 1.0 and w["net_roll"] == pytest.approx(9.98)
@@ -97,7 +97,7 @@ def test_where_gaits_went_and_their_diversity():
     ens = np.stack([_straight(0, 0.1), _straight(0, 0.1) * 1.01])
     c = compare(_straight(0, 0.09), ens, 5.0)
     assert c["final_error_rel"] == pytest.approx(0.1)
-    assert c["heading_deg"] == pytest.approx(0.0)
+    assert c["direction_deg"] == pytest.approx(0.0)
     # A gait turning in place is scored on its net yaw: 9 rad decoded against 10 simulated.
     turning = _straight(0, 0.001)
     turning[:, 5] = np.linspace(0.0, 10.0, len(turning))

@@ -41,8 +41,8 @@ def test_library_has_the_gaits_the_designer_offers():
     assert abs(PRESETS["roll"].measured.net_roll) > 2 * np.pi  # it rolls over
     for name in ("sidewind", "undulate", "turn"):
         assert abs(PRESETS[name].measured.net_roll) < np.pi, name  # these do not
-    assert abs(PRESETS["sidewind"].measured.heading_deg) > 45  # sideways
-    assert abs(PRESETS["undulate"].measured.heading_deg) < 45  # forward
+    assert abs(PRESETS["sidewind"].measured.direction_deg) > 45  # sideways
+    assert abs(PRESETS["undulate"].measured.direction_deg) < 45  # forward
     assert abs(PRESETS["turn"].measured.net_yaw) > np.pi  # turns more than half a circle
 
 
@@ -55,7 +55,7 @@ def test_presets_reproduce_their_documented_figures():
         for name, p in PRESETS.items():
             got, want = measure_gait(p.gait, simulator), p.measured
             assert got.displacement == pytest.approx(want.displacement, rel=0.05, abs=0.05), name
-            assert abs(got.heading_deg - want.heading_deg) < 10, name
+            assert abs(got.direction_deg - want.direction_deg) < 10, name
             assert got.net_roll == pytest.approx(want.net_roll, rel=0.05, abs=0.3), name
             assert got.net_yaw == pytest.approx(want.net_yaw, rel=0.05, abs=0.3), name
             assert abs(got.spread - want.spread) < 0.05, name
@@ -161,3 +161,42 @@ def test_search_robust_writes_only_the_gaits_that_beat_the_library_into_it(tmp_p
         written.about
         == "rolling; ends right of its start: the most robust of 7 such members over the default variation set"
     )
+
+
+def test_one_gait_has_one_distance_direction_and_heading_change_everywhere(tmp_path, capsys):
+    """Issue 71: the library's sidewinding from ``gait --list``, ``robustness --json``, the gait CSV's
+    header and the html page's text: the same distance, direction of travel and heading change."""
+    import re
+
+    from snakeloco.app.export.share import readout
+    from snakeloco.sim.physics.simulator import replay
+
+    found = {}
+    main(["gait", "--list"])
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("sidewind "))
+    cells = row.split("|")[1].split()
+    found["gait --list"] = (float(cells[2]), cells[4], cells[5])
+    gait = tmp_path / "sidewind.csv"
+    main(["gait", "sidewind", "--out", str(gait)])
+    capsys.readouterr()
+    main(["robustness", str(gait), "--set", str(_one_variation(tmp_path)), "--json"])
+    nom = json.loads(capsys.readouterr().out.splitlines()[-1])["nominal"]
+    found["robustness --json"] = (
+        round(nom["distance_m"], 2),
+        f"{nom['direction_deg']:+.0f}°",
+        f"{nom['heading_change_deg']:+.0f}°",
+    )
+    header = next(line for line in gait.read_text().splitlines() if line.startswith("# measured:"))
+    m = re.search(r"distance ([\d.]+) m .* direction of travel ([+-]\d+°), heading change ([+-]\d+°)", header)
+    found["CSV header"] = (float(m[1]), m[2], m[3])
+    page = readout(replay(PRESETS["sidewind"].gait.commands()).body, np.zeros((0, 2)), None, "sidewind")
+    m = re.search(r"distance ([\d.]+) m in 100 s, direction of travel ([+-]\d+°), heading change ([+-]\d+°)", page)
+    found["html page"] = (float(m[1]), m[2], m[3])
+    assert len(set(found.values())) == 1, found
+    assert found["gait --list"] == (23.96, "+123°", "+77°")
+
+
+def _one_variation(tmp_path):
+    path = tmp_path / "one.yaml"
+    path.write_text("- name: dusty\n  scale: {friction_along: 0.9, friction_across: 0.9}\n")
+    return path

@@ -75,3 +75,24 @@ def test_framing_keeps_the_paths_and_the_point_clouds_left_of_the_control_panel(
         y = (v @ up) / (v @ f) / np.tan(fov / 2)
         panel_edge = 1 - 2 * covered
         assert (x > -1).all() and (x < panel_edge).all() and (np.abs(y) < 1).all()
+
+
+def test_the_readout_says_when_a_slider_move_left_the_gait_cluster():
+    """Issue 71: the Gait cluster the sliders move in is named as left once the decoded z_B sits in
+    another cluster, and nothing is said while it is inside."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from snakeloco.app.designer.readout import TabReadout
+    from snakeloco.model import load_pretrained
+
+    tab = TabReadout()
+    tab.model = load_pretrained("structured")
+    density = tab.model.config.density
+    means = np.asarray(density.means)
+    gait = SimpleNamespace(latents=SimpleNamespace(component=0, z_b=tuple(means[0])))
+    assert tab._cluster_line(gait) == ""
+    gait.latents.z_b = tuple(means[1])
+    line = tab._cluster_line(gait)
+    assert f"move in '{density.names[0]}'" in line and f"sits in '{density.names[1]}'" in line

@@ -367,8 +367,9 @@ def build_figures(report: dict) -> dict:
     rows = c.get("gaits", [])
     sectors = dict.fromkeys(SECTORS, 0)
     for r in rows:
-        if "heading_deg" in r and math.isfinite(r["heading_deg"]):
-            sectors[sector(r["heading_deg"])] += 1
+        direction = r.get("direction_deg", r.get("heading_deg"))  # heading_deg: an older report's name
+        if direction is not None and math.isfinite(direction):
+            sectors[sector(direction)] += 1
     return {
         "shape_r2": report.get("r2_shape"),
         "body_r2": report.get("r2_body"),  # the designer's path of a record's member, from its gait alone

@@ -11,7 +11,7 @@ import numpy as np
 
 from snakeloco.app.cli.commands import Build, Export, FitRobot, RobotMjcf, RobotShow, Robustness
 from snakeloco.app.cli.options import OptionError
-from snakeloco.sim.physics.body import BODY_CHANNELS
+from snakeloco.sim.physics.body import BODY_CHANNELS, heading_text
 
 
 def _robot(path: Path | None):
@@ -74,22 +74,25 @@ def run_robustness(cmd: Robustness) -> dict:
     lines = [
         f"{cmd.gait} on {robot.name} and {len(variations)} variations ({cmd.set} set), "
         f"{report['seconds']:.1f} s",
-        f"{'':<28}{'forward m':>10}{'sideways m':>11}{'heading deg':>12}{'end error m':>12}{'rel':>7}",
-        f"{'nominal':<28}{nom['forward']:>10.2f}{nom['sideways']:>11.2f}{nom['heading_deg']:>12.0f}",
+        f"{'':<28}{'forward m':>10}{'sideways m':>11}{'direction':>10}  {'heading change':<24}{'end error m':>12}{'rel':>7}",
+        f"{'nominal':<28}{_end_cells(nom)}",
     ]
     for r in report["variations"]:
         if r["failure"] is not None:
             lines.append(f"{r['name']:<28}  broke: {r['failure']}")
         else:
-            lines.append(
-                f"{r['name']:<28}{r['forward']:>10.2f}{r['sideways']:>11.2f}{r['heading_deg']:>12.0f}"
-                f"{r['end_error_m']:>12.2f}{100 * r['rel']:>6.0f}%"
-            )
+            lines.append(f"{r['name']:<28}{_end_cells(r)}{r['end_error_m']:>12.2f}{100 * r['rel']:>6.0f}%")
     lines.append(readout_line(report))
     print("\n".join(lines))
     if cmd.json:
         print(jsonlib.dumps(report))
     return report
+
+
+def _end_cells(end: dict) -> str:
+    """An end point's cells: forward, sideways (m), direction of travel and heading change."""
+    heading = heading_text(360.0 * end["turns"])
+    return f"{end['forward']:>10.2f}{end['sideways']:>11.2f}{end['direction_deg']:>+9.0f}°  {heading:<24}"
 
 
 def run_export(cmd: Export) -> dict:

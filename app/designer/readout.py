@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from snakeloco.sim.physics.body import heading_text
+
 READOUT_ID = "snakeloco-readout"
 """The readout's HTML element id (what a page test looks up)."""
 
@@ -60,6 +62,7 @@ class Readout:
         ""  # how far the end point moves on other robots (``sim.scores.robustness.readout_line``)
     )
     no_model: str = ""  # why a gait has no model path (an imported file, a library gait)
+    cluster: str = ""  # where a slider move left the chosen Gait cluster ('' while it is inside it)
 
     @property
     def gap_m(self) -> float | None:
@@ -90,17 +93,6 @@ def swatch(color: tuple[int, int, int], height: int = 4) -> str:
 GAP_BASE_M = 0.5
 """A path shorter than this is no base for a percentage: the gap is then said in metres alone (a
 0.48 m gap read "196% of the distance" for a gait that went 0.25 m)."""
-
-
-def heading_text(change_deg: float) -> str:
-    """A heading change as a person reads it: the heading in (-180, 180] degrees, and where the body
-    turned round more than half a turn, the net turn said apart ('+42° (1.1 turns left)')."""
-    wrapped = (change_deg + 180.0) % 360.0 - 180.0
-    wrapped = 180.0 if wrapped == -180.0 else wrapped
-    text = f"{wrapped:+.0f}°"
-    if abs(change_deg) > 180.0:
-        text += f" ({abs(change_deg) / 360.0:.1f} turns {'left' if change_deg > 0 else 'right'})"
-    return text
 
 
 def _cells(end: PathEnd | None, who: str, why: str = "") -> str:
@@ -169,6 +161,10 @@ def readout_html(r: Readout, colors: dict[str, tuple[int, int, int]]) -> str:
             '<div style="color:#b45309"><b>⚠ Off the data</b>: this z_B is less likely than 99% of the '
             "training records; the model extrapolates here.</div>"
         )
+    if r.cluster:
+        parts.append(
+            f'<div data-key="cluster" style="color:#b45309"><b>⚠ Off the cluster</b>: {html.escape(r.cluster)}</div>'
+        )
     if r.variations:
         parts.append(
             f'<div data-key="variations">{swatch(colors["variations"], 2)}{html.escape(r.variations)}</div>'
@@ -204,6 +200,20 @@ class TabReadout:
         line = readout_line(self.variations[1])
         return line if predicted is None else f"{line}; {prediction_line(predicted, self.variations[1])}"
 
+    def _cluster_line(self, gait) -> str:
+        """Where a decoded gait's z_B sits when it has left the Gait cluster its sliders move in."""
+        density = self.model.config.density
+        lat = gait.latents
+        if density is None or lat is None or lat.component is None:
+            return ""
+        now = int(density.component_of(np.asarray([lat.z_b]))[0])
+        if now == lat.component:
+            return ""
+        return (
+            f"the sliders move in '{density.names[lat.component]}', but this z_B sits in '{density.names[now]}' "
+            "(pick that cluster to move along its axes)"
+        )
+
     def show_readout(self, gait, state: str, body: np.ndarray | None = None, reason: str = "") -> Readout:
         """Say what ``gait`` (a ``DecodedGait``) is and where its paths went: ``state`` simulating,
         streaming, done or failed (``reason``); ``body``: MuJoCo's body series (T, 6) so far."""
@@ -228,6 +238,7 @@ class TabReadout:
             robot=self.model.robot_warning(self.session.robot) or "",
             variations=self._variations_line(),
             no_model=gait.no_model,
+            cluster=self._cluster_line(gait),
         )
         colors = {
             "model": GEN_COLOR,

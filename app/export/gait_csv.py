@@ -21,6 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
 
 from snakeloco.sim import RECORD
+from snakeloco.sim.physics.body import heading_text
 from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
 from snakeloco.sim.scores.consistency import PREDICTABLE
 
@@ -253,9 +254,9 @@ def library_gait_csv(name: str, robot: Robot = DEFAULT_ROBOT) -> str:
     preset = PRESETS[name]
     gait, m = preset.gait.on_robot(robot), preset.measured
     measured = (
-        f"{m.displacement:.2f} m in 100 s ({m.body_lengths_per_s:.3f} body lengths/s), "
-        f"straightness {m.straightness:.2f}, heading {m.heading_deg:.0f} deg, net roll {m.net_roll:.2f} rad, "
-        f"net yaw {m.net_yaw:.2f} rad, ensemble spread {m.spread:.3f}"
+        f"distance {m.displacement:.2f} m in 100 s ({m.body_lengths_per_s:.3f} body lengths/s), "
+        f"direction of travel {m.direction_deg:+.0f}°, heading change {heading_text(np.degrees(m.net_yaw))}, "
+        f"straightness {m.straightness:.2f}, net roll {m.net_roll:.2f} rad, ensemble spread {m.spread:.3f}"
     )
     comments = {
         "snakeloco gait": f"library gait {name}: {preset.about}",

@@ -22,6 +22,7 @@ from snakeloco.app.designer.scene import FAN_COLOR, GEN_COLOR, SIM_COLOR, SNAKE_
 from snakeloco.app.designer.scene_geometry import path_points, polyline
 from snakeloco.app.designer.view import framing
 from snakeloco.sim.gaits.excitation import RECORD
+from snakeloco.sim.physics.body import heading_text, travel
 from snakeloco.sim.robot.description import Robot, resolve_robot
 from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE, perturbed_commands
 
@@ -29,23 +30,15 @@ SHARE_FPS = 10.0
 """Frames per second of the recorded replay (the snake's poses: 1000 frames over 100 s)."""
 
 
-def heading_text(deg: float) -> str:
-    """A heading in (-180, 180] degrees."""
-    wrapped = (deg + 180.0) % 360.0 - 180.0
-    return f"{180.0 if wrapped == -180.0 else wrapped:+.0f} deg"
-
-
 def readout(body: np.ndarray, fan_ends: np.ndarray, model_body: np.ndarray | None, title: str) -> str:
     """The figures a reader of the page needs, as lines of text."""
     end = body[-1, 1:3]
-    distance = float(np.hypot(*end))
-    direction = np.degrees(np.arctan2(end[1], end[0]))
-    turns = (body[-1, 5] - body[0, 5]) / (2 * np.pi)
+    figures = travel(body)
     spread = float(np.sqrt(np.mean(np.sum((fan_ends - end) ** 2, axis=1)))) if len(fan_ends) else 0.0
     lines = [
         title,
-        f"MuJoCo (blue): {distance:.2f} m towards {heading_text(direction)} in {RECORD.duration:.0f} s, "
-        f"net turn {turns:+.2f} turns",
+        f"MuJoCo (blue): distance {figures['distance_m']:.2f} m in {RECORD.duration:.0f} s, direction of travel "
+        f"{figures['direction_deg']:+.0f}°, heading change {heading_text(360.0 * figures['turns'])}",
         f"Ensemble fan (grey, 0.1% noise): ends within {spread:.2f} m RMS of the replay",
     ]
     if model_body is not None:

@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from snakeloco.sim.gaits.excitation import RECORD
 from snakeloco.sim.gaits.spectra import shape_to_commands
+from snakeloco.sim.physics.body import heading_text, travel
 from snakeloco.sim.physics.results import SimulationError
 from snakeloco.sim.robot.description import BODY_LENGTH, COMMAND_LIMIT, DEFAULT_ROBOT, Robot
 
@@ -141,10 +142,11 @@ class GaitFigures(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    displacement: float = Field(description="Distance from start to end (m).")
+    displacement: float = Field(description="Distance from start to end (m): ``travel``'s distance.")
     straightness: float = Field(description="Displacement / path length (1: a straight line).")
-    heading_deg: float = Field(
-        description="Direction of the displacement from the initial heading (deg, left +)."
+    direction_deg: float = Field(
+        description="Direction of travel: where the end lies from the start, from the initial heading "
+        "(deg, left +; ``sim.physics.body.travel``, as every readout, table and page says it)."
     )
     net_roll: float = Field(description="Roll change over the record (rad).")
     net_yaw: float = Field(description="Heading change over the record (rad, left +).")
@@ -170,13 +172,10 @@ def gait_figures(ensemble_body: np.ndarray) -> GaitFigures:
     body = np.asarray(ensemble_body, np.float64)
     s = path_stats(body[0], RECORD.sample_rate)
     displacement = float(s["displacement"])
-    fx, fy = (float(v) for v in s["final_xy"])
-    # The middle link swings with the gait, so its mean yaw, not its yaw at t = 0, is the body's heading.
-    travel = np.arctan2(fy, fx) - body[0, :, 5].mean()
     return GaitFigures(
         displacement=displacement,
         straightness=displacement / max(float(s["path_length"]), 1e-9),
-        heading_deg=float(np.degrees(np.angle(np.exp(1j * travel)))),
+        direction_deg=travel(body[0])["direction_deg"],
         net_roll=float(s["net_roll"]),
         net_yaw=float(body[0, -1, 5] - body[0, 0, 5]),
         spread=ensemble_spread(body, RECORD.sample_rate)["final_spread"],
@@ -241,7 +240,8 @@ def library_table() -> str:
     w = max(map(len, PRESETS))
     head = (
         f"{'gait':<{w}} {'A_p':>5} {'A_y':>5} {'nu_p':>6} {'nu_y':>6} {'delta':>6} {'f Hz':>5} | "
-        f"{'m/s':>6} {'BL/s':>6} {'disp m':>7} {'straight':>8} {'head deg':>8} {'roll':>7} {'yaw':>7} {'spread':>6} | "
+        f"{'m/s':>6} {'BL/s':>6} {'distance m':>10} {'straight':>8} {'direction':>9}  {'heading change':<22} "
+        f"{'roll':>7} {'spread':>6} | "
         f"{'worst m':>7} {'worst':>6}  worst variation"
     )
     rows = [head, "-" * len(head)]
@@ -249,15 +249,17 @@ def library_table() -> str:
         g, m = p.gait, p.measured
         rows.append(
             f"{name:<{w}} {g.a_pitch:5.2f} {g.a_yaw:5.2f} {g.nu_pitch:6.2f} {g.nu_yaw:6.2f} {g.delta:6.2f} "
-            f"{g.frequency:5.2f} | {m.speed:6.3f} {m.body_lengths_per_s:6.3f} {m.displacement:7.2f} "
-            f"{m.straightness:8.2f} {m.heading_deg:8.0f} {m.net_roll:7.2f} {m.net_yaw:7.2f} {m.spread:6.3f} | "
+            f"{g.frequency:5.2f} | {m.speed:6.3f} {m.body_lengths_per_s:6.3f} {m.displacement:10.2f} "
+            f"{m.straightness:8.2f} {m.direction_deg:+8.0f}°  {heading_text(np.degrees(m.net_yaw)):<22} "
+            f"{m.net_roll:7.2f} {m.spread:6.3f} | "
             f"{p.worst.end_error_m:7.2f} {100 * p.worst.rel:5.0f}%  {p.worst.variation}"
         )
     legend = (
         "A_p, A_y: pitch and yaw amplitudes (rad); nu_p, nu_y: spatial frequencies (rad per module); "
         "delta: yaw wave's phase against the pitch wave (rad); f: temporal frequency.\n"
-        "m/s, BL/s: speed (BL: body lengths); disp: start-to-end distance over 100 s; straight: "
-        "distance / path length; head: direction travelled (deg, left +); roll, yaw: net turns (rad); "
+        "m/s, BL/s: speed (BL: body lengths); distance: start to end over 100 s; straight: "
+        "distance / path length; direction: of travel, where the end lies from the initial heading (deg, left +); "
+        "heading change: how much the body turned (deg, left +; whole turns said apart); roll: net roll (rad); "
         "spread: where 0.1%-noisy replays end, over the distance.\n"
         "worst: how far the end point moves on the default set of physics variations (friction, "
         "masses, servos, slope, latency; `snakeloco robustness`), in m and over the distance."

@@ -70,3 +70,36 @@ def body_states(pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
         ],
         axis=-1,
     )
+
+
+def wrap_deg(deg: float) -> float:
+    """An angle in (-180, 180] degrees."""
+    wrapped = (float(deg) + 180.0) % 360.0 - 180.0
+    return 180.0 if wrapped == -180.0 else wrapped
+
+
+def heading_text(change_deg: float) -> str:
+    """A heading change as a person reads it: the heading in (-180, 180] degrees, and where the body
+    turned round more than half a turn, the net turn said apart ('+42° (1.1 turns left)')."""
+    text = f"{wrap_deg(change_deg):+.0f}°"
+    if abs(change_deg) > 180.0:
+        text += f" ({abs(change_deg) / 360.0:.1f} turns {'left' if change_deg > 0 else 'right'})"
+    return text
+
+
+def travel(body: np.ndarray) -> dict[str, float]:
+    """The one set of figures every place a person reads a path's end uses (readout, CLI tables, CSV
+    headers, the html page): ``distance_m`` (straight-line from the start, m), ``direction_deg`` (the
+    direction of travel: where the end lies from the start, measured from the initial heading, deg,
+    left +, in (-180, 180]), ``heading_change_deg`` (how much the body turned, wrapped to
+    (-180, 180]) and ``turns`` (the net turn in whole-and-part turns, left +). ``body`` (T, 6) in the
+    start frame (``body_states``)."""
+    b = np.asarray(body, np.float64)
+    f, s = float(b[-1, 1] - b[0, 1]), float(b[-1, 2] - b[0, 2])
+    net = float(np.degrees(b[-1, 5] - b[0, 5]))
+    return {
+        "distance_m": float(np.hypot(f, s)),
+        "direction_deg": wrap_deg(np.degrees(np.arctan2(s, f))),
+        "heading_change_deg": wrap_deg(net),
+        "turns": net / 360.0,
+    }

@@ -138,7 +138,7 @@ ROLLING = 2 * np.pi
 
 def where_it_went(body: np.ndarray, sample_rate: float) -> dict[str, float]:
     """Where one simulated body series (T, 6) went: ``displacement_m``, ``speed_bl_s`` (displacement
-    over the record's duration, in body lengths per second), ``heading_deg`` (the displacement's
+    over the record's duration, in body lengths per second), ``direction_deg`` (the direction of travel: the displacement's
     direction in the start frame: 0 forward, +90 left), ``net_roll`` (rad) and ``rolls`` (1.0 when
     |net roll| >= ``ROLLING``)."""
     from snakeloco.sim.robot.description import BODY_LENGTH
@@ -150,7 +150,7 @@ def where_it_went(body: np.ndarray, sample_rate: float) -> dict[str, float]:
     return {
         "displacement_m": float(s["displacement"]),
         "speed_bl_s": float(s["displacement"]) / duration / BODY_LENGTH,
-        "heading_deg": float(np.degrees(np.arctan2(fy, fx))),
+        "direction_deg": float(np.degrees(np.arctan2(fy, fx))),
         "net_roll": roll,
         "rolls": float(abs(roll) >= ROLLING),
     }
@@ -163,7 +163,7 @@ def diversity(rows: list[dict[str, float]]) -> dict:
     the share rolling."""
     if not rows:
         return {}
-    heading = np.array([r["heading_deg"] for r in rows])
+    heading = np.array([r["direction_deg"] for r in rows])
     speed = np.array([r["speed_bl_s"] for r in rows])
     quadrant = (((heading + 45.0) % 360.0) // 90.0).astype(int)  # 0 forward, 1 left, 2 back, 3 right
     names = ("forward", "left", "backward", "right")

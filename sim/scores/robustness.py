@@ -1,7 +1,7 @@
 """How a gait fares on robots other than the nominal one: its replays over a variation set.
 
 A gait's end point is where the body frame ends after the 100 s record, in the start frame
-(forward, sideways in m; ``sim.physics.body``), and its heading change the net yaw (deg, left +). A
+(forward, sideways in m; ``sim.physics.body``), with ``sim.physics.body.travel``'s figures. A
 variation's end error is the distance between its end point and the nominal replay's, and its
 relative error that distance over max(nominal distance, ``MIN_DISTANCE``): a gait that barely moves
 is not a base for a percentage.
@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from snakeloco.sim.physics.body import travel
 from snakeloco.sim.physics.results import SimulationError
 from snakeloco.sim.robot.description import Robot
 from snakeloco.sim.robot.variations import Variation
@@ -36,12 +37,9 @@ def relative_change(end, reference) -> np.ndarray:
 
 
 def end_point(body: np.ndarray) -> dict[str, float]:
-    """Where a body series (T, 6) ends: forward, sideways (m) and heading change (deg, left +)."""
-    return {
-        "forward": float(body[-1, 1]),
-        "sideways": float(body[-1, 2]),
-        "heading_deg": float(np.degrees(body[-1, 5] - body[0, 5])),
-    }
+    """Where a body series (T, 6) ends: forward, sideways (m) and ``sim.physics.body.travel``'s
+    distance, direction of travel, heading change and turns."""
+    return {"forward": float(body[-1, 1]), "sideways": float(body[-1, 2]), **travel(body)}
 
 
 def robustness(
@@ -53,8 +51,8 @@ def robustness(
     """Replay ``commands`` (T, J) rad on the nominal robot and on each variation of it, in one batch.
 
     ``simulator``: a ``sim.physics.simulator.Simulator`` of ``robot`` (one is made where None). Returns
-    ``{"nominal": {forward, sideways, heading_deg}, "variations": [{name, params, forward,
-    sideways, heading_deg, end_error_m, rel, failure}], "worst_end_error_m", "worst_rel",
+    ``{"nominal": {forward, sideways, distance_m, direction_deg, heading_change_deg, turns},
+    "variations": [{name, params, forward, sideways, ..., end_error_m, rel, failure}], "worst_end_error_m", "worst_rel",
     "worst"}``, the body series under ``"bodies"`` ((1 + V, T, 6), nominal first; NaN rows where a
     variation broke) for drawing.
     """
@@ -86,7 +84,7 @@ def summarise(
     for v, body, failure in zip(variations, bodies, failures, strict=True):
         row: dict = {"name": v.name, "params": v.params()}
         if failure is not None:
-            row.update(forward=None, sideways=None, heading_deg=None, end_error_m=None, rel=None)
+            row.update(forward=None, sideways=None, end_error_m=None, rel=None)
         else:
             end = end_point(body)
             xy = np.array([end["forward"], end["sideways"]])
