@@ -190,7 +190,9 @@ def test_one_gait_has_one_distance_direction_and_heading_change_everywhere(tmp_p
     m = re.search(r"distance ([\d.]+) m .* direction of travel ([+-]\d+°), heading change ([+-]\d+°)", header)
     found["CSV header"] = (float(m[1]), m[2], m[3])
     page = readout(replay(PRESETS["sidewind"].gait.commands()).body, np.zeros((0, 2)), None, "sidewind")
-    m = re.search(r"distance ([\d.]+) m in 100 s, direction of travel ([+-]\d+°), heading change ([+-]\d+°)", page)
+    m = re.search(
+        r"distance ([\d.]+) m in 100 s, direction of travel ([+-]\d+°), heading change ([+-]\d+°)", page
+    )
     found["html page"] = (float(m[1]), m[2], m[3])
     assert len(set(found.values())) == 1, found
     assert found["gait --list"] == (23.96, "+123°", "+77°")
