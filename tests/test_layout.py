@@ -82,9 +82,12 @@ def test_wheel_installs_under_one_name_with_its_data(tmp_path):
     assert {t for t in top if not t.endswith(".dist-info")} == {"snakeloco"}, top
     for needed in (
         "snakeloco/sim/snake.xml",
+        "snakeloco/sim/robots/planar6.yaml",
+        "snakeloco/sim/gaits/library.json",
         "snakeloco/model/pretrained/model.safetensors",
         "snakeloco/model/pretrained/config.json",
-        "snakeloco/app/help.md",
+        "snakeloco/app/designer/help.md",
+        "snakeloco/sim/control/follower.py",
         "snakeloco/app/bench/load_driver.py",
     ):
         assert needed in names, needed
@@ -137,3 +140,21 @@ def test_layers_import_downward_only_and_the_benchmarks_never_import_the_cli():
             if d not in seen:
                 seen.add(d)
                 todo.extend(x for x in graph[d] if x in graph)
+
+
+def test_every_room_is_a_package_the_wheel_installs():
+    """A room (a folder with an ``__init__.py`` under sim/, model/ or app/) left out of pyproject's
+    package list works in an editable checkout and is missing from every wheel."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    setup = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+    rooms = {
+        "snakeloco." + ".".join(init.parent.relative_to(root).parts)
+        for floor in ("sim", "model", "app")
+        for init in (root / floor).rglob("__init__.py")
+    }
+    assert rooms == set(setup["packages"]), rooms ^ set(setup["packages"])
+    for name in rooms:
+        assert setup["package-dir"][name] == name.removeprefix("snakeloco.").replace(".", "/"), name
