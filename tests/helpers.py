@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from snakeloco.app.bench.headless import HeadlessClient
-from snakeloco.app.bench.load_driver import CHROMIUM
+from snakeloco.app.bench.users.headless import HeadlessClient
+from snakeloco.app.bench.users.load_driver import CHROMIUM
 from snakeloco.model import HierarchicalVAE, ModelConfig
 from snakeloco.model.checkpoint import Normalization
 from snakeloco.model.vae.config import TINY
@@ -71,7 +71,7 @@ def apply(d, control, value, timeout: float = 60.0) -> bool:
     a clock, until the request it caused is the tab's newest and every job of it finished. False if
     no request came or it did not finish within ``timeout`` s each (viser runs the control's
     callback on its thread pool: on a starved machine that alone took over 10 s)."""
-    from snakeloco.app.bench.load_driver import wait_until
+    from snakeloco.app.bench.users.load_driver import wait_until
 
     before = d.version
     control.value = value
@@ -101,7 +101,7 @@ def fresh_net(cfg: ModelConfig = SMALL) -> HierarchicalVAE:
 def designer_page(checkpoint, viewport: dict | None = None, **page_options):
     """A designer server (ensemble 2) and one Chromium page on it whose tab has settled: yields the
     Playwright module, the server, the page and the tab's ``DesignerClient``; all closed after."""
-    from snakeloco.app.bench.load_driver import CHROMIUM_ARGS, wait_until
+    from snakeloco.app.bench.users.load_driver import CHROMIUM_ARGS, wait_until
 
     sync_api = pytest.importorskip("playwright.sync_api")
     srv = quiet_server(checkpoint)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_app_parts import bad_gait_files
 
-from snakeloco.app.bench.load_driver import wait_until
+from snakeloco.app.bench.users.load_driver import wait_until
 from snakeloco.app.designer.gui import path_plot_values
 from snakeloco.app.designer.scene import FAN_STEP
 from snakeloco.app.designer.scene_geometry import shape_points
@@ -232,7 +232,7 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
         assert "replay failed" in d.controls.readout.content and d.readout.gap_m is None
         assert d.timings[-1].failed and server.errors == []
         # The load benchmark's check: a refused replay shown as such is not a stale draw ...
-        from snakeloco.app.bench.load_browser import replay_problems
+        from snakeloco.app.bench.users.load_browser import replay_problems
 
         assert replay_problems(d) == []
         shown = d.controls.panel.content

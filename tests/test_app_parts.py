@@ -359,7 +359,7 @@ def test_a_paused_animation_sleeps_until_played_and_closes_at_once():
     it again (the button, or ``playing`` set) wakes it; closing wakes a paused one too."""
     from types import SimpleNamespace
 
-    from snakeloco.app.bench.load_driver import wait_until
+    from snakeloco.app.bench.users.load_driver import wait_until
     from snakeloco.app.designer.playback import FRAME_HZ, PAUSED_WAIT_S, Playback
 
     def runs(thread: threading.Thread) -> int:

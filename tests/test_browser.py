@@ -9,7 +9,7 @@ import threading
 
 import numpy as np
 
-from snakeloco.app.bench.load_driver import CHROMIUM_ARGS, wait_until
+from snakeloco.app.bench.users.load_driver import CHROMIUM_ARGS, wait_until
 from snakeloco.app.export.gait_csv import read_gait_csv
 
 from helpers import BROWSER, designer_page

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from snakeloco.app.bench.protocol import ProtocolClient
+from snakeloco.app.bench.users.protocol import ProtocolClient
 from snakeloco.app.cli.main import main
 from snakeloco.sim import load_dataset
 
@@ -106,9 +106,9 @@ def test_serve_refuses_a_busy_port_instead_of_serving_on_the_next(capsys):
 
 
 def test_bench_load_without_chromium_says_what_to_install(capsys, monkeypatch, tmp_path):
-    import snakeloco.app.bench.load_browser
+    import snakeloco.app.bench.users.load_browser
 
-    monkeypatch.setattr(snakeloco.app.bench.load_browser, "CHROMIUM", str(tmp_path / "no-chromium"))
+    monkeypatch.setattr(snakeloco.app.bench.users.load_browser, "CHROMIUM", str(tmp_path / "no-chromium"))
     _refused(capsys, ["bench", "load", "--clients", "1", "--seconds", "1"], "apt-get install -y chromium")
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from snakeloco.app.bench.load_driver import wait_until
+from snakeloco.app.bench.users.load_driver import wait_until
 from snakeloco.app.designer.session import Latents, decode_latents
 from snakeloco.app.server.decode_process import IN_FLIGHT, DecodePool, DecodeProcess, decode_pids
 from snakeloco.model.api import load_pretrained

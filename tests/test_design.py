@@ -189,7 +189,7 @@ def test_malformed_targets_are_refused_in_one_line(argv, says, tmp_path, capsys)
 def test_designer_panel_designs_on_its_own_worker_and_a_picked_candidate_becomes_the_gait(checkpoint):
     from types import SimpleNamespace
 
-    from snakeloco.app.bench.load_driver import wait_until
+    from snakeloco.app.bench.users.load_driver import wait_until
     from snakeloco.app.designer.design_panel import ground_point
 
     from helpers import apply, connect_headless, quiet_server

@@ -191,7 +191,7 @@ def browser_test(test):
 def test_html_export_opens_from_disk_with_no_server(sidewind_csv, tmp_path):
     from playwright.sync_api import sync_playwright
 
-    from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS
+    from snakeloco.app.bench.users.load_driver import CHROMIUM, CHROMIUM_ARGS
 
     out = tmp_path / "share"
     main(["export", str(sidewind_csv), "--format", "html", "--out", str(out)])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from snakeloco.app.bench.load_driver import wait_until
+from snakeloco.app.bench.users.load_driver import wait_until
 from snakeloco.app.designer.readout import GAP_BASE_M, READOUT_ID, heading_text
 from snakeloco.app.designer.scene_geometry import path_points
 from snakeloco.app.designer.view import in_view

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 
-import snakeloco.app.bench.load_browser as load
+import snakeloco.app.bench.users.load_browser as load
 
 
 class _Tab:
@@ -95,8 +95,8 @@ def test_browser_nice_puts_the_browsers_threads_at_its_nice_and_in_the_idle_clas
 
     import pytest
 
-    from snakeloco.app.bench.load_driver import wait_until
-    from snakeloco.app.bench.processes import BrowserNice
+    from snakeloco.app.bench.users.load_driver import wait_until
+    from snakeloco.app.bench.users.processes import BrowserNice
 
     if not hasattr(os, "SCHED_IDLE") or not os.path.isdir("/proc/self/task"):
         pytest.skip("no idle scheduling class here")

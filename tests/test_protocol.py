@@ -10,10 +10,10 @@ import time
 import numpy as np
 import pytest
 
-from snakeloco.app.bench.load_browser import wait_until
-from snakeloco.app.bench.load_protocol import server_problems
-from snakeloco.app.bench.protocol import DONE_STATES, ProtocolClient, stream_problems
-from snakeloco.app.bench.wire import parse_readout
+from snakeloco.app.bench.users.load_browser import wait_until
+from snakeloco.app.bench.users.load_protocol import server_problems
+from snakeloco.app.bench.users.protocol import DONE_STATES, ProtocolClient, stream_problems
+from snakeloco.app.bench.users.wire import parse_readout
 from snakeloco.app.designer.readout import Readout, readout_html
 
 from helpers import apply, connect_headless, quiet_server
@@ -151,7 +151,7 @@ def test_a_tab_whose_page_has_left_draws_nothing_more(checkpoint):
 def test_bunched_arrivals_tell_clients_in_step_from_independent_ones():
     from types import SimpleNamespace as NS
 
-    from snakeloco.app.bench.load_protocol import bunched_arrivals
+    from snakeloco.app.bench.users.load_protocol import bunched_arrivals
 
     def tabs(offsets_s):  # each tab sends every 50 ms for 10 s from its own offset
         return [NS(timings=[NS(submitted=o + 0.05 * k) for k in range(200)]) for o in offsets_s]
@@ -200,8 +200,8 @@ def test_clients_of_one_gaits_seed_drag_through_the_same_gaits_at_times_of_their
         for _ in range(5):
             await c.drag(3.0)
 
-    monkeypatch.setattr("snakeloco.app.bench.protocol.asyncio.sleep", sleep)
-    monkeypatch.setattr("snakeloco.app.bench.protocol.time.perf_counter", lambda: clock[0])
+    monkeypatch.setattr("snakeloco.app.bench.users.protocol.asyncio.sleep", sleep)
+    monkeypatch.setattr("snakeloco.app.bench.users.protocol.time.perf_counter", lambda: clock[0])
     a, b = client(1), client(2)
     for c in (a, b):
         asyncio.run(run(c))
@@ -233,8 +233,8 @@ def test_a_drag_keeps_to_its_own_50_ms_grid_after_a_stall(monkeypatch):
         clock[0] += s
 
     c.send = send
-    monkeypatch.setattr("snakeloco.app.bench.protocol.asyncio.sleep", sleep)
-    monkeypatch.setattr("snakeloco.app.bench.protocol.time.perf_counter", lambda: clock[0])
+    monkeypatch.setattr("snakeloco.app.bench.users.protocol.asyncio.sleep", sleep)
+    monkeypatch.setattr("snakeloco.app.bench.users.protocol.time.perf_counter", lambda: clock[0])
     asyncio.run(c.drag(0.0))
     grid = 100.0 + 0.05 * np.arange(len(sent))
     assert len(sent) >= 11 and np.allclose(sent, grid, atol=1e-9)  # the stall ends before the fourth is due

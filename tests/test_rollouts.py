@@ -104,7 +104,7 @@ def test_callers_sharing_a_simulator_roll_out_in_the_order_they_came():
 
 
 def test_a_lock_of_two_slots_has_two_holders_and_a_line_in_order():
-    from snakeloco.app.bench.load_driver import wait_until
+    from snakeloco.app.bench.users.load_driver import wait_until
     from snakeloco.sim.physics.threads import FifoLock
 
     lock, order, inside, most = FifoLock(slots=2), [], [0], [0]

@@ -237,7 +237,7 @@ def test_tabs_decode_in_turns_each_its_newest_value(checkpoint):
     the value it ended on."""
     from contextlib import ExitStack
 
-    from snakeloco.app.bench.load_driver import wait_until
+    from snakeloco.app.bench.users.load_driver import wait_until
     from snakeloco.app.server.decode_process import IN_FLIGHT
 
     from helpers import connect_headless, quiet_server

@@ -7,7 +7,7 @@ import time
 import mujoco
 import numpy as np
 
-from snakeloco.app.bench.headless import HeadlessClient
+from snakeloco.app.bench.users.headless import HeadlessClient
 from snakeloco.app.server.lifecycle import DesignerServer, freeze_started, tune_process
 from snakeloco.sim import expand_commands, load_model
 from snakeloco.sim.physics.simulator import Simulator

@@ -47,15 +47,15 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.bench.load_browser import (
+from snakeloco.app.bench.users.load_browser import (
     BREAKDOWN,
     Pages,
     browser_phase,
     percentile,
     require_browser,
 )
-from snakeloco.app.bench.load_driver import DWELL_S
-from snakeloco.app.bench.processes import (
+from snakeloco.app.bench.users.load_driver import DWELL_S
+from snakeloco.app.bench.users.processes import (
     BrowserNice,
     RssSampler,
     pin_process,
@@ -115,7 +115,7 @@ def bench_load(
     the multi-client phase's) or "browser" (a Chromium page each)."""
     import tempfile
 
-    from snakeloco.app.bench.load_protocol import protocol_phase
+    from snakeloco.app.bench.users.load_protocol import protocol_phase
 
     if driver not in ("protocol", "browser"):
         raise ValueError(f"driver must be protocol or browser, got {driver!r}")

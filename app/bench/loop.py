@@ -172,7 +172,7 @@ def _timing(sim: Simulator, repeats: int, log) -> dict:
 def _designer(checkpoint, gaits: tuple[str, ...], log) -> dict:
     """The designer's closed-loop fan with one client: seconds from a library gait's replay drawn to
     its fan drawn, with the Variations fan on too (as ``snakeloco serve`` runs)."""
-    from snakeloco.app.bench.headless import HeadlessClient
+    from snakeloco.app.bench.users.headless import HeadlessClient
     from snakeloco.app.server.lifecycle import DesignerServer, freeze_started, tune_process
 
     tune_process()

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
+from snakeloco.app.bench.users.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.designer.view import in_view
 from snakeloco.app.server.lifecycle import DesignerServer
 

@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
-from snakeloco.app.bench.load_driver import DWELL_S
+from snakeloco.app.bench.users.load_driver import DWELL_S
 from snakeloco.app.cli.options import Checkpoint, Command, Ensemble, Json, Seed, Workers
 from snakeloco.model.design.config import DesignConfig
 from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
+from snakeloco.app.bench.users.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
 from snakeloco.app.server.lifecycle import DesignerServer
 from snakeloco.sim import RECORD
 

@@ -33,9 +33,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from snakeloco.app.bench.load_browser import comment_numbers, percentile, require_browser
-from snakeloco.app.bench.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
-from snakeloco.app.bench.processes import BrowserNice, RssSampler
+from snakeloco.app.bench.users.load_browser import comment_numbers, percentile, require_browser
+from snakeloco.app.bench.users.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_until
+from snakeloco.app.bench.users.processes import BrowserNice, RssSampler
 from snakeloco.app.export.gait_csv import read_gait_csv
 from snakeloco.app.server.lifecycle import DesignerServer, freeze_started, tune_process
 from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE

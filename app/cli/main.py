@@ -297,7 +297,7 @@ USER_ERRORS = (
     ("snakeloco.model.vae.train", "TrainingError"),
     ("snakeloco.sim.physics.results", "SimulationError"),
     ("snakeloco.sim.physics.backend", "BackendError"),
-    ("snakeloco.app.bench.load_browser", "MissingBrowserError"),
+    ("snakeloco.app.bench.users.load_browser", "MissingBrowserError"),
 )
 """Errors that mean bad input, not a bug: a one-line message and exit status 2 (module, class)."""
 

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.bench import protocol, protocol_run
-from snakeloco.app.bench.load_browser import (
+from snakeloco.app.bench.users import protocol, protocol_run
+from snakeloco.app.bench.users.load_browser import (
     Browser,
     breakdown_p95,
     percentile,
@@ -27,8 +27,8 @@ from snakeloco.app.bench.load_browser import (
     view_times_ms,
     wait_quiet,
 )
-from snakeloco.app.bench.load_driver import wait_until
-from snakeloco.app.bench.processes import SPARED, CpuSplit, rss_mb
+from snakeloco.app.bench.users.load_driver import wait_until
+from snakeloco.app.bench.users.processes import SPARED, CpuSplit, rss_mb
 from snakeloco.app.designer.gui import path_plot_values
 from snakeloco.app.designer.tab import DesignerClient
 from snakeloco.app.server.lifecycle import DesignerServer

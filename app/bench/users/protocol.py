@@ -22,7 +22,7 @@ import msgspec
 import numpy as np
 import websockets
 
-from snakeloco.app.bench.wire import CAMERA, decode_frame, gui_update, parse_readout, subprotocol
+from snakeloco.app.bench.users.wire import CAMERA, decode_frame, gui_update, parse_readout, subprotocol
 
 SEND_PERIOD_S = 0.05
 """How often viser's slider sends a dragged value (it throttles to 50 ms and sends a trailing one).

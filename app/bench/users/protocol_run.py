@@ -9,7 +9,14 @@ import time
 
 import numpy as np
 
-from snakeloco.app.bench.protocol import DONE_STATES, HELD_JUMPS, JOIN_GAP_S, JUMPS, MOVES, ProtocolClient
+from snakeloco.app.bench.users.protocol import (
+    DONE_STATES,
+    HELD_JUMPS,
+    JOIN_GAP_S,
+    JUMPS,
+    MOVES,
+    ProtocolClient,
+)
 
 
 async def _run(

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.bench import load_driver
-from snakeloco.app.bench.load_driver import CHROMIUM, wait_until
-from snakeloco.app.bench.processes import CpuSplit, rss_mb
+from snakeloco.app.bench.users import load_driver
+from snakeloco.app.bench.users.load_driver import CHROMIUM, wait_until
+from snakeloco.app.bench.users.processes import CpuSplit, rss_mb
 from snakeloco.app.designer import panel
 from snakeloco.app.designer.gui import path_plot_values
 from snakeloco.app.designer.tab import DesignerClient

@@ -1,0 +1,1 @@
+"""The simulated users of the load benchmarks: viser protocol clients, Chromium pages and the processes they run in."""
