@@ -88,7 +88,7 @@ def test_wheel_installs_under_one_name_with_its_data(tmp_path):
         "snakeloco/model/pretrained/config.json",
         "snakeloco/app/designer/help.md",
         "snakeloco/sim/control/follower.py",
-        "snakeloco/app/bench/load_driver.py",
+        "snakeloco/app/bench/users/load_driver.py",
     ):
         assert needed in names, needed
     assert not any(n.startswith("snakeloco/tests/") for n in names)

@@ -111,7 +111,7 @@ def bench_load(
     variations: bool = False,
 ) -> dict:
     """Run the single-client and ``clients``-client phases and summarise them (see module docstring).
-    ``driver``: "protocol" (``bench.protocol`` clients; ``browser_page``: one Chromium page beside
+    ``driver``: "protocol" (``bench.users.protocol`` clients; ``browser_page``: one Chromium page beside
     the multi-client phase's) or "browser" (a Chromium page each)."""
     import tempfile
 

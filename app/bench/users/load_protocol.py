@@ -1,4 +1,4 @@
-"""One phase of ``snakeloco bench load --driver protocol``: protocol clients (``bench.protocol``),
+"""One phase of ``snakeloco bench load --driver protocol``: protocol clients (``bench.users.protocol``),
 all in one process at the browsers' nice, and optionally one real Chromium page beside them.
 
 Latencies are the clients' own: from a drag's trailing value leaving the client to the frame that
