@@ -51,6 +51,12 @@ def test_unsteered_closed_loop_replay_is_the_open_loop_replay_to_the_bit(sim):
     robot = sim.robot.model_copy(update={"latency": 0.03})
     f = make_follower(commands, np.zeros((2, 2)), Steering(period=1.0), sim, "on_time")
     (run,) = run_closed_loop(sim, [f], [robot])
+    one = Simulator(workers=1)  # no rollout threads: the rows run on the calling thread, the same numbers
+    try:
+        (alone,) = run_closed_loop(one, [f], [robot])
+    finally:
+        one.close()
+    np.testing.assert_array_equal(alone.poses, run.poses)
     from snakeloco.sim.physics.command_rule import expand_commands
 
     ctrl = expand_commands(commands[None], sim.substeps, sim.config, delay=sim.latency_steps(robot))

@@ -129,7 +129,11 @@ def run_closed_loop(
 
 
 def _run_now(simulator, model, initial, ctrl, warm, state, sens, warm_out) -> None:
-    simulator.rollout(ctrl, start=Paused(0, initial, warm, (), []), warm_out=warm_out, models=[model])[0]
+    """One row's period on the calling thread (a simulator without rollout threads), into ``state``,
+    ``sens`` and ``warm_out`` as the threads' rollout fills them."""
+    state[:], sens[:] = simulator.rollout(
+        ctrl, start=Paused(0, initial, warm, (), []), warm_out=warm_out, models=[model]
+    )
 
 
 class _Row:
