@@ -156,7 +156,11 @@ def test_a_newcomers_first_hour_in_the_browser():
         # 5. The exported gait imports as exported: the same model path in the readout.
         d.import_bytes("mine.csv", exported.encode())
         assert wait_until(
-            lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 120
+            # z_B -> axes is a matrix product: the slider comes back to the last bit or two (BLAS kernels differ)
+            lambda: (
+                d.idle() and d.decoded.latents is not None and abs(d.decoded.latents.axes[0] - 2.0) < 1e-9
+            ),
+            120,
         )
         sync_api.expect(readout.locator('[data-key="model-distance"]')).to_have_text(
             model_cell, timeout=30000
