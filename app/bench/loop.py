@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.sim.control.closed_loop import make_follower, nominal_reference, run_closed_loop
+from snakeloco.sim.control.closed_loop import cut_and_turn, make_follower, nominal_reference, run_closed_loop
 from snakeloco.sim.control.find import find_steering
 from snakeloco.sim.gaits.library import PRESETS
 from snakeloco.sim.physics.simulator import Simulator
@@ -122,13 +122,12 @@ def _sensing(sim: Simulator, log) -> dict:
 def _off_path(sim: Simulator, log) -> dict:
     out = {}
     turn = math.radians(30.0)
-    c, s = math.cos(turn), math.sin(turn)
     for name in ("undulate", "sidewind"):
         commands = PRESETS[name].gait.commands(sim.robot)
         steering = find_steering(commands, sim)
         reference = nominal_reference(commands, sim, steering.period)
         normal = np.array([-math.sin(turn), math.cos(turn)])  # 1 m to the path's left, turned 30 deg
-        moved = reference[0] + (reference - reference[0]) @ np.array([[c, s], [-s, c]]) + normal
+        moved = cut_and_turn(reference, len(reference) - 1, reference[0], turn) + normal
         (run,) = run_closed_loop(sim, [make_follower(commands, moved, steering, sim, "arrive")])
         e = np.abs(run.cross_track)
         far = np.flatnonzero(~(e < 0.1))
@@ -173,6 +172,7 @@ def _designer(checkpoint, gaits: tuple[str, ...], log) -> dict:
     """The designer's closed-loop fan with one client: seconds from a library gait's replay drawn to
     its fan drawn, with the Variations fan on too (as ``snakeloco serve`` runs)."""
     from snakeloco.app.bench.users.headless import HeadlessClient
+    from snakeloco.app.bench.users.load_driver import wait_until
     from snakeloco.app.server.lifecycle import DesignerServer, freeze_started, tune_process
 
     tune_process()
@@ -181,10 +181,7 @@ def _designer(checkpoint, gaits: tuple[str, ...], log) -> dict:
     client = HeadlessClient(server.port)
     out = {}
     try:
-        for _ in range(200):
-            if server.clients:
-                break
-            time.sleep(0.05)
+        wait_until(lambda: server.clients, 10)
         tab = next(iter(server.clients.values()))
         tab.wait_idle(120)
         tab.loop.done.wait(600)

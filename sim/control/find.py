@@ -18,7 +18,13 @@ import math
 
 import numpy as np
 
-from snakeloco.sim.control.closed_loop import make_follower, nominal_reference, run_closed_loop, trailing_mean
+from snakeloco.sim.control.closed_loop import (
+    cut_and_turn,
+    make_follower,
+    nominal_reference,
+    run_closed_loop,
+    trailing_mean,
+)
 from snakeloco.sim.control.steering import PROBE, STEERING_KINDS, Steering, apply, steering_pattern
 from snakeloco.sim.physics.results import Dropped
 
@@ -166,8 +172,7 @@ def check_in_closed_loop(
     followers = []
     for steering in candidates:
         for turn in (CHECK_TURN, -CHECK_TURN):
-            c, s = math.cos(turn), math.sin(turn)
-            turned = reference[0] + (reference - reference[0]) @ np.array([[c, s], [-s, c]])
+            turned = cut_and_turn(reference, len(reference) - 1, reference[0], turn)
             followers.append(make_follower(commands, turned, steering, simulator, "arrive"))
     runs = run_closed_loop(simulator, followers)
     distance = max(float(np.linalg.norm(reference[-1] - reference[0])), 0.5)
