@@ -98,13 +98,14 @@ def fresh_net(cfg: ModelConfig = SMALL) -> HierarchicalVAE:
 
 
 @contextlib.contextmanager
-def designer_page(checkpoint, viewport: dict | None = None, **page_options):
-    """A designer server (ensemble 2) and one Chromium page on it whose tab has settled: yields the
-    Playwright module, the server, the page and the tab's ``DesignerClient``; all closed after."""
+def designer_page(checkpoint, viewport: dict | None = None, server: dict | None = None, **page_options):
+    """A designer server (ensemble 2; ``server``: other ``quiet_server`` options) and one Chromium page
+    on it whose tab has settled: yields the Playwright module, the server, the page and the tab's
+    ``DesignerClient``; all closed after."""
     from snakeloco.app.bench.users.load_driver import CHROMIUM_ARGS, wait_until
 
     sync_api = pytest.importorskip("playwright.sync_api")
-    srv = quiet_server(checkpoint)
+    srv = quiet_server(checkpoint, **(server or {}))
     try:
         with sync_api.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)

@@ -131,3 +131,54 @@ def test_a_hidden_tab_pauses_its_animation_and_resumes_when_shown(checkpoint, mo
         _set_hidden(page, False)
         assert wait_until(lambda: d.playback.playing, 30), "showing the tab did not resume it"
         page.wait_for_timeout(1000)  # the last late label is sent
+
+
+def test_a_design_beside_the_ensemble_leaves_the_page_answering_and_cancels(checkpoint, tmp_path):
+    """Issue 71: Design pressed while the ensemble runs; the page shows the bar, a slider move is
+    drawn, Export CSV downloads and Cancel stops it, each within ANSWER_S on 2 cores. Screenshots of
+    the bar, the cancelled line and a finished design's verdict go to $SNAKELOCO_SCREENSHOTS (else
+    the test's own folder)."""
+    import os
+    from pathlib import Path
+
+    from test_jobs import ANSWER_S, LONG
+
+    from snakeloco.model.design.config import DesignConfig
+
+    shots = Path(os.environ.get("SNAKELOCO_SCREENSHOTS", tmp_path))
+    shots.mkdir(parents=True, exist_ok=True)
+    with designer_page(checkpoint, accept_downloads=True, server={"ensemble": 4}) as (sync_api, srv, page, d):
+        d.design.config = LONG
+        d.controls.design.forward.value, d.controls.design.sideways.value = 0.6, 0.2  # within reach
+        page.get_by_text("Design for target").first.click()  # open the folder
+        slider = page.get_by_role("slider").first
+        slider.focus()
+        for _ in range(5):
+            slider.press("ArrowRight")
+        assert wait_until(lambda: d.ensembles._busy, 60), "no ensemble ran"
+        page.get_by_role("button", name="Design", exact=True).click()
+        sync_api.expect(page.locator(".mantine-Progress-root")).to_be_visible(timeout=ANSWER_S * 1000)
+        assert d.design.progress is not None
+        page.wait_for_timeout(3000)
+        page.screenshot(path=str(shots / "design-in-progress.png"))
+        drawn = d.views_drawn
+        slider.focus()
+        for _ in range(3):
+            slider.press("ArrowRight")
+        assert wait_until(lambda: d.views_drawn > drawn, ANSWER_S), "the slider move went unanswered"
+        with page.expect_download(timeout=ANSWER_S * 1000):
+            page.get_by_role("button", name="Export CSV").click()
+        page.get_by_role("button", name="Cancel").click()
+        assert d.design.worker.wait_idle(ANSWER_S), "the design went on after Cancel"
+        sync_api.expect(page.get_by_text("Cancelled after")).to_be_visible(timeout=ANSWER_S * 1000)
+        sync_api.expect(page.locator(".mantine-Progress-root")).to_be_hidden(timeout=ANSWER_S * 1000)
+        page.screenshot(path=str(shots / "design-cancelled.png"))
+        d.design.config = DesignConfig(
+            candidates=2, screen=32, starts=1, generations=4, population=6, rounds=2
+        )
+        page.get_by_role("button", name="Design", exact=True).click()
+        assert d.design.worker.wait_idle(120) and d.design.result is not None
+        sync_api.expect(page.get_by_text("rounds, search")).to_be_visible(timeout=ANSWER_S * 1000)
+        page.wait_for_timeout(1000)
+        page.screenshot(path=str(shots / "design-verdict.png"))
+        assert srv.errors == []

@@ -13,15 +13,8 @@ from snakeloco.app.export.gait_csv import read_gait_csv
 from snakeloco.model import load_pretrained
 from snakeloco.model.design import search as design_module
 from snakeloco.model.design.config import DesignConfig, Target
-from snakeloco.model.design.search import (
-    Candidate,
-    corrected,
-    design,
-    meets,
-    path_end,
-    search,
-    verify,
-)
+from snakeloco.model.design.search import Candidate, corrected, design, path_end, search
+from snakeloco.model.design.verify import meets, verify
 from snakeloco.sim.data.dataset import BODY_DOWNSAMPLE
 from snakeloco.sim.gaits.library import PRESETS
 from snakeloco.sim.physics.backend import open_backend

@@ -174,6 +174,7 @@ def test_fit_robot_writes_a_robot_description_that_loads_and_replays(tmp_path, c
 
 @pytest.mark.slow
 def test_the_designer_fits_a_measured_run_and_replays_on_the_fitted_robot(checkpoint):
+    from snakeloco.app.bench.users.load_driver import wait_until
 
     from helpers import connect_headless, quiet_server
 
@@ -189,6 +190,17 @@ def test_the_designer_fits_a_measured_run_and_replays_on_the_fitted_robot(checkp
         assert d.fit.import_bytes("bad.csv", b"time_s,x\n") is None
         assert d.fit.import_bytes("run.csv", text.encode()) is not None
         assert d.fit.line is not None and "Measured run" in d.fit.controls.status.content
+        # A long fit shows its bar and stops at Cancel (issue 71), the robots offered unchanged.
+        d.fit.config = FitConfig(params=("servo_kp",), popsize=4, generations=30, horizons=(20.0,))
+        d.fit.request()
+        job = d.fit.controls.job
+        assert job.bar.visible and job.cancel.visible
+        assert wait_until(lambda: job.bar.value > 0 and "generation" in d.fit.controls.status.content, 120)
+        for callback in job.cancel._impl.update_cb:  # what a click on Cancel runs
+            callback(None)
+        assert d.fit.worker.wait_idle(20), "the fit went on after Cancel"
+        assert d.fit.controls.status.content.startswith("**Cancelled**") and not job.bar.visible
+        assert d.fit.report is None and d.fit.controls.robot.options == ("nominal",)
         d.fit.config = FitConfig(params=("servo_kp",), popsize=4, generations=2, horizons=(20.0,))
         d.fit.request()
         assert d.fit.worker.wait_idle(300)

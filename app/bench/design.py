@@ -20,14 +20,8 @@ import numpy as np
 
 from snakeloco.model import load_pretrained
 from snakeloco.model.design.config import DesignConfig, Target
-from snakeloco.model.design.search import (
-    Candidate,
-    design,
-    meets,
-    path_end,
-    simulated_cost,
-    verify,
-)
+from snakeloco.model.design.search import Candidate, design, path_end
+from snakeloco.model.design.verify import meets, simulated_cost, verify
 from snakeloco.sim import load_dataset
 from snakeloco.sim.physics.backend import open_backend
 

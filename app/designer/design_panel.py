@@ -2,8 +2,9 @@
 in the scene, the search on the tab's own design worker, and the verified candidates to pick from.
 
 The search and its MuJoCo verification (``model.design.search``) run on a ``LatestWorker`` of the tab's own,
-so the tab's sliders (decode worker) and other tabs stay responsive meanwhile; a new Design request
-supersedes the one running, which stops at its next CMA-ES generation. Verification replays on the
+so the tab's sliders (decode worker) and other tabs stay responsive meanwhile. Its progress shows in a
+bar (``job_bar``) with a Cancel button; a cancel, a new Design request or the tab's closing stops it:
+the search at its next CMA-ES generation, its replays dropped from the physics pool row by row. Verification replays on the
 tab's physics simulator (shared by a server's tabs, taking turns). Picking a candidate makes it the
 current gait: decoded from its exact z_B (z_k = 0), the sliders moved there.
 """
@@ -15,10 +16,14 @@ import threading
 import numpy as np
 
 from snakeloco.app.designer.gui import NO_CANDIDATE, DesignControls
+from snakeloco.app.designer.job_bar import JobBar
 from snakeloco.app.server.workers import LatestWorker
 from snakeloco.model.design.config import DesignConfig, Target
+from snakeloco.model.design.robust import robust_design
 from snakeloco.model.design.search import Candidate, design
+from snakeloco.model.design.targets import DesignProgress
 from snakeloco.sim.physics.backend import LocalBackend
+from snakeloco.sim.physics.results import Dropped
 from snakeloco.sim.physics.scheduler import Turn
 
 MARKER_COLOR = (220, 30, 60)
@@ -63,6 +68,8 @@ class DesignPanel:
         self._version = 0
         self._shown: str | None = None  # the candidate the search's end made the gait (not re-picked)
         self._lock = threading.Lock()
+        self.progress: DesignProgress | None = None  # the running design's
+        self.bar = JobBar(controls.job, controls.status, self.cancel, tab._guarded)
         client = tab.client
         self.marker = client.scene.add_icosphere(
             "/design/target", radius=0.08, color=MARKER_COLOR, position=self._marker_position(), visible=False
@@ -113,13 +120,25 @@ class DesignPanel:
             self._version += 1
             version = self._version
         self._move_marker()
-        self.controls.status.content = (
+        self.bar.start(
             f"Searching z_B for ({target.forward:.2f}, {target.sideways:.2f}) m"
             + (f", heading {target.heading:.0f} deg" if target.heading is not None else "")
             + " ..."
         )
         self.worker.submit((version, target))
         return version
+
+    def cancel(self) -> None:
+        """Stop the running design: its search at the next generation, its queued replays dropped."""
+        with self._lock:
+            self._version += 1
+            running = self.progress
+        if running is None:
+            return
+        self.bar.end(
+            f"**Cancelled** after {running.seconds:.0f} s ({running.replays} replays run); the gait stays. "
+            "Press **Design** to search again."
+        )
 
     def _current(self, version: int) -> bool:
         return version == self._version and not self.tab._closed.is_set()
@@ -130,33 +149,33 @@ class DesignPanel:
             return
         stopped = lambda: not self._current(version)  # noqa: E731
 
-        def verifying(rnd: int) -> None:
+        def show(p: DesignProgress) -> None:
             if not stopped():
-                n, rounds = self.config.candidates, self.config.rounds
-                what = "Replaying" if rnd == 1 else "Corrected for what physics did: replaying"
-                self.controls.status.content = (
-                    f"{what} {n} candidates in MuJoCo (round {rnd} of at most {rounds}) ..."
-                )
+                self.bar.show(p.fraction, p.line())
 
-        runner = LocalBackend.on(self.tab.session.simulator_for(Turn.DESIGN))
-        if self.controls.robust.value:
-            from snakeloco.model.design.robust import robust_design
-
-            result = robust_design(
-                self.tab.model, target, self.config, runner=runner, cancelled=stopped, on_verify=verifying
+        self.progress = progress = DesignProgress(show)
+        # Each replay row is dropped (``Dropped`` raised) once the design is cancelled, superseded
+        # or its tab closed: nothing of it keeps the physics pool busy.
+        simulator = self.tab.session.simulator_for(Turn.DESIGN, lambda: not stopped(), raises=True)
+        runner = LocalBackend.on(simulator)
+        search = robust_design if self.controls.robust.value else design
+        try:
+            result = search(
+                self.tab.model, target, self.config, runner=runner, cancelled=stopped, progress=progress
             )
-        else:
-            result = design(
-                self.tab.model, target, self.config, runner=runner, cancelled=stopped, on_verify=verifying
-            )
-        if stopped() or not result.candidates:
-            if not stopped():
-                self.controls.status.content = "**Not met**: no candidate could be verified"
+        except Dropped:
+            return  # cancel() or the newer request has said so
+        finally:
+            if self.progress is progress:
+                self.progress = None
+        if stopped():
+            return
+        if not result.candidates:
+            self.bar.end("**Not met**: no candidate could be verified")
             return
         self.result, self.candidates = result, result.candidates
         labels = tuple(candidate_label(i + 1, c) for i, c in enumerate(self.candidates))
         best = self.candidates[0]
-        far = result.extra.get("beyond_reach")
         if (far := result.extra.get("beyond_reach")) is not None and best.simulated is not None:
             verdict = (
                 f"**Beyond reach**: the target is {far['distance_m']:.3g} m away; this family's gaits end at most "
@@ -167,7 +186,7 @@ class DesignPanel:
             head, _, rest = result.verdict().partition(": ")
             verdict = f"**{head[0].upper()}{head[1:]}**: {rest}"
         with self.tab.client.atomic():
-            self.controls.status.content = (
+            self.bar.end(
                 f"{verdict} ({result.rounds} rounds, search "
                 f"{result.search_s:.1f} s, physics {result.physics_s:.1f} s for {result.replays} replays). "
                 "Spread: where physics itself scatters the end." + robust_line(result)
@@ -195,7 +214,7 @@ class DesignPanel:
         self.candidates, self.result = [], None
         with self.tab.client.atomic():
             self.controls.candidate.options = (NO_CANDIDATE,)
-            self.controls.status.content = "Set a target (or click the ground), then press **Design**."
+            self.bar.end("Set a target (or click the ground), then press **Design**.")
 
     def close(self) -> None:
         self.worker.close()

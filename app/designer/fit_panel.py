@@ -2,20 +2,23 @@
 MuJoCo's paths, fit the robot's physics to it (``sim.fit.fit_robot``) as the tab's lowest-priority physics job,
 and offer the fitted robot for the tab's replays.
 
-The fit runs on a ``LatestWorker`` of the panel's own; its replays take the physics pool's last turn
-(``Turn.FIT``: after every tab's replays, ensembles, variations and design) and are dropped, ending
-the fit, when the tab's gait changes. Choosing a robot in the Robot dropdown replays the current gait
+The fit runs on a ``LatestWorker`` of the panel's own, its progress in a bar with a Cancel button
+(``job_bar``); its replays take the physics pool's last turn (``Turn.FIT``: after every tab's replays,
+ensembles, variations and design) and are dropped, ending the fit, when it is cancelled, the tab's
+gait changes or the tab closes. Choosing a robot in the Robot dropdown replays the current gait
 on it; the readout then says that the model was trained on the nominal robot.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import viser
 
+from snakeloco.app.designer.job_bar import JobBar, JobControls, build_job_controls
 from snakeloco.app.server.workers import LatestWorker
 from snakeloco.sim.fit.fit_robot import FitCancelled, FitConfig, fit_robot
 from snakeloco.sim.fit.measured import MeasuredRun, MeasuredRunError, read_measured_run
@@ -33,6 +36,7 @@ class FitControls:
     fit_button: viser.GuiButtonHandle
     robot: viser.GuiDropdownHandle
     status: viser.GuiMarkdownHandle
+    job: JobControls
 
 
 def build_fit_controls(gui: viser.GuiApi) -> FitControls:
@@ -55,7 +59,8 @@ def build_fit_controls(gui: viser.GuiApi) -> FitControls:
             hint="The robot this tab replays on: nominal or fitted",
         )
         status = gui.add_markdown("Import a measured run of the current gait, then **Fit physics**.")
-    return FitControls(measured, fit, robot, status)
+        job = build_job_controls(gui, "fit")
+    return FitControls(measured, fit, robot, status, job)
 
 
 def fit_summary(report: dict) -> str:
@@ -84,6 +89,8 @@ class FitPanel:
         self._version = 0
         self._lock = threading.Lock()
         self.line = None
+        self._started: float | None = None  # the running fit's start (perf_counter)
+        self.bar = JobBar(controls.job, controls.status, self.cancel, tab._guarded)
         c, g = controls, tab._guarded
         c.measured_button.on_upload(g(lambda _e: self._on_upload()))
         c.fit_button.on_click(g(lambda _e: self.request()))
@@ -130,9 +137,19 @@ class FitPanel:
         with self._lock:
             self._version += 1
             version = self._version
-        self.controls.status.content = "Fitting: the first generation of candidate robots is replaying ..."
+        self.bar.start("Fitting: the first generation of candidate robots is replaying ...")
         self.worker.submit((version, self.tab.version, self.commands, self.run))
         return version
+
+    def cancel(self) -> None:
+        """Stop the running fit: its queued replays are dropped, the robots offered stay."""
+        with self._lock:
+            self._version += 1
+            started = self._started
+        if started is not None:
+            self.bar.end(
+                f"**Cancelled** after {time.perf_counter() - started:.0f} s. **Fit physics** starts again."
+            )
 
     def _job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, gait_version, commands, run = item
@@ -140,12 +157,14 @@ class FitPanel:
         wanted = lambda: current() and self.tab.version == gait_version  # noqa: E731
         simulator = self.tab.session.simulator_for(Turn.FIT, wanted)
         done = [0]
+        self._started = t0 = time.perf_counter()
 
         def progress(k: int) -> None:
             done[0] += k
             if current():
-                self.controls.status.content = (
-                    f"Fitting: generation {done[0]} of {self.config.generations} ..."
+                g = self.config.generations
+                self.bar.show(
+                    done[0] / g, f"Fitting: generation {done[0]} of {g}, {time.perf_counter() - t0:.0f} s ..."
                 )
 
         try:
@@ -154,20 +173,21 @@ class FitPanel:
             )
         except FitCancelled:
             if current():
-                self.controls.status.content = (
-                    "The fit stopped: the gait changed. Import the run again to fit."
-                )
+                self.bar.end("The fit stopped: the gait changed. Import the run again to fit.")
             return
         except MeasuredRunError as exc:
-            self.controls.status.content = f"**Cannot fit**: {exc}"
+            if current():
+                self.bar.end(f"**Cannot fit**: {exc}")
             return
+        finally:
+            self._started = None
         if not current():
             return
         self.report = report
         label = f"fitted to {run.source}"
         self.robots[label] = report["robot"]
         with self.tab.client.atomic():
-            self.controls.status.content = fit_summary(report)
+            self.bar.end(fit_summary(report))
             self.controls.robot.options = tuple(self.robots)
         self.tab.client.add_notification(
             "Fit physics", f"Choose '{label}' in Robot to replay on the fitted robot.", auto_close_seconds=8.0

@@ -10,6 +10,7 @@ import viser
 import viser.uplot as uplot
 
 from snakeloco.app.designer.fit_panel import FitControls, build_fit_controls
+from snakeloco.app.designer.job_bar import JobControls, build_job_controls
 from snakeloco.app.designer.loop_panel import LoopControls, build_loop_controls
 from snakeloco.app.designer.scene import GEN_COLOR, LAYERS, LIGHT_RENDERING, SIM_COLOR
 from snakeloco.app.designer.scene_geometry import joint_colors
@@ -74,6 +75,7 @@ class DesignControls:
     status: viser.GuiMarkdownHandle
     candidate: viser.GuiDropdownHandle
     robust: viser.GuiCheckboxHandle
+    job: JobControls
 
 
 def build_design_controls(gui: viser.GuiApi) -> DesignControls:
@@ -92,13 +94,14 @@ def build_design_controls(gui: viser.GuiApi) -> DesignControls:
         )
         button = gui.add_button("Design", hint="Search z_B for gaits that end there, verify each in MuJoCo")
         status = gui.add_markdown("Set a target (or click the ground), then press **Design**.")
+        job = build_job_controls(gui, "design")
         candidate = gui.add_dropdown(
             "Candidate",
             (NO_CANDIDATE,),
             initial_value=NO_CANDIDATE,
             hint="Make a verified candidate the current gait",
         )
-    return DesignControls(forward, sideways, use_heading, heading, button, status, candidate, robust)
+    return DesignControls(forward, sideways, use_heading, heading, button, status, candidate, robust, job)
 
 
 @dataclass

@@ -213,10 +213,12 @@ class GaitSession:
         """The session's ensemble simulator (its batches in this tab's ensemble turns)."""
         return self.simulator_for(Turn.ENSEMBLE)
 
-    def simulator_for(self, turn: Turn, wanted: Callable[[], bool] | None = None) -> OnTurns:
+    def simulator_for(
+        self, turn: Turn, wanted: Callable[[], bool] | None = None, raises: bool = False
+    ) -> OnTurns:
         """A simulator whose batches run on the physics pool as this tab's ``turn`` (each row dropped
-        unrun once ``wanted`` says no; the batch is then None)."""
-        return OnTurns(self._simulator, self.physics.runner(self.tab, turn, wanted))
+        unrun once ``wanted`` says no; the batch is then None, or with ``raises`` ``Dropped`` raised)."""
+        return OnTurns(self._simulator, self.physics.runner(self.tab, turn, wanted), raises)
 
     def close(self) -> None:
         """Stop the threads this session owns."""

@@ -23,6 +23,7 @@ import numpy as np
 from snakeloco.model.design.config import DesignConfig, Target
 from snakeloco.model.design.robust import rank_by_worst, worst_case
 from snakeloco.model.design.search import DesignResult, design
+from snakeloco.model.design.targets import DesignProgress
 from snakeloco.sim.physics.backend import open_backend
 from snakeloco.sim.robot.variations import DEFAULT_SET, Variation
 
@@ -91,33 +92,39 @@ def closed_loop_design(
     robot=None,
     variations: tuple[Variation, ...] = DEFAULT_SET,
     cancelled=None,
-    on_verify=None,
+    progress: DesignProgress | None = None,
 ) -> DesignResult:
     """Design for ``target`` (twice the candidates), then rank the best verified ones by their
     closed-loop worst miss over ``variations`` (module docstring). ``met``: the best one's nominal and
-    worst misses within the tolerance."""
+    worst misses within the tolerance. ``cancelled`` and ``progress`` as ``design``'s."""
     from snakeloco.sim.physics.simulator import Simulator
 
     cfg = cfg or DesignConfig()
+    progress = progress or DesignProgress()
     wide = cfg.model_copy(update={"candidates": min(2 * cfg.candidates, 32)})
     robot = robot or model.robot
     runner = open_backend(backend, workers, robot=robot)
     simulator = Simulator(workers=workers, robot=robot)
     try:
-        result = design(model, target, wide, runner=runner, cancelled=cancelled, on_verify=on_verify)
+        result = design(model, target, wide, runner=runner, cancelled=cancelled, progress=progress)
         pool = sorted((c for c in result.candidates if c.simulated is not None), key=lambda c: c.error_m)
         pool = pool[: cfg.candidates]
         # Gaits that go farther the same way: the loop stops them where their path passes the target,
         # so a faster, stronger gait (one that still climbs a slope) is a candidate too.
         farther = Target(forward=FARTHER * target.forward, sideways=FARTHER * target.sideways)
         if not (cancelled is not None and cancelled()):
-            longer = design(model, farther, cfg, runner=runner, cancelled=cancelled, on_verify=on_verify)
+            longer = design(model, farther, cfg, runner=runner, cancelled=cancelled, progress=progress)
             pool += [c for c in longer.candidates if c.simulated is not None]
         kept, scores = [], []
-        for c in pool:
+        progress.plan(len(pool) * (len(variations) + 1))
+        for k, c in enumerate(pool):
             if cancelled is not None and cancelled():
                 break
+            progress.step(
+                f"closed loop: steering found and replayed on {len(variations)} robots, candidate {k + 1} of {len(pool)}"
+            )
             found = closed_loop_misses(model.commands(c.shape), target, simulator, variations)
+            progress.step(replays=len(variations) + 1)
             steering = found["steering"]
             if found.get("misses") is not None:
                 errors, names = np.array(found["misses"]), found["names"]

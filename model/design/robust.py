@@ -26,6 +26,7 @@ import numpy as np
 
 from snakeloco.model.design.config import DesignConfig, Target
 from snakeloco.model.design.search import Candidate, DesignResult, design
+from snakeloco.model.design.targets import DesignProgress
 from snakeloco.sim.physics.backend import open_backend
 from snakeloco.sim.robot.variations import DEFAULT_SET, Variation
 
@@ -80,11 +81,21 @@ def simulate_variations(simulator, job: tuple) -> tuple[np.ndarray, list[str | N
 
 
 def worst_case(
-    candidates: list[Candidate], model, target: Target, runner, variations=DEFAULT_SET
+    candidates: list[Candidate],
+    model,
+    target: Target,
+    runner,
+    variations=DEFAULT_SET,
+    progress: DesignProgress | None = None,
 ) -> list[dict]:
-    """Each verified candidate's error over ``variations`` (replayed on ``runner``, a backend)."""
+    """Each verified candidate's error over ``variations`` (replayed on ``runner``, a backend;
+    ``progress`` told of each candidate's replays as they finish)."""
     jobs = [(model.commands(c.shape), tuple(variations)) for c in candidates]
-    results = dict(runner.map(simulate_variations, jobs))
+    results = {}
+    for i, result in runner.map(simulate_variations, jobs):
+        results[i] = result
+        if progress is not None:
+            progress.step(replays=len(variations))
     base = float(np.hypot(target.forward, target.sideways))
     out = []
     for i, c in enumerate(candidates):
@@ -138,7 +149,7 @@ def robust_design(
     score: str = "worst",
     runner=None,
     cancelled=None,
-    on_verify=None,
+    progress: DesignProgress | None = None,
     predicted: bool = True,
 ) -> DesignResult:
     """Design for ``target`` (twice the candidates; searching with the physics head's predicted fan
@@ -146,9 +157,10 @@ def robust_design(
     candidates by their ``score`` ("worst" or "p90") error over ``variations`` (every one
     replayed), those whose nominal error is within the tolerance first. ``met``: the best one's
     nominal and worst-case errors both within the tolerance. ``runner``: an open backend to replay
-    on (the designer's turns; left open), else one opened here; ``cancelled`` and ``on_verify`` as
+    on (the designer's turns; left open), else one opened here; ``cancelled`` and ``progress`` as
     ``design``'s."""
     cfg = cfg or DesignConfig()
+    progress = progress or DesignProgress()
     wide = cfg.model_copy(update={"candidates": min(2 * cfg.candidates, 32)})
     own = runner is None
     robot = robot or model.robot
@@ -156,22 +168,26 @@ def robust_design(
     if predicted and getattr(model, "physics_head", None) is not None:
         fan = PredictedFan(model, [v.apply(robot) for v in variations], score)
     runner = runner or open_backend(backend, workers, robot=robot)
+    # Every candidate the searches may verify, replayed on each variation (given back once known).
+    on_others = progress.plan(
+        (wide.candidates + (cfg.candidates if fan is not None else 0)) * len(variations)
+    )
     try:
-        result = design(model, target, wide, runner=runner, cancelled=cancelled, on_verify=on_verify, fan=fan)
+        result = design(model, target, wide, runner=runner, cancelled=cancelled, progress=progress, fan=fan)
         verified = [c for c in result.candidates if c.simulated is not None]
         searches = [result]
         if fan is not None and not (cancelled is not None and cancelled()):
             # The nominal search's answer competes too: asking for robustness never returns a gait
             # whose replayed worst case is worse than the answer the nominal design gives.
-            searches.append(
-                design(model, target, cfg, runner=runner, cancelled=cancelled, on_verify=on_verify)
-            )
+            searches.append(design(model, target, cfg, runner=runner, cancelled=cancelled, progress=progress))
             verified += [
                 c for c in searches[-1].candidates if c.simulated is not None and not _among(c, verified)
             ]
         if cancelled is not None and cancelled():
             verified = []
-        scores = worst_case(verified, model, target, runner, variations) if verified else []
+        progress.settle(on_others - len(verified) * len(variations))
+        progress.step(f"replaying {len(verified)} candidates on {len(variations)} other robots")
+        scores = worst_case(verified, model, target, runner, variations, progress) if verified else []
     finally:
         if own:
             runner.close()

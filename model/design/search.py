@@ -30,8 +30,16 @@ from snakeloco.model.design.targets import FORWARD as FORWARD  # re-exported: th
 from snakeloco.model.design.targets import ROLL as ROLL
 from snakeloco.model.design.targets import SIDEWAYS as SIDEWAYS
 from snakeloco.model.design.targets import YAW as YAW
-from snakeloco.model.design.targets import Candidate, DesignResult, FanCost, fan_cost, objective, path_end
-from snakeloco.model.replays import replay_shapes
+from snakeloco.model.design.targets import (
+    Candidate,
+    DesignProgress,
+    DesignResult,
+    FanCost,
+    fan_cost,
+    objective,
+    path_end,
+)
+from snakeloco.model.design.verify import measure_spread, meets, rank, verify
 from snakeloco.sim.physics.backend import BackendConfig, open_backend
 
 
@@ -61,20 +69,25 @@ def _evolve(
     seed: int,
     cancelled: Callable[[], bool] | None,
     fan: FanCost | None = None,
+    progress: DesignProgress | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """One CMA-ES run per start, run k minimising ``objective`` for ``targets[k]`` (plus ``fan``'s
-    cost, where given); every generation decodes all runs' populations in one batch. Returns each
-    run's (z seen (n, Db), cost (n,))."""
+    cost, where given); every generation decodes all runs' populations in one batch (``progress``
+    told of each). Returns each run's (z seen (n, Db), cost (n,))."""
     import cma
+
+    doing = progress.doing if progress is not None else ""
 
     runs = [
         cma.CMAEvolutionStrategy(s, sigma, {"popsize": cfg.population, "seed": seed + 1 + k, "verbose": -9})
         for k, s in enumerate(starts)
     ]
     seen: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in runs]
-    for _ in range(generations):
+    for g in range(generations):
         if cancelled is not None and cancelled():
             break
+        if progress is not None:
+            progress.step(f"{doing}, generation {g + 1} of {generations}")
         live = [k for k, r in enumerate(runs) if not r.stop()]
         if not live:
             break
@@ -132,6 +145,7 @@ def search(
     cancelled: Callable[[], bool] | None = None,
     screened: tuple[np.ndarray, np.ndarray] | None = None,
     fan: FanCost | None = None,
+    progress: DesignProgress | None = None,
 ) -> list[Candidate]:
     """CMA-ES over z_B from ``cfg.starts`` starts; the ``cfg.candidates`` best distinct optima by
     predicted cost. ``cancelled`` is polled every generation (True: stop and return what there is);
@@ -148,7 +162,16 @@ def search(
         if len(starts) == cfg.starts:
             break
     runs = _evolve(
-        model, starts, [target] * len(starts), cfg, cfg.sigma0, cfg.generations, cfg.seed, cancelled, fan
+        model,
+        starts,
+        [target] * len(starts),
+        cfg,
+        cfg.sigma0,
+        cfg.generations,
+        cfg.seed,
+        cancelled,
+        fan,
+        progress,
     )
     z_all = np.concatenate([screen, *[z for z, _ in runs]])
     c_all = np.concatenate([cost, *[c for _, c in runs]])
@@ -205,6 +228,7 @@ def refine(
     rnd: int,
     cancelled: Callable[[], bool] | None = None,
     fan: FanCost | None = None,
+    progress: DesignProgress | None = None,
 ) -> list[Candidate]:
     """One new candidate per verified parent: the best of a short CMA-ES run from the parent's z_B
     towards ``corrected(target, parent)`` (the decoded end's error still measured against that
@@ -221,6 +245,7 @@ def refine(
         seed,
         cancelled,
         fan,
+        progress,
     )
     out: list[Candidate] = []
     for (z, cost), parent in zip(runs, parents, strict=True):
@@ -232,71 +257,6 @@ def refine(
     return out
 
 
-def verify(
-    model: GaitModel,
-    candidates: list[Candidate],
-    target: Target,
-    cfg: DesignConfig,
-    backend,
-    members: int | None = None,
-) -> list[Candidate]:
-    """Replay each candidate as an ensemble of ``members`` (default ``cfg.ensemble``; 1: its own
-    replay alone, the spread left for ``measure_spread``); rank by its own replay's error."""
-    shapes = np.stack([c.shape for c in candidates])
-    bodies, ok = replay_shapes(model, shapes, backend, members or cfg.ensemble, seed=cfg.seed)
-    for c, body, fine in zip(candidates, bodies.astype(np.float64), ok, strict=True):
-        if not fine[0]:
-            c.broken = "its replay broke the simulation"
-            continue
-        ends = path_end(body[fine])  # (k, 4): its own replay first
-        c.simulated = ends[0]
-        c.error_m = float(math.hypot(ends[0, 0] - target.forward, ends[0, 1] - target.sideways))
-        if target.heading is not None:
-            c.heading_error = float(abs(ends[0, 2] - target.heading))
-        c.spread_m = _spread(ends[1:], ends[0])
-    return rank(candidates, target, cfg)
-
-
-def measure_spread(model: GaitModel, candidates: list[Candidate], cfg: DesignConfig, backend) -> int:
-    """The ``cfg.ensemble - 1`` noisy copies of each verified candidate (own replay already run):
-    their ends' RMS distance from its own end, ``spread_m``. Returns the number of replays run."""
-    todo = [c for c in candidates if c.simulated is not None]
-    if not todo:
-        return 0
-    shapes = np.stack([c.shape for c in todo])
-    bodies, ok = replay_shapes(model, shapes, backend, cfg.ensemble, seed=cfg.seed, own=False)
-    for c, body, fine in zip(todo, bodies.astype(np.float64), ok, strict=True):
-        c.spread_m = _spread(path_end(body[fine]), c.simulated)
-    return len(todo) * (cfg.ensemble - 1)
-
-
-def _spread(noisy: np.ndarray, own: np.ndarray) -> float:
-    """RMS distance (m) of the noisy replays' ends (k, 4) from the own replay's end (NaN: none ran)."""
-    offsets = noisy[:, :2] - own[:2]
-    return float(np.sqrt((offsets**2).sum(axis=1).mean())) if len(offsets) else float("nan")
-
-
-def rank(candidates: list[Candidate], target: Target, cfg: DesignConfig) -> list[Candidate]:
-    """Verified candidates best first: by ``simulated_cost``, broken ones last."""
-    return sorted(candidates, key=lambda c: (c.broken is not None, simulated_cost(c, target, cfg)))
-
-
-def simulated_cost(c: Candidate, target: Target, cfg: DesignConfig) -> float:
-    """What ranks verified candidates: the search's objective on the replay's end (no prior term)."""
-    if c.simulated is None:
-        return float("inf")
-    return float(objective(c.simulated[None], target, cfg)[0])
-
-
-def meets(c: Candidate, target: Target, cfg: DesignConfig) -> bool:
-    """Whether a verified candidate's own replay meets the target within the tolerances."""
-    if c.simulated is None or c.error_m > cfg.tolerance_for(target):
-        return False
-    if target.heading is not None and (c.heading_error is None or c.heading_error > cfg.heading_tolerance):
-        return False
-    return target.max_roll is None or abs(float(c.simulated[3])) <= target.max_roll
-
-
 def design(
     model: GaitModel,
     target: Target,
@@ -306,18 +266,19 @@ def design(
     runner=None,
     workers: int | None = None,
     cancelled: Callable[[], bool] | None = None,
-    on_verify: Callable[[int], None] | None = None,
+    progress: DesignProgress | None = None,
     robot=None,
     fan: FanCost | None = None,
 ) -> DesignResult:
     """Search, verify in MuJoCo (on ``runner``, an open backend, or one opened from ``backend``), and
     refine the best verified candidates for what physics did, for up to ``cfg.rounds`` rounds.
     ``cancelled`` is polled between search generations (True: stop; the result is then not meant to
-    be used); ``on_verify(round)`` is called when a round's replays start. ``robot``: the
+    be used); ``progress`` (``DesignProgress``) is told each step, the replays it plans and runs. ``robot``: the
     ``sim.robot.description.Robot`` the candidates are verified on where a backend is opened here (default: the
     checkpoint's robot). ``fan``: the search also minimises a predicted variations fan's miss
     (``model.design.robust.PredictedFan``)."""
     cfg = cfg or DesignConfig()
+    progress = progress or DesignProgress()
     search_s = physics_s = 0.0
     own = runner is None
     verified: list[Candidate] = []
@@ -331,12 +292,15 @@ def design(
     if beyond is not None:  # answered from what the family reaches: its nearest gait, replayed
         reach_m, nearest = beyond
         t0 = time.perf_counter()
+        progress.plan(1)
+        progress.step("replaying the family's nearest gait (the target is beyond its reach)")
         runner = runner or open_backend(backend, workers, robot=robot or model.robot)
         try:
             verified = verify(model, [nearest], target, cfg, runner, members=1)
         finally:
             if own:
                 runner.close()
+        progress.step(replays=1, best_m=verified[0].error_m)
         extra = {
             "beyond_reach": {
                 "reach_m": reach_m,
@@ -355,27 +319,30 @@ def design(
             0,
             extra,
         )
+    planned = progress.plan(cfg.rounds * cfg.candidates + cfg.candidates * (cfg.ensemble - 1))
     try:
         for rnd in range(1, cfg.rounds + 1):
             t0 = time.perf_counter()
+            progress.step(f"searching z_B (round {rnd} of at most {cfg.rounds})")
             if rnd == 1:
-                proposed = search(model, target, cfg, cancelled, screened, fan)
+                proposed = search(model, target, cfg, cancelled, screened, fan, progress)
             else:
                 parents = [c for c in verified if c.simulated is not None][: cfg.candidates]
                 if not parents:
                     break
-                proposed = refine(model, parents, target, cfg, rnd, cancelled, fan)
+                proposed = refine(model, parents, target, cfg, rnd, cancelled, fan, progress)
             search_s += time.perf_counter() - t0
             if (cancelled is not None and cancelled()) or not proposed:
                 break
-            if on_verify is not None:
-                on_verify(rnd)
+            what = "replaying" if rnd == 1 else "corrected for what physics did: replaying"
+            progress.step(f"{what} {len(proposed)} candidates (round {rnd} of at most {cfg.rounds})")
             t0 = time.perf_counter()
             runner = runner or open_backend(backend, workers, robot=robot or model.robot)
             verified = rank(verified + verify(model, proposed, target, cfg, runner, members=1), target, cfg)
             physics_s += time.perf_counter() - t0
             replays += len(proposed)
             rounds = rnd
+            progress.step(replays=len(proposed), best_m=verified[0].error_m if verified else None)
             if rnd == 1 and verified:
                 first = verified[0]  # what the model alone proposed best, for comparison
             if meets(verified[0], target, cfg):
@@ -383,11 +350,17 @@ def design(
         best = verified[: cfg.candidates]
         if best and not (cancelled is not None and cancelled()):
             t0 = time.perf_counter()  # physics' own scatter beside each reported error
-            replays += measure_spread(model, best, cfg, runner)
+            progress.step(
+                f"measuring physics' scatter: {cfg.ensemble - 1} noisy copies of the {len(best)} best"
+            )
+            spread = measure_spread(model, best, cfg, runner)
+            replays += spread
             physics_s += time.perf_counter() - t0
+            progress.step(replays=spread)
     finally:
         if own and runner is not None:
             runner.close()
+        progress.settle(planned - replays)
     met = bool(best) and meets(best[0], target, cfg)
     extra = {"first_round_best": first}
     return DesignResult(

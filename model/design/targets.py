@@ -3,6 +3,8 @@ a candidate gait and what MuJoCo did with it, and a design's result."""
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -136,3 +138,57 @@ class DesignResult:
         if nominal > tol:
             return f"not met: the closest reached ends {nominal:.2f} m from the target (tolerance {tol:.2f} m); {worst}{loop}"
         return f"not met on other robots{loop}: {worst}; nominal {nominal:.2f} m, within the tolerance {tol:.2f} m"
+
+
+class DesignProgress:
+    """Where a running design is, for a progress bar: what it is doing, the MuJoCo replays done of at
+    most ``planned``, the best miss verified so far. Each search a design runs adds the replays it
+    may need (``plan``) and gives back those it did not (``settle``: a round that met the target
+    ends the rounds), so ``fraction`` only grows towards 1. ``report(self)`` is called after each
+    step (the designer's bar; None: kept for whoever reads it)."""
+
+    def __init__(self, report: Callable[[DesignProgress], None] | None = None) -> None:
+        self.doing = "starting"
+        self.replays = 0
+        self.planned = 0
+        self.best_m: float | None = None
+        self.started = time.perf_counter()
+        self._report = report
+
+    def plan(self, replays: int) -> int:
+        self.planned += int(replays)
+        return int(replays)
+
+    def settle(self, unused: int) -> None:
+        self.planned -= max(int(unused), 0)
+        self._step()
+
+    def step(self, doing: str | None = None, replays: int = 0, best_m: float | None = None) -> None:
+        """Now ``doing`` (unchanged where None); ``replays`` more done; ``best_m`` the best miss so
+        far where a newer one is known."""
+        if doing is not None:
+            self.doing = doing
+        self.replays += int(replays)
+        if best_m is not None and np.isfinite(best_m):
+            self.best_m = float(best_m)
+        self._step()
+
+    def _step(self) -> None:
+        if self._report is not None:
+            self._report(self)
+
+    @property
+    def fraction(self) -> float:
+        return min(self.replays / self.planned, 1.0) if self.planned > 0 else 0.0
+
+    @property
+    def seconds(self) -> float:
+        return time.perf_counter() - self.started
+
+    def line(self) -> str:
+        """'Replaying 4 candidates (round 2 of at most 6): 12 of at most 40 replays, best miss 0.42 m, 31 s'."""
+        best = f", best miss {self.best_m:.2f} m" if self.best_m is not None else ""
+        return (
+            f"{self.doing[:1].upper()}{self.doing[1:]}: {self.replays} of at most {self.planned} replays"
+            f"{best}, {self.seconds:.0f} s"
+        )

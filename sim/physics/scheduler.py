@@ -35,6 +35,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from enum import IntEnum
 
+from snakeloco.sim.physics.results import Dropped
 from snakeloco.sim.physics.threads import RowRunner, lower_thread_priority
 
 
@@ -285,18 +286,28 @@ class OnTurns:
     code written against a simulator (``LocalBackend.on``, an ensemble's batches). ``workers`` is
     the pool's thread count; everything else is the simulator's."""
 
-    def __init__(self, simulator, runner: FairRunner) -> None:
-        self._simulator, self._runner = simulator, runner
+    def __init__(self, simulator, runner: FairRunner, raises: bool = False) -> None:
+        self._simulator, self._runner, self._raises = simulator, runner, raises
         self.workers = runner.pool.threads
 
+    def _kept(self, result):
+        """``result``, or where its rows were dropped: None, or with ``raises`` the ``Dropped`` exception
+        (for code that knows nothing of dropping: a design's backend jobs)."""
+        if result is None and self._raises:
+            raise Dropped("the tab no longer wants this work (cancelled, superseded or closed)")
+        return result
+
     def simulate(self, commands, wanted=None, samples=None, resume=None, robots=None):
-        """``Simulator.simulate`` on the pool's turns (None where a row was dropped as unwanted). A
+        """``Simulator.simulate`` on the pool's turns (None where a row was dropped as unwanted, or
+        ``Dropped`` raised: ``raises``). A
         whole batch (or its first ``samples``) runs in segments of ``SEGMENT_SAMPLES`` per row and
         task (paused and carried on: the same numbers as one rollout), so no task holds a thread
         long. ``robots``: one variation of the simulator's robot per row."""
         if resume is not None:
-            return self._simulator.simulate(
-                commands, wanted, samples, resume, runner=self._runner, robots=robots
+            return self._kept(
+                self._simulator.simulate(
+                    commands, wanted, samples, resume, runner=self._runner, robots=robots
+                )
             )
         total, result = samples or self._simulator.excitation.n_samples, None
         for end in range(SEGMENT_SAMPLES, total + SEGMENT_SAMPLES, SEGMENT_SAMPLES):
@@ -305,7 +316,7 @@ class OnTurns:
                 commands, wanted, min(end, total), paused, runner=self._runner, robots=robots
             )
             if result is None:
-                return None
+                return self._kept(None)
         return result
 
     @property

@@ -21,6 +21,7 @@ from snakeloco.sim.physics.body import body_states
 from snakeloco.sim.physics.command_rule import CommandRule, expand_commands, why_broken
 from snakeloco.sim.physics.results import (
     BatchResult,
+    Dropped,
     Paused,
     ReplayResult,
     SimulationError,
@@ -364,6 +365,8 @@ class Simulator(Streaming):
         ``simulate``); raise SimulationError if it breaks."""
         commands = np.asarray(commands, dtype=np.float64)
         result = self.simulate(commands[None], runner=runner)
+        if result is None:
+            raise Dropped("the replay was dropped: its caller no longer wants it")
         if result.failures[0] is not None:
             raise SimulationError(result.failures[0])
         return ReplayResult(
