@@ -1,8 +1,8 @@
 """``GaitModel``: the trained VAE in physical units, numpy in and numpy out, no gradients.
 
-Shapes: shape (B, 8, L, 2) rad (single-sided FFT coefficients, ``sim.joint_shape`` convention);
+Shapes: shape (B, n_joints, L, 2) rad (single-sided FFT coefficients, ``sim.joint_shape`` convention);
 body_ds (B, 500, 6) at 5 Hz, channels vertical, forward, sideways (m), roll, pitch, yaw (rad);
-z_b (B, z_b_dim); z_j (B, 8, z_j_dim).
+z_b (B, z_b_dim); z_j (B, n_joints, z_j_dim).
 
 A checkpoint of the structured family with ``members`` (schema 4) decodes *members*: each decoded
 shape is projected onto the family (``sim.gaits.members``), the shape returned is that member's (as the
@@ -58,9 +58,9 @@ class GaitModel(MemberDecoding):
         self.robot = config.robot or DEFAULT_ROBOT
         """The robot the checkpoint was trained on (``sim.robot.description.Robot``): its joints, its members."""
         g = config.servo_response
-        self._servo_response = None if g is None else np.asarray(g, dtype=np.float64)  # (8, L, 2)
+        self._servo_response = None if g is None else np.asarray(g, dtype=np.float64)  # (n_joints, L, 2)
         support = config.shape_support
-        self._support = None if support is None else np.asarray(support, bool)[..., None]  # (8, L, 1)
+        self._support = None if support is None else np.asarray(support, bool)[..., None]  # (n_joints, L, 1)
         self._lock = threading.Lock()
         self._graphs = Graphs(net)  # one-z_B graphs, made on first use
 
@@ -84,7 +84,7 @@ class GaitModel(MemberDecoding):
 
     @property
     def servo_response(self) -> np.ndarray | None:
-        """(8, L, 2) measured/commanded complex servo gain of the training data, or None."""
+        """(n_joints, L, 2) measured/commanded complex servo gain of the training data, or None."""
         return self._servo_response
 
     def commands(self, shape: np.ndarray) -> np.ndarray:
@@ -173,7 +173,7 @@ class GaitModel(MemberDecoding):
     # --- API -------------------------------------------------------------------------------------
 
     def encode(self, shape: np.ndarray, body_ds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Posterior means: shape (B, 8, L, 2), body_ds (B, 500, 6) -> z_b (B, Db), z_j (B, 8, Dj)."""
+        """Posterior means: shape (B, n_joints, L, 2), body_ds (B, 500, 6) -> z_b (B, Db), z_j (B, n_joints, Dj)."""
         shape, body_ds = self._check_shape(shape), np.asarray(body_ds, np.float64)
         cfg = self.config.model
         if body_ds.shape != (shape.shape[0], cfg.body_steps, cfg.body_channels):
@@ -191,7 +191,7 @@ class GaitModel(MemberDecoding):
         self, body_ds: np.ndarray, shape: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """q(z_B | x_B): body series (B, 500, 6) -> posterior mean and log-variance, each (B, Db).
-        A model whose encoder sees the joint signals also needs the records' shapes (B, 8, L, 2)."""
+        A model whose encoder sees the joint signals also needs the records' shapes (B, n_joints, L, 2)."""
         body_ds = _finite("body_ds", np.asarray(body_ds, np.float64))
         x = None if shape is None else self.normalize_shape(self._check_shape(shape))
         with self._lock, torch.inference_mode():
@@ -199,7 +199,7 @@ class GaitModel(MemberDecoding):
         return mu.numpy().astype(np.float64), logvar.numpy().astype(np.float64)
 
     def decode(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """z_b (B, Db) and z_j (B, 8, Dj) (None: zeros, the paper's setting (a)) -> shape, body_ds.
+        """z_b (B, Db) and z_j (B, n_joints, Dj) (None: zeros, the paper's setting (a)) -> shape, body_ds.
         Where the checkpoint ``projects``: the member's shape and the path predicted for it."""
         if self.projects:
             _, _, shape, body, _ = self.decode_members(z_b, z_j, with_stats=False)
@@ -241,7 +241,7 @@ class GaitModel(MemberDecoding):
         return self._phys_shape(shape)
 
     def _check_shape(self, shape: np.ndarray) -> np.ndarray:
-        """Joint shapes as float64 (B, 8, L, 2); a ValueError names a wrong shape or a non-finite value."""
+        """Joint shapes as float64 (B, n_joints, L, 2); a ValueError names a wrong shape or a non-finite value."""
         shape = np.asarray(shape, np.float64)
         cfg = self.config.model
         if shape.ndim != 4 or shape.shape[1:] != (cfg.n_joints, cfg.n_components, 2):
@@ -277,7 +277,7 @@ class GaitModel(MemberDecoding):
         return traced(z_b, z_j)
 
     def predict_stats(self, shape: np.ndarray) -> dict[str, np.ndarray]:
-        """Body statistics the model predicts for the gaits of joint shapes (B, 8, L, 2) rad."""
+        """Body statistics the model predicts for the gaits of joint shapes (B, n_joints, L, 2) rad."""
         shape = self._check_shape(shape)
         x = self.normalize_shape(shape)
         traced = (
@@ -290,7 +290,7 @@ class GaitModel(MemberDecoding):
     def sample_joint_latents(
         self, z_b: np.ndarray, n: int = 1, seed: int = 0, temperature: float = 1.0
     ) -> np.ndarray:
-        """n draws of z_{1:8} from the learned prior given z_b (Db,) -> (n, 8, Dj); (B, Db) -> (B, n, 8, Dj).
+        """n draws of z_{1:8} from the learned prior given z_b (Db,) -> (n, n_joints, Dj); (B, Db) -> (B, n, n_joints, Dj).
 
         ``temperature`` scales the prior's standard deviation (0: its mean).
         """
@@ -312,7 +312,7 @@ class GaitModel(MemberDecoding):
         return out[0] if single else out
 
     def joint_latents(self, z_b: np.ndarray, temperature: float | None, seed: int = 0) -> np.ndarray:
-        """One z_{1:8} per z_b (B, Db) -> (B, 8, Dj): zeros where ``temperature`` is None (the
+        """One z_{1:8} per z_b (B, Db) -> (B, n_joints, Dj): zeros where ``temperature`` is None (the
         paper's generation setting (a), the designer's "zero" mode), else a draw from the learned
         prior at that temperature (``sample_joint_latents``; the designer's "sampled" mode)."""
         z = self._check_z_b(z_b)

@@ -139,12 +139,12 @@ class CheckpointConfig(BaseModel):
     )
     servo_response: list[list[list[float]]] | None = Field(
         None,
-        description="(8, L, 2) mean measured/commanded complex gain of each joint at each frequency in "
+        description="(n_joints, L, 2) mean measured/commanded complex gain of each joint at each frequency in "
         "the training data; decoded shapes (measured angles) are divided by it to get commands.",
     )
     shape_support: list[list[bool]] | None = Field(
         None,
-        description="(8, L) which joint-frequency coefficients the training data excites (RMS amplitude "
+        description="(n_joints, L) which joint-frequency coefficients the training data excites (RMS amplitude "
         "above SUPPORT_FRACTION of the largest); a decoded coefficient outside it is set to zero, so a "
         "decoded gait keeps still what its family keeps still. None (older checkpoints): all of them.",
     )

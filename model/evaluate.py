@@ -308,7 +308,7 @@ def _per_kind(rows: list[dict], kinds: list[str]) -> dict:
 
 
 def physics_floor(commands: np.ndarray, body_ds: np.ndarray, runner, seed: int = 0, batch: int = 16) -> dict:
-    """The body R^2 physics allows: each record's commands (n, T, 8) replayed with ``ENSEMBLE_NOISE``
+    """The body R^2 physics allows: each record's commands (n, T, n_joints) replayed with ``ENSEMBLE_NOISE``
     relative noise (record i's noise seeded ``seed + i``), its 5 Hz body series scored against the
     record's own ``body_ds`` (n, 500, 6) as a reconstruction is. A model cannot beat this on a
     family whose paths physics does not repeat (the paper family's is about 0). Records whose noisy

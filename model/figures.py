@@ -91,8 +91,9 @@ def figures(
     fig, axes = plt.subplots(3, 7, figsize=(21, 8))
     for row in range(3):
         ax = axes[row, 0]
-        for k in range(8):
-            c = cmap(k / 7)
+        n_joints = shape.shape[1]
+        for k in range(n_joints):
+            c = cmap(k / max(n_joints - 1, 1))
             ax.scatter(shape[row, k, :, 0], shape[row, k, :, 1], color=c, s=14)
             ax.scatter(s_hat[row, k, :, 0], s_hat[row, k, :, 1], color=c, s=14, marker="x")
         ax.set_title(f"sample {idx[row]}: joint shape (o data, x model)")
@@ -139,7 +140,7 @@ def figures(
         shapes, bodies = model.decode(np.repeat(zb[r : r + 1], 8, axis=0), zj[r])
         _, b0 = model.decode(zb[r : r + 1])
         ax = axes7[r]
-        for s in range(8):
+        for s in range(8):  # the 8 draws of z_k
             ax.plot(bodies[s, :, 1], bodies[s, :, 2], lw=1, alpha=0.8)
         ax.plot(b0[0, :, 1], b0[0, :, 2], "k", lw=2, label="z_k = 0")
         ax.set_title(f"z_B #{r + 1}: 8 draws of z_k")
@@ -149,8 +150,10 @@ def figures(
         ax.legend()
         for s in range(8):
             ax = axes8[r, s]
-            for k in range(8):
-                ax.scatter(shapes[s, k, :, 0], shapes[s, k, :, 1], color=cmap(k / 7), s=10)
+            for k in range(shapes.shape[1]):  # each joint
+                ax.scatter(
+                    shapes[s, k, :, 0], shapes[s, k, :, 1], color=cmap(k / max(shapes.shape[1] - 1, 1)), s=10
+                )
             ax.set_title(f"z_B #{r + 1}, z_k draw {s + 1}", fontsize=9)
             lim = np.abs(shapes[:, :, :, :]).max() * 1.1
             ax.set_xlim(-lim, lim)

@@ -72,7 +72,7 @@ def replay_shapes(
     progress: Callable[[int], None] | None = None,
     own: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Replay decoded joint shapes (n, 8, L, 2) rad, each as an ensemble of ``ensemble`` replays.
+    """Replay decoded joint shapes (n, n_joints, L, 2) rad, each as an ensemble of ``ensemble`` replays.
 
     Gait i's perturbed members use noise seeded with ``seed + i``; member 0 is the unperturbed
     replay (left out with ``own=False``, for a gait whose own replay ran already: the members that
@@ -98,7 +98,7 @@ def replay_shapes(
 
     def jobs():
         for idx in batches:
-            commands = model.commands(shapes[idx])  # (b, T, 8)
+            commands = model.commands(shapes[idx])  # (b, T, n_joints)
             if ensemble > 1:
                 commands = np.concatenate(
                     [

@@ -17,6 +17,7 @@ from snakeloco.model import (
 )
 from snakeloco.model.checkpoint import CheckpointConfig
 from snakeloco.sim.gaits.excitation import RECORD
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 from helpers import SMALL, fresh_net, unit_normalization
 
@@ -170,7 +171,9 @@ def test_one_members_path_and_statistics_run_traced_and_match_eager_exactly():
     members, _, measured, body, stats = m.decode_members(z_b)
     assert m._graphs.made["member_head"] is not None and m._graphs.made["predict_stats"] is not None
     head = m.config.member_head
-    x = member_inputs(members, np.asarray(head.support), z_b if head.z_b_dim else None, head.inputs)
+    x = member_inputs(
+        members, np.asarray(head.support), z_b if head.z_b_dim else None, head.inputs, DEFAULT_ROBOT
+    )
     with torch.inference_mode():
         eager_body = m.member_head(torch.as_tensor(x, dtype=torch.float32)).numpy().astype(np.float64)
         eager_stats = m.stats_from_network(m.net.predict_stats(m.normalize_shape(measured)).numpy())

@@ -18,6 +18,7 @@ from snakeloco.app.designer.session import Latents
 from snakeloco.app.export.gait_csv import read_gait_csv, write_gait_csv
 from snakeloco.sim.physics.scheduler import Turn
 from snakeloco.sim.physics.simulator import replay
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 from helpers import apply, connect_headless, quiet_server
 
@@ -102,7 +103,10 @@ def test_export_import_export_round_trips_exactly(server):
         assert d.version == version and d.decoded.source == "model" and d.decoded.latents.z_b[1] == -0.8
         second = d.export_text()
         assert _data_rows(second) == rows
-        np.testing.assert_array_equal(read_gait_csv(second).commands, read_gait_csv(first).commands)
+        np.testing.assert_array_equal(
+            read_gait_csv(second, robot=DEFAULT_ROBOT).commands,
+            read_gait_csv(first, robot=DEFAULT_ROBOT).commands,
+        )
         # A file that is not this checkpoint's export is replayed exactly as written, the sliders where
         # it encodes.
         other = first.replace(d.model.hash, "0" * 64)
@@ -113,7 +117,7 @@ def test_export_import_export_round_trips_exactly(server):
         third = d.export_text()
         assert _data_rows(third) == rows and "# z_B (encoded)" in third
         # The imported commands were replayed exactly as written (the simulator's replay, to the bit).
-        expected = replay(read_gait_csv(first).commands)
+        expected = replay(read_gait_csv(first, robot=DEFAULT_ROBOT).commands)
         np.testing.assert_array_equal(d.simulated.joint_angles, expected.joint_angles)
         np.testing.assert_array_equal(d.simulated.body, expected.body)
         # Moving a slider afterwards replaces the imported gait with a decoded one.
@@ -190,7 +194,7 @@ def _square_wave_csv() -> bytes:
     """A gait within every file rule (+/-2.2 rad, 0.05 s step) that breaks the physics: 10 Hz bang-bang
     on every joint flings the snake (its centre of mass ~130 m up within the lead-in)."""
     u = np.where(np.arange(2000) % 2 == 0, 2.2, -2.2)[:, None] * np.ones(8)
-    return write_gait_csv(u).encode()
+    return write_gait_csv(u, None, DEFAULT_ROBOT).encode()
 
 
 def test_diverging_import_is_reported_and_the_server_keeps_serving(server):
@@ -213,7 +217,7 @@ def test_diverging_import_is_reported_and_the_server_keeps_serving(server):
 def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
     client, d = connect_headless(server)
     try:
-        wild = read_gait_csv(_square_wave_csv()).commands
+        wild = read_gait_csv(_square_wave_csv(), robot=DEFAULT_ROBOT).commands
         decode = d._decoding.decode  # the server's decode stage (its process, or the tab's thread)
 
         def decode_to_wild(path, latents, fallback):  # a real decode, a diverging gait's commands

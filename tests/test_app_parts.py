@@ -14,12 +14,13 @@ import pytest
 from snakeloco.app.designer.panel import spread_text
 from snakeloco.app.export.gait_csv import GaitCSVError, read_gait_csv, write_gait_csv
 from snakeloco.app.server.workers import LatestWorker
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 
 def bad_gait_files() -> dict[str, tuple[bytes, str]]:
     """Every bad gait file of the robustness catalogue: name -> (bytes, part of the message)."""
     rng = np.random.default_rng(0)
-    text = write_gait_csv(rng.uniform(-2.2, 2.2, (2000, 8)), {"z_B": "[0.1]"})
+    text = write_gait_csv(rng.uniform(-2.2, 2.2, (2000, 8)), {"z_B": "[0.1]"}, DEFAULT_ROBOT)
     header = "time_s," + ",".join(f"joint_{k}" for k in range(1, 9))
     cell = text.splitlines()[5].split(",")[3]
     return {
@@ -49,7 +50,7 @@ def bad_gait_files() -> dict[str, tuple[bytes, str]]:
 def test_gait_csv_refuses_every_bad_file_of_the_catalogue():
     for name, (data, message) in bad_gait_files().items():
         with pytest.raises(GaitCSVError, match=re.escape(message)):
-            read_gait_csv(data)
+            read_gait_csv(data, robot=DEFAULT_ROBOT)
         assert name
 
 
@@ -96,9 +97,11 @@ def test_latest_worker_reports_failures_but_not_those_of_a_job_closed_under_it()
 def test_gait_csv_round_trip():
     rng = np.random.default_rng(0)
     u = rng.uniform(-2.2, 2.2, (2000, 8))
-    text = write_gait_csv(u, {"z_B": "[0.1]"})
-    np.testing.assert_array_equal(read_gait_csv(text.encode()).commands, u)
-    np.testing.assert_array_equal(read_gait_csv(text.replace("\n", "\r\n").encode()).commands, u)
+    text = write_gait_csv(u, {"z_B": "[0.1]"}, DEFAULT_ROBOT)
+    np.testing.assert_array_equal(read_gait_csv(text.encode(), robot=DEFAULT_ROBOT).commands, u)
+    np.testing.assert_array_equal(
+        read_gait_csv(text.replace("\n", "\r\n").encode(), robot=DEFAULT_ROBOT).commands, u
+    )
 
 
 _FREED_MEMORY = """

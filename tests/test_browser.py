@@ -11,6 +11,7 @@ import numpy as np
 
 from snakeloco.app.bench.users.load_driver import CHROMIUM_ARGS, wait_until
 from snakeloco.app.export.gait_csv import read_gait_csv
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 from helpers import BROWSER, designer_page
 
@@ -44,7 +45,7 @@ def test_browser_designs_exports_and_imports_a_gait(checkpoint, tmp_path):
         text = path.read_text()
         z = d.decoded.latents.z_b
         assert f"# z_B: [{float(z[0])!r}" in text  # exactly, so that the import restores it
-        table = read_gait_csv(text.encode())
+        table = read_gait_csv(text.encode(), robot=DEFAULT_ROBOT)
         np.testing.assert_array_equal(table.commands, d.decoded.commands)
         # Import it back through the upload button: the gait it was, its z_B decoded again.
         before = d.version

@@ -69,8 +69,8 @@ def test_gait_csvs_have_the_robots_columns_and_refuse_another_robots_gait():
     assert ",joint_12\n" in text.split("\n", 2)[1] + "\n"
     np.testing.assert_array_equal(read_gait_csv(text, TWELVE).commands, commands)  # round trip, to the bit
     with pytest.raises(GaitCSVError, match="a gait of 12 joints; robot snakeloco-8 has 8"):
-        read_gait_csv(text)
-    eight = write_gait_csv(PRESETS["roll"].gait.commands())
+        read_gait_csv(text, robot=DEFAULT_ROBOT)
+    eight = write_gait_csv(PRESETS["roll"].gait.commands(DEFAULT_ROBOT), None, DEFAULT_ROBOT)
     with pytest.raises(GaitCSVError, match=r"a gait of 8 joints \(missing .*\); robot twelve has 12"):
         read_gait_csv(eight, TWELVE)
 
@@ -166,7 +166,13 @@ def test_the_designer_switches_to_a_family_of_another_robot(member_checkpoint, t
         assert d.simulated.qpos.shape[-1] == TWELVE.compile().nq  # replayed on its own robot
         text = d.export_text()
         assert "joint_12" in text and d.model.robot_warning(d.session.robot) is None
-        assert d.import_bytes("eight.csv", write_gait_csv(PRESETS["roll"].gait.commands()).encode()) is None
+        assert (
+            d.import_bytes(
+                "eight.csv",
+                write_gait_csv(PRESETS["roll"].gait.commands(DEFAULT_ROBOT), None, DEFAULT_ROBOT).encode(),
+            )
+            is None
+        )
         assert d.fit.robots["nominal"] == TWELVE
         assert apply(d, d.controls.family, "structured")  # and back
         assert d.session.robot == DEFAULT_ROBOT and d.scene.kinematics.robot.n_links == 9

@@ -15,6 +15,7 @@ from snakeloco.sim.control.closed_loop import make_follower, nominal_reference, 
 from snakeloco.sim.control.find import find_steering
 from snakeloco.sim.gaits.library import PRESETS
 from snakeloco.sim.physics.simulator import Simulator
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 from snakeloco.sim.robot.sensing import PoseEstimate, Sensing
 
 UNDULATE = Steering(
@@ -32,7 +33,7 @@ def sim():
 
 @pytest.fixture(scope="module")
 def undulation(sim):
-    commands = PRESETS["undulate"].gait.commands()
+    commands = PRESETS["undulate"].gait.commands(DEFAULT_ROBOT)
     return commands, nominal_reference(commands, sim, UNDULATE.period)
 
 
@@ -47,7 +48,7 @@ def test_the_follower_package_imports_no_mujoco_torch_or_viser():
 
 def test_unsteered_closed_loop_replay_is_the_open_loop_replay_to_the_bit(sim):
     """With no steering input the chunked closed-loop rollout is the open-loop one, latency included."""
-    commands = PRESETS["sidewind"].gait.commands()[:400]  # a short period keeps it quick: 20 s
+    commands = PRESETS["sidewind"].gait.commands(DEFAULT_ROBOT)[:400]  # a short period keeps it quick: 20 s
     robot = sim.robot.model_copy(update={"latency": 0.03})
     f = make_follower(commands, np.zeros((2, 2)), Steering(period=1.0), sim, "on_time")
     (run,) = run_closed_loop(sim, [f], [robot])
@@ -119,10 +120,12 @@ def test_path_follower_in_a_plain_mujoco_loop_reproduces_the_simulators_closed_l
 
 
 def test_a_gait_without_a_steering_input_is_played_open_loop_and_says_so(sim, tmp_path, capsys):
-    steering = find_steering(PRESETS["roll"].gait.commands(), sim)
+    steering = find_steering(PRESETS["roll"].gait.commands(DEFAULT_ROBOT), sim)
     assert not steering.steers and "one way only" in steering.why
     assert steering.line().startswith("no steering input: ")
-    f = make_follower(PRESETS["roll"].gait.commands()[:200], np.zeros((2, 2)), steering, sim, "on_time")
+    f = make_follower(
+        PRESETS["roll"].gait.commands(DEFAULT_ROBOT)[:200], np.zeros((2, 2)), steering, sim, "on_time"
+    )
     (run,) = run_closed_loop(sim, [f])
     assert run.limit == 0 and not run.steering.any() and run.saturated == 0.0
 
@@ -242,7 +245,7 @@ def test_closed_loop_table_per_kind_counts_the_gaits_without_an_input():
     from snakeloco.sim.robot.variations import DEFAULT_SET
     from snakeloco.sim.scores.closed_loop import closed_loop_table
 
-    commands = np.stack([PRESETS[n].gait.commands() for n in ("sidewind", "roll")])
+    commands = np.stack([PRESETS[n].gait.commands(DEFAULT_ROBOT) for n in ("sidewind", "roll")])
     table = closed_loop_table(
         commands, ["sidewind", "roll"], DEFAULT_ROBOT, 2, [DEFAULT_SET[0], DEFAULT_SET[5]]
     )

@@ -19,6 +19,7 @@ from snakeloco.sim.data.dataset import BODY_DOWNSAMPLE
 from snakeloco.sim.gaits.library import PRESETS
 from snakeloco.sim.physics.backend import open_backend
 from snakeloco.sim.physics.simulator import replay
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 QUICK = DesignConfig(candidates=2, screen=64, starts=2, generations=15, population=8)
 REPORT_KEYS = {"target", "tolerance_m", "met", "candidates", "seconds"}
@@ -95,7 +96,9 @@ def test_refinement_corrects_a_steady_model_error(checkpoint, monkeypatch):
 
 def test_verification_replays_a_known_gait_and_met_means_within_tolerance(checkpoint):
     model = load_pretrained(checkpoint)
-    shape = PRESETS["undulate"].gait.shape()  # a library gait: 32.6 m forward in 100 s (docs/gaits.md)
+    shape = PRESETS["undulate"].gait.shape(
+        DEFAULT_ROBOT
+    )  # a library gait: 32.6 m forward in 100 s (docs/gaits.md)
     gait = Candidate(z_b=np.zeros(model.z_b_dim), predicted=np.zeros(4), cost=0.0, shape=shape)
     runner = open_backend(None, 2)
     try:
@@ -153,7 +156,9 @@ def test_design_command_writes_replayable_candidates_and_the_report(tmp_path, ch
     for c in report["candidates"]:
         assert CANDIDATE_KEYS <= set(c) and set(c["simulated"]) == {"forward", "sideways", "heading"}
         # The CSV is the gait that was verified: its replay ends where the report says.
-        body = replay(read_gait_csv((tmp_path / c["csv"]).read_bytes()).commands).body[::BODY_DOWNSAMPLE]
+        body = replay(read_gait_csv((tmp_path / c["csv"]).read_bytes(), robot=DEFAULT_ROBOT).commands).body[
+            ::BODY_DOWNSAMPLE
+        ]
         end = path_end(body.astype(np.float32).astype(np.float64))
         assert end[0] == pytest.approx(c["simulated"]["forward"], abs=1e-4)
         assert end[1] == pytest.approx(c["simulated"]["sideways"], abs=1e-4)

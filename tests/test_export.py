@@ -20,13 +20,13 @@ from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
 
 from helpers import BROWSER, quiet_server, random_commands
 
-SIDEWIND = PRESETS["sidewind"].gait.commands()
+SIDEWIND = PRESETS["sidewind"].gait.commands(DEFAULT_ROBOT)
 
 
 @pytest.fixture
 def sidewind_csv(tmp_path):
     path = tmp_path / "sidewind.csv"
-    path.write_text(library_gait_csv("sidewind"))
+    path.write_text(library_gait_csv("sidewind", robot=DEFAULT_ROBOT))
     return path
 
 
@@ -99,7 +99,7 @@ def test_dynamixel_ticks_back_to_radians_within_one_tick(sidewind_csv, tmp_path)
 def test_gait_equation_resynthesises_the_csv_to_the_bit(sidewind_csv, tmp_path):
     out = tmp_path / "sidewind.gait.yaml"
     main(["export", str(sidewind_csv), "--format", "gait-equation", "--out", str(out)])
-    np.testing.assert_array_equal(export.read_gait_equation(out.read_text()), SIDEWIND)
+    np.testing.assert_array_equal(export.read_gait_equation(out.read_text(), robot=DEFAULT_ROBOT), SIDEWIND)
     # A structured-family member, from the '# member:' line Export CSV writes.
     member = Member(
         kind="undulate",
@@ -108,19 +108,25 @@ def test_gait_equation_resynthesises_the_csv_to_the_bit(sidewind_csv, tmp_path):
         steering_phase=0.4,
     )
     member_csv = tmp_path / "member.csv"
-    member_csv.write_text(write_gait_csv(member.commands(), {MEMBER_KEY: json.dumps(member.params())}))
+    member_csv.write_text(
+        write_gait_csv(
+            member.commands(DEFAULT_ROBOT), {MEMBER_KEY: json.dumps(member.params())}, DEFAULT_ROBOT
+        )
+    )
     main(["export", str(member_csv), "--format", "gait-equation", "--out", str(out)])
-    np.testing.assert_array_equal(export.read_gait_equation(out.read_text()), member.commands())
+    np.testing.assert_array_equal(
+        export.read_gait_equation(out.read_text(), robot=DEFAULT_ROBOT), member.commands(DEFAULT_ROBOT)
+    )
 
 
 def test_gait_equation_refuses_a_gait_that_has_no_parameters(tmp_path, capsys):
     path = tmp_path / "random.csv"
-    path.write_text(write_gait_csv(random_commands(1)[0] * 0.5))
+    path.write_text(write_gait_csv(random_commands(1)[0] * 0.5, None, DEFAULT_ROBOT))
     with pytest.raises(SystemExit):
         main(["export", str(path), "--format", "gait-equation", "--out", str(tmp_path / "x.yaml")])
     assert "not a member of the structured family nor a library gait" in capsys.readouterr().err
     edited = tmp_path / "edited.csv"
-    edited.write_text(library_gait_csv("roll").replace("\n0.0,0.2", "\n0.0,0.3", 1))
+    edited.write_text(library_gait_csv("roll", robot=DEFAULT_ROBOT).replace("\n0.0,0.2", "\n0.0,0.3", 1))
     with pytest.raises(SystemExit):
         main(["export", str(edited), "--format", "gait-equation", "--out", str(tmp_path / "x.yaml")])
     assert "not its parameters'" in capsys.readouterr().err
@@ -230,7 +236,7 @@ def test_the_designer_exports_for_the_robot_and_shares_its_replay(checkpoint, tm
         name, data = d.export_for_robot("ROS 2 trajectory (100 Hz)")
         assert name.endswith(".yaml")
         _, positions, _ = export.read_ros2(data.decode())
-        want = export.trajectory(export.read_gait_csv(gait).commands, DEFAULT_ROBOT, 100)
+        want = export.trajectory(export.read_gait_csv(gait, robot=DEFAULT_ROBOT).commands, DEFAULT_ROBOT, 100)
         np.testing.assert_allclose(positions, want.positions, atol=1e-9)
         _, data = d.export_for_robot("CSV 100 Hz + velocities")
         assert "vel_1" in data.decode()

@@ -10,6 +10,7 @@ from snakeloco.app.export.gait_csv import read_gait_csv
 from snakeloco.model import TrainConfig, load_pretrained, train
 from snakeloco.sim import GenerateConfig
 from snakeloco.sim.data.generate import generate_dataset
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 from helpers import SMALL, apply, connect_headless, quiet_server
 
@@ -59,7 +60,7 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
         # an export of this family comes back as the gait it was (its z_B decoded again)
         assert d1.decoded.source == "model" and d1.decoded.latents.z_b == (0.0, 0.5) and len(d1.sliders) == 2
         np.testing.assert_array_equal(
-            d1.decoded.commands, read_gait_csv(text).commands
+            d1.decoded.commands, read_gait_csv(text, robot=DEFAULT_ROBOT).commands
         )  # exactly as exported
         from snakeloco.model.design.config import DesignConfig
 

@@ -26,7 +26,7 @@ def measured_text(
     """A synthetic measured run: ``gait`` replayed on ``robot``, sampled at 50 Hz with 1 mm and 0.5 deg
     noise, in a world frame of its own (shifted and turned, as a motion-capture frame is); with
     ``joints`` the servos' joint angles too (0.5 deg noise)."""
-    replayed = Simulator(workers=1, robot=robot).replay(PRESETS[gait].gait.commands())
+    replayed = Simulator(workers=1, robot=robot).replay(PRESETS[gait].gait.commands(DEFAULT_ROBOT))
     body = replayed.body
     rng = np.random.default_rng(seed)
     t = np.arange(0, seconds, 0.02)
@@ -45,7 +45,7 @@ def measured_text(
 
 
 def test_a_measured_run_is_read_in_its_start_frame():
-    truth = Simulator(workers=1).replay(PRESETS["roll"].gait.commands()).body
+    truth = Simulator(workers=1).replay(PRESETS["roll"].gait.commands(DEFAULT_ROBOT)).body
     run = read_measured_run(measured_text(DEFAULT_ROBOT, "roll", noise=False), "roll run", 8)
     assert run.gait == "roll.csv" and run.joints is None
     ts = np.arange(len(truth)) / 20
@@ -78,10 +78,10 @@ def test_a_bad_measured_run_is_refused_with_its_line_and_reason(text, reason):
 def test_a_run_shorter_than_a_cycle_or_of_another_gait_is_refused():
     short = read_measured_run(measured_text(DEFAULT_ROBOT, "roll", seconds=1.0), "short.csv")
     with pytest.raises(MeasuredRunError, match=r"short.csv: the run lasts 0.98 s, shorter than one cycle"):
-        fit_robot([(PRESETS["roll"].gait.commands(), short)], DEFAULT_ROBOT, QUICK)
+        fit_robot([(PRESETS["roll"].gait.commands(DEFAULT_ROBOT), short)], DEFAULT_ROBOT, QUICK)
     run = read_measured_run(measured_text(DEFAULT_ROBOT, "roll", seconds=5.0), "run.csv")
     with pytest.raises(MeasuredRunError, match="the gait has 6 joints, the robot snakeloco-8 8"):
-        fit_robot([(PRESETS["roll"].gait.commands()[:, :6], run)], DEFAULT_ROBOT, QUICK)
+        fit_robot([(PRESETS["roll"].gait.commands(DEFAULT_ROBOT)[:, :6], run)], DEFAULT_ROBOT, QUICK)
 
 
 def test_bench_fit_fits_by_default_the_runs_the_library_names():
@@ -97,7 +97,7 @@ def test_bench_fit_fits_by_default_the_runs_the_library_names():
 def test_a_perturbed_robot_is_recovered_and_noise_alone_stays_within_the_uncertainty():
     truth = Robot(friction_across=0.6 * 1.25, servo_kp=30 * 0.75)
     pairs = [
-        (PRESETS[g].gait.commands(), read_measured_run(measured_text(truth, g, seed=i), g))
+        (PRESETS[g].gait.commands(DEFAULT_ROBOT), read_measured_run(measured_text(truth, g, seed=i), g))
         for i, g in enumerate(("sidewind", "roll"))
     ]
     sim = Simulator(workers=2)
@@ -109,7 +109,10 @@ def test_a_perturbed_robot_is_recovered_and_noise_alone_stays_within_the_uncerta
     assert all(a["end_m"] < b["end_m"] for a, b in zip(report["after"], report["before"], strict=True))
     # The nominal robot's own runs, measured with noise: the fit stays at nominal within what it reports.
     nominal = [
-        (PRESETS[g].gait.commands(), read_measured_run(measured_text(DEFAULT_ROBOT, g, seed=7 + i), g))
+        (
+            PRESETS[g].gait.commands(DEFAULT_ROBOT),
+            read_measured_run(measured_text(DEFAULT_ROBOT, g, seed=7 + i), g),
+        )
         for i, g in enumerate(("sidewind", "roll"))
     ]
     report = fit_robot(nominal, DEFAULT_ROBOT, QUICK, sim, advise=False)
@@ -126,7 +129,7 @@ def test_measured_joint_angles_enter_the_loss_and_their_error_is_reported():
     soft = Robot(servo_kp=30 * 0.6)
     with_joints = read_measured_run(measured_text(soft, "roll", seconds=10.0, joints=True), "run.csv", 8)
     without = read_measured_run(measured_text(soft, "roll", seconds=10.0), "run.csv", 8)
-    commands = PRESETS["roll"].gait.commands()
+    commands = PRESETS["roll"].gait.commands(DEFAULT_ROBOT)
     cfg = FitConfig(params=("servo_kp",))
     sim = Simulator(workers=2)
     try:
@@ -151,7 +154,7 @@ def test_measured_joint_angles_enter_the_loss_and_their_error_is_reported():
 @pytest.mark.slow
 def test_fit_robot_writes_a_robot_description_that_loads_and_replays(tmp_path, capsys):
     gait = tmp_path / "roll.csv"
-    gait.write_text(library_gait_csv("roll"))
+    gait.write_text(library_gait_csv("roll", robot=DEFAULT_ROBOT))
     run = tmp_path / "run.csv"
     run.write_text(measured_text(Robot(servo_kp=24.0), "roll", seconds=20.0))
     out = tmp_path / "fitted.yaml"
@@ -166,7 +169,7 @@ def test_fit_robot_writes_a_robot_description_that_loads_and_replays(tmp_path, c
     assert fitted.servo_kp == pytest.approx(report["params"]["servo_kp"]["fitted"])
     assert fitted.friction_along == DEFAULT_ROBOT.friction_along  # only what was asked for moves
     assert (tmp_path / "fitted.png").stat().st_size > 10_000
-    Simulator(workers=1, robot=fitted).replay(PRESETS["roll"].gait.commands())  # it replays
+    Simulator(workers=1, robot=fitted).replay(PRESETS["roll"].gait.commands(DEFAULT_ROBOT))  # it replays
     with pytest.raises(SystemExit):
         main(["fit-robot", "--measured", str(run), "--out", str(out), "--params", "colour"])
     assert "--params colour: fit physical fields only" in capsys.readouterr().err

@@ -14,19 +14,22 @@ from snakeloco.app.export.gait_csv import read_gait_csv
 from snakeloco.sim import RECORD, joint_shape
 from snakeloco.sim.gaits.library import PRESETS, GaitEquation, measure_gait
 from snakeloco.sim.physics.simulator import Simulator, replay
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 from helpers import apply, connect_headless, quiet_server
 
 
 def test_gait_equation_is_a_joint_shape_on_one_excited_bin():
     g = GaitEquation(a_pitch=0.3, a_yaw=0.8, nu_pitch=0.8, nu_yaw=-0.5, delta=np.pi / 4, frequency=0.93)
-    u = g.commands()  # (2000, 8)
+    u = g.commands(DEFAULT_ROBOT)  # (2000, 8)
     t, k = RECORD.times[:, None], np.arange(1, 9)[None, :]
     wave = 2 * np.pi * 0.93 * t
     expected = np.where(k % 2 == 1, 0.3 * np.sin(0.8 * k + wave), 0.8 * np.sin(-0.5 * k + wave + np.pi / 4))
     np.testing.assert_allclose(u, expected, atol=1e-12)
-    np.testing.assert_allclose(joint_shape(u), g.shape(), atol=1e-12)  # its shape is the FFT of its commands
-    energy = (g.shape() ** 2).sum(axis=(0, 2))  # (L,)
+    np.testing.assert_allclose(
+        joint_shape(u), g.shape(DEFAULT_ROBOT), atol=1e-12
+    )  # its shape is the FFT of its commands
+    energy = (g.shape(DEFAULT_ROBOT) ** 2).sum(axis=(0, 2))  # (L,)
     assert np.count_nonzero(energy) == 1 and RECORD.freqs[np.argmax(energy)] == pytest.approx(0.93)
     with pytest.raises(ValidationError, match="not one of the record's excited frequencies"):
         GaitEquation(frequency=0.5)
@@ -73,7 +76,7 @@ def test_presets_worst_cases_reproduce_over_the_default_variation_set():
     simulator = Simulator(None)
     try:
         for name, p in PRESETS.items():
-            got = robustness(p.gait.commands(), DEFAULT_SET, simulator)
+            got = robustness(p.gait.commands(DEFAULT_ROBOT), DEFAULT_SET, simulator)
             assert got["worst"] == p.worst.variation, name
             assert got["worst_end_error_m"] == pytest.approx(p.worst.end_error_m, rel=0.02), name
             assert got["worst_rel"] == pytest.approx(p.worst.rel, rel=0.02), name
@@ -87,7 +90,9 @@ def test_gait_command_writes_and_lists_the_library(tmp_path, capsys):
     assert f"wrote {out}" in capsys.readouterr().out
     text = out.read_text()
     assert "# snakeloco gait: library gait sidewind" in text
-    np.testing.assert_array_equal(read_gait_csv(text).commands, PRESETS["sidewind"].gait.commands())
+    np.testing.assert_array_equal(
+        read_gait_csv(text, robot=DEFAULT_ROBOT).commands, PRESETS["sidewind"].gait.commands(DEFAULT_ROBOT)
+    )
     main(["gait", "--list"])
     listed = capsys.readouterr().out
     assert all(name in listed for name in PRESETS) and "BL/s" in listed
@@ -111,12 +116,12 @@ def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
     client, d = connect_headless(srv)
     try:
         assert apply(d, d.controls.baseline, "undulate", 120)
-        commands = PRESETS["undulate"].gait.commands()
+        commands = PRESETS["undulate"].gait.commands(DEFAULT_ROBOT)
         assert d.decoded.source == "library: undulate"
         np.testing.assert_array_equal(d.decoded.commands, commands)
         np.testing.assert_array_equal(d.simulated.body, replay(commands).body)  # replayed as it is
         assert d.simulated.figures and len(d.simulated.ensemble_body) == 2
-        exported = read_gait_csv(d.export_text())
+        exported = read_gait_csv(d.export_text(), robot=DEFAULT_ROBOT)
         np.testing.assert_array_equal(exported.commands, commands)  # and exportable
         assert "# z_B (encoded)" in d.export_text()  # the sliders sit where it encodes
         # A slider move replaces it with a decoded gait and clears the dropdown, so the library gait
@@ -189,7 +194,9 @@ def test_one_gait_has_one_distance_direction_and_heading_change_everywhere(tmp_p
     header = next(line for line in gait.read_text().splitlines() if line.startswith("# measured:"))
     m = re.search(r"distance ([\d.]+) m .* direction of travel ([+-]\d+°), heading change ([+-]\d+°)", header)
     found["CSV header"] = (float(m[1]), m[2], m[3])
-    page = readout(replay(PRESETS["sidewind"].gait.commands()).body, np.zeros((0, 2)), None, "sidewind")
+    page = readout(
+        replay(PRESETS["sidewind"].gait.commands(DEFAULT_ROBOT)).body, np.zeros((0, 2)), None, "sidewind"
+    )
     m = re.search(
         r"distance ([\d.]+) m in 100 s, direction of travel ([+-]\d+°), heading change ([+-]\d+°)", page
     )

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from snakeloco.app.export.gait_csv import exported_latents, library_gait_csv
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 from helpers import apply, connect_headless, quiet_server
 
@@ -42,7 +43,9 @@ def test_an_exported_gait_imports_as_it_was_exported(member_checkpoint):
         assert d.controls.plots["forward (m)"] is not None and d.simulated is not None
 
         # A file with no model path says so in the readout, and the sliders show where it encodes.
-        assert d.import_bytes("roll.csv", library_gait_csv("roll").encode()) is not None and d.wait_idle(60)
+        assert d.import_bytes(
+            "roll.csv", library_gait_csv("roll", robot=DEFAULT_ROBOT).encode()
+        ) is not None and d.wait_idle(60)
         assert d.decoded.latents is None and "none: the file names no z_B" in d.controls.readout.content
         other = exported.replace(d.model.hash, "f" * 64)
         assert d.import_bytes("other.csv", other.encode()) is not None and d.wait_idle(60)

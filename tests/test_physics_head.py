@@ -351,7 +351,7 @@ def test_the_robust_library_search_ranks_the_physics_heads_members_by_their_repl
     assert len(found) == 2 * cfg.samples + cfg.eval_samples  # none of the tiny draws broke
     assert {c["draw"] for c in found} == {"train", "eval"}
     one = found[0]  # its worst case at 5 Hz is what the library's 20 Hz replays say, to the last 0.15 s
-    again = robustness(one["member"].commands(), DEFAULT_SET, robot=None)
+    again = robustness(one["member"].commands(DEFAULT_ROBOT), DEFAULT_SET, robot=None)
     assert one["worst"] == again["worst"] and one["worst_rel"] == pytest.approx(
         again["worst_rel"], rel=0.05, abs=0.01
     )

@@ -52,7 +52,7 @@ def test_default_description_builds_snake_xml_field_by_field():
 
 
 def test_default_description_replays_bit_identical_to_snake_xml():
-    commands = PRESETS["sidewind"].gait.commands()
+    commands = PRESETS["sidewind"].gait.commands(DEFAULT_ROBOT)
     ours = Simulator(workers=1).replay(commands)
     theirs = Simulator(workers=1)
     theirs.model = mujoco.MjModel.from_xml_path(str(MJCF_PATH))
@@ -181,7 +181,7 @@ def test_variation_sets_are_valid_physical_changes():
 
 
 def test_variations_replay_in_one_batch_as_each_robot_alone():
-    commands = PRESETS["roll"].gait.commands()[None]
+    commands = PRESETS["roll"].gait.commands(DEFAULT_ROBOT)[None]
     sim = Simulator(workers=2)
     varied = [v.apply(DEFAULT_ROBOT) for v in (DEFAULT_SET[0], DEFAULT_SET[9], DEFAULT_SET[10])]
     batch = sim.simulate(np.repeat(commands, 3, axis=0), robots=varied)
@@ -193,7 +193,9 @@ def test_variations_replay_in_one_batch_as_each_robot_alone():
 def test_a_broken_variation_is_reported_not_raised():
     """A servo 10^4 times too stiff for the timestep makes MuJoCo's integration blow up."""
     broken = Variation(name="servo kp x1e4", scale={"servo_kp": 1e4, "servo_force": 1e4})
-    report = robustness(PRESETS["roll"].gait.commands(), [DEFAULT_SET[1], broken], Simulator(workers=2))
+    report = robustness(
+        PRESETS["roll"].gait.commands(DEFAULT_ROBOT), [DEFAULT_SET[1], broken], Simulator(workers=2)
+    )
     rows = {r["name"]: r for r in report["variations"]}
     assert rows["servo kp x1e4"]["failure"] and rows["servo kp x1e4"]["end_error_m"] is None
     assert rows["floor friction x2"]["failure"] is None and report["worst"] == "floor friction x2"
@@ -224,7 +226,7 @@ def test_robustness_json_matches_its_own_replays(tmp_path, capsys):
     capsys.readouterr()
     main(["robustness", str(gait), "--json"])
     report = json.loads(capsys.readouterr().out.splitlines()[-1])
-    commands = PRESETS["roll"].gait.commands()
+    commands = PRESETS["roll"].gait.commands(DEFAULT_ROBOT)
     nominal = Simulator(workers=1).replay(commands).body[-1]
     assert report["nominal"]["forward"] == nominal[1] and report["nominal"]["sideways"] == nominal[2]
     rows = {r["name"]: r for r in report["variations"]}
@@ -290,7 +292,7 @@ def test_robust_design_returns_only_candidates_whose_worst_case_it_replayed(chec
         r = c["robust"]
         assert r["replayed"] == len(DEFAULT_SET) and r["worst_m"] >= c["error_m"]
         # The worst case is what the variations' replays of the written gait did.
-        commands = read_gait_csv((out / Path(c["csv"]).name).read_bytes()).commands
+        commands = read_gait_csv((out / Path(c["csv"]).name).read_bytes(), robot=DEFAULT_ROBOT).commands
         varied = robustness(commands, DEFAULT_SET, Simulator(workers=2))
         ends = [
             np.hypot(v["forward"] - 0.5, v["sideways"] - 0.2)

@@ -14,6 +14,7 @@ import pytest
 import snakeloco.sim.physics.simulator as sim_physics
 from snakeloco.sim import CommandRule, SimulationError
 from snakeloco.sim.physics.simulator import Simulator, replay
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 
 def test_large_batches_roll_out_in_chunks_with_the_same_results(tiny_dataset):
@@ -170,7 +171,7 @@ def test_a_streamed_replay_is_the_replay_chunk_by_chunk_and_stops_where_it_is_le
     from snakeloco.sim.physics.threads import RolloutThreads
 
     simulator = Simulator(workers=1)
-    commands = PRESETS["sidewind"].gait.commands()
+    commands = PRESETS["sidewind"].gait.commands(DEFAULT_ROBOT)
     whole = simulator.replay(commands)
     parts = list(simulator.stream(commands, chunk_samples=300, first_samples=100))
     assert [p.samples for p in parts] == [100, 400, 700, 1000, 1300, 1600, 1900, 2000]
@@ -232,7 +233,7 @@ def test_a_streamed_replay_holds_one_chunk_of_steps_not_the_whole_record():
     from snakeloco.sim.gaits.library import PRESETS
 
     simulator = Simulator(workers=1)
-    commands = PRESETS["sidewind"].gait.commands()
+    commands = PRESETS["sidewind"].gait.commands(DEFAULT_ROBOT)
     whole_steps = simulator.n_steps * 51 * 8
     tracemalloc.start()
     try:

@@ -18,6 +18,7 @@ from snakeloco.sim.data.generate import generate_dataset
 from snakeloco.sim.gaits.members import member_from_draw
 from snakeloco.sim.gaits.projection import project
 from snakeloco.sim.gaits.structured import STRUCTURED_PRESETS, draw_structured
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 UNDULATE = STRUCTURED_PRESETS["undulate"]
 MIXED = STRUCTURED_PRESETS["mixed"]
@@ -189,8 +190,10 @@ def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predict
     np.testing.assert_array_equal(m.decode_shape(z[:1]), m.decode_raw(z[:1])[0])  # traced
     for member, s in zip(members, shape, strict=True):
         again, _ = m.project(s[None])
-        np.testing.assert_allclose(again[0].shape(), member.shape(), atol=1e-12)  # an exact member
-        np.testing.assert_allclose(m.commands(s), member.commands(), atol=1e-12)
+        np.testing.assert_allclose(
+            again[0].shape(DEFAULT_ROBOT), member.shape(DEFAULT_ROBOT), atol=1e-12
+        )  # an exact member
+        np.testing.assert_allclose(m.commands(s), member.commands(DEFAULT_ROBOT), atol=1e-12)
     assert (residuals > 0).all() and set(stats) == {"path_length", "median_speed", "vertical_std", "net_roll"}
     assert m.off_data(np.full((1, m.z_b_dim), 50.0))[0]
     assert not m.off_data(np.asarray(m.config.density.means)).any()
@@ -205,8 +208,8 @@ def test_record_members_are_the_members_the_records_drew_and_a_non_member_is_ref
     family = load_pretrained(member_checkpoint[0]).config.members
     ds = load_dataset(member_checkpoint[1])
     index = np.arange(len(ds))
-    logged = [member_from_draw(d).shape() for d in ds.meta["drawn"]]
-    found = np.stack([m.shape() for m in record_members(ds, index, family)])
+    logged = [member_from_draw(d).shape(DEFAULT_ROBOT) for d in ds.meta["drawn"]]
+    found = np.stack([m.shape(DEFAULT_ROBOT) for m in record_members(ds, index, family)])
     np.testing.assert_allclose(found, logged, atol=1e-6)
     t = np.arange(ds.commands.shape[1]) / ds.config.excitation.sample_rate
     ds.commands[1, :, 1] += 0.05 * np.sin(2 * np.pi * 0.52 * t)  # one yaw joint off the travelling wave
@@ -311,10 +314,14 @@ def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_
         )
         member = d.decoded.member
         assert member is not None and d.decoded.commands is not None
-        np.testing.assert_array_equal(d.decoded.commands, member.commands())  # replayed: exactly the member
+        np.testing.assert_array_equal(
+            d.decoded.commands, member.commands(DEFAULT_ROBOT)
+        )  # replayed: exactly the member
         assert "Gait: undulation" in d.controls.readout.content
         text = d.export_text()
-        np.testing.assert_array_equal(read_member(text).commands(), read_gait_csv(text).commands)
+        np.testing.assert_array_equal(
+            read_member(text).commands(DEFAULT_ROBOT), read_gait_csv(text, robot=DEFAULT_ROBOT).commands
+        )
         d.show_latents(np.full(d.model.z_b_dim, 8.0))  # far from every record
         assert d.wait_idle(60) and d.decoded.off_data
         assert "Off the data" in d.controls.readout.content
@@ -368,10 +375,13 @@ def test_the_shipped_structured_path_of_a_members_own_gait_beats_the_path_of_ano
     m = load_pretrained("structured")
     assert m.projects and m.member_head is not None
     family = m.config.members
-    members = [project(draw_structured(family, 99, i, 0)[0], family)[0] for i in range(6)]
+    members = [
+        project(draw_structured(family, 99, i, 0, robot=DEFAULT_ROBOT)[0], family, robot=DEFAULT_ROBOT)[0]
+        for i in range(6)
+    ]
     sim = Simulator(workers=2)
     try:
-        result = sim.simulate(np.stack([x.commands() for x in members]))
+        result = sim.simulate(np.stack([x.commands(DEFAULT_ROBOT) for x in members]))
     finally:
         sim.close()
     assert all(f is None for f in result.failures)

@@ -25,6 +25,7 @@ from snakeloco.sim.data.dataset import ZARR_MISSING, DatasetError
 from snakeloco.sim.data.generate import generate_dataset
 from snakeloco.sim.gaits.structured import DEFAULT_PRESET, STRUCTURED_PRESETS
 from snakeloco.sim.physics.backend import RAY_MISSING, BackendConfig
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 from helpers import SMALL
 
@@ -285,7 +286,7 @@ def test_closed_loop_replays_as_ray_tasks_equal_the_local_ones():
     from snakeloco.sim.scores.closed_loop import closed_loop_robustness
 
     steering = Steering(kind="yaw_offset", turn_rate=2.096, limit=0.3, period=1.0753, speed=0.326)
-    commands = PRESETS["undulate"].gait.commands()
+    commands = PRESETS["undulate"].gait.commands(DEFAULT_ROBOT)
     variations = [*DEFAULT_SET[:2], DEFAULT_SET[5]]
     sim = Simulator(workers=2)
     runner = open_backend(RAY, workers=2)

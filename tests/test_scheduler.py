@@ -12,6 +12,7 @@ import pytest
 
 from snakeloco.sim.physics.scheduler import SEGMENT_SAMPLES, FairPhysics, OnTurns, Turn
 from snakeloco.sim.physics.simulator import Simulator
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 
 def _blocked_pool() -> tuple[FairPhysics, threading.Event]:
@@ -207,7 +208,7 @@ def test_closing_cancels_queued_work_and_refuses_more():
 def test_replays_and_batches_on_the_pool_are_bit_identical_to_the_simulators_own():
     from snakeloco.sim.gaits.library import PRESETS
 
-    commands = np.stack([PRESETS[name].gait.commands() for name in list(PRESETS)[:3]])
+    commands = np.stack([PRESETS[name].gait.commands(DEFAULT_ROBOT) for name in list(PRESETS)[:3]])
     sim = Simulator(workers=2)
     pool = FairPhysics(2)
     try:

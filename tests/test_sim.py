@@ -20,6 +20,7 @@ from snakeloco.sim import (
 )
 from snakeloco.sim.physics.command_rule import expand_commands
 from snakeloco.sim.physics.simulator import Simulator, replay
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 from helpers import random_commands
 
@@ -222,7 +223,7 @@ def test_servo_response_averages_only_the_records_that_excite_a_frequency(tiny_d
     assert np.array_equal(gain[..., 0] + 1j * gain[..., 1], ratio.sum(axis=0) / len(u))  # paper: all, as ever
     # A library gait excites one frequency: the others are left out, not divided by ~0.
     gait = PRESETS["undulate"].gait
-    wave = gait.commands()[None]
+    wave = gait.commands(DEFAULT_ROBOT)[None]
     single = servo_response(
         np.concatenate([wave, u]), np.concatenate([replay(wave[0]).joint_angles[None], q])
     )

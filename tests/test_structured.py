@@ -26,6 +26,7 @@ from snakeloco.sim.gaits.structured import (
     library_gait,
 )
 from snakeloco.sim.physics.simulator import Simulator
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 from snakeloco.sim.scores.consistency import ensemble_spread, perturbed_commands
 
 CFG = GenerateConfig(
@@ -60,10 +61,12 @@ def test_draws_are_deterministic_joint_shapes_within_the_command_limit():
     sc = StructuredConfig()
     kinds = set()
     for index in range(24):
-        shape, drawn = draw_structured(sc, 5, index, 0)
-        again, _ = draw_structured(sc, 5, index, 0)
+        shape, drawn = draw_structured(sc, 5, index, 0, robot=DEFAULT_ROBOT)
+        again, _ = draw_structured(sc, 5, index, 0, robot=DEFAULT_ROBOT)
         np.testing.assert_array_equal(shape, again)
-        assert not np.array_equal(shape, draw_structured(sc, 5, index, 1)[0])  # a redraw is another gait
+        assert not np.array_equal(
+            shape, draw_structured(sc, 5, index, 1, robot=DEFAULT_ROBOT)[0]
+        )  # a redraw is another gait
         from snakeloco.sim import shape_to_commands
 
         u = shape_to_commands(shape, limit=np.inf)
@@ -173,7 +176,7 @@ def test_a_screening_log_rebuilds_the_same_dataset_with_one_replay_per_record(tm
 def test_coefficient_noise_perturbs_the_shape_of_each_screened_replay():
     from snakeloco.sim.data.chunks import _ensemble, draw_record
 
-    shape, _ = draw_structured(StructuredConfig(), 3, 0, 0)
+    shape, _ = draw_structured(StructuredConfig(), 3, 0, 0, robot=DEFAULT_ROBOT)
     copies = perturbed_shapes(shape, 4, 0.1, np.random.default_rng(0))
     np.testing.assert_array_equal(copies[0], shape)
     c = shape[..., 0] + 1j * shape[..., 1]
@@ -199,7 +202,7 @@ def test_the_undulate_preset_draws_only_undulation_in_its_ranges_and_old_metas_k
     sc = STRUCTURED_PRESETS["undulate"]
     signs, steered = set(), 0
     for index in range(40):
-        shape, drawn = draw_structured(sc, 0, index, 0)
+        shape, drawn = draw_structured(sc, 0, index, 0, robot=DEFAULT_ROBOT)
         wave = drawn["wave"]
         assert drawn["kind"] == "undulate" and "second_wave" not in drawn and wave["frequency"] == 0.52
         assert 0.5 <= wave["a_yaw"] <= 0.9 and 0.4 <= abs(wave["nu_yaw"]) <= 1.0 and wave["a_pitch"] == 0
@@ -228,7 +231,7 @@ def test_the_compass_family_draws_what_its_committed_screening_log_records():
     chunk = log["chunks"]["0"]
     for index, drawn in enumerate(chunk["drawn"]):
         attempt = sum(f["index"] == index for f in chunk["failures"])  # rejected draws came first
-        assert draw_structured(cfg.structured, 0, index, attempt)[1] == drawn, index
+        assert draw_structured(cfg.structured, 0, index, attempt, robot=DEFAULT_ROBOT)[1] == drawn, index
 
 
 def test_the_structured_preset_flag_needs_the_structured_family(tmp_path, capsys):
@@ -271,7 +274,9 @@ def test_each_kind_replays_to_its_documented_direction_within_the_spread():
     for kind, a_p, a_y, nu_p, nu_y, delta, f, s, psi, _ in KIND_EXAMPLES:
         wave = GaitEquation(a_pitch=a_p, a_yaw=a_y, nu_pitch=nu_p, nu_yaw=nu_y, delta=delta, frequency=f)
         member = Member(kind=kind, wave=wave, steering_amplitude=s, steering_phase=psi)
-        again, r = project(member.shape(), every)  # a member of the family, kind and all
+        again, r = project(
+            member.shape(DEFAULT_ROBOT), every, robot=DEFAULT_ROBOT
+        )  # a member of the family, kind and all
         assert r < 1e-9 and again.kind == kind
         members.append(member)
     _replays_to_their_directions(every, members, [e[-1] for e in KIND_EXAMPLES])
@@ -302,7 +307,7 @@ def _replays_to_their_directions(family, members, ways) -> None:
     """Each member's ensemble (``family.members`` replays with 1e-3 command noise) stays within the
     family's spread and goes where ``ways`` says: a heading (deg, within 20) or a way round."""
     ensembles = np.concatenate(
-        [perturbed_commands(m.commands(), family.members, seed=i) for i, m in enumerate(members)]
+        [perturbed_commands(m.commands(DEFAULT_ROBOT), family.members, seed=i) for i, m in enumerate(members)]
     )
     simulator = Simulator(workers=2)
     result = simulator.simulate(ensembles)
@@ -331,7 +336,7 @@ def test_each_compass_kind_replays_to_its_direction_within_the_spread():
     members = []
     for kind, a_p, a_y, nu_p, nu_y, delta, f, _ in LIBRARY_EXAMPLES:
         wave = GaitEquation(a_pitch=a_p, a_yaw=a_y, nu_pitch=nu_p, nu_yaw=nu_y, delta=delta, frequency=f)
-        again, r = project(Member(kind=kind, wave=wave).shape(), compass)
+        again, r = project(Member(kind=kind, wave=wave).shape(DEFAULT_ROBOT), compass, robot=DEFAULT_ROBOT)
         assert r < 1e-9 and again.kind == kind  # a member of the family
         members.append(again)
     _replays_to_their_directions(compass, members, [e[-1] for e in LIBRARY_EXAMPLES])
@@ -342,13 +347,15 @@ def test_curving_undulations_replay_to_their_arcs_within_the_spread():
     """The library undulation at 0.52 Hz with the arcs family's curve at 0.07 (both ways): 11.4 m
     away at -90 and 24 deg in the pilot (2026-12-04), where a straight one ends ahead."""
     arcs = STRUCTURED_PRESETS["arcs"]
-    wave = library_gait("undulate").model_copy(update={"frequency": 0.52})
+    wave = library_gait("undulate", robot=DEFAULT_ROBOT).model_copy(update={"frequency": 0.52})
     members = []
     for mirrored in (False, True):
-        member = Member(kind="undulate", wave=wave, curve=curve_wave(0.07, 0.29, mirrored))
-        again, r = project(member.shape(), arcs)
+        member = Member(
+            kind="undulate", wave=wave, curve=curve_wave(0.07, 0.29, mirrored, robot=DEFAULT_ROBOT)
+        )
+        again, r = project(member.shape(DEFAULT_ROBOT), arcs, robot=DEFAULT_ROBOT)
         assert r < 1e-9 and again.curve is not None  # a member of the family, curve and all
-        np.testing.assert_allclose(again.shape(), member.shape(), atol=1e-12)
+        np.testing.assert_allclose(again.shape(DEFAULT_ROBOT), member.shape(DEFAULT_ROBOT), atol=1e-12)
         members.append(member)
     _replays_to_their_directions(arcs, members, [-90, 24])
 

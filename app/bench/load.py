@@ -34,10 +34,8 @@ process to the second half.
 
 With the protocol driver (``load_protocol``) every client, alone or among others, drags through the
 same gaits in the same order (drawn from ``seed``), each at times of its own (when it starts, how
-long it rests): a ratio to the single client compares the same work. Each client with gaits of its
-own (until 2026-12-05) made the worst client partly the one whose gaits cost most: one client's
-first chunks took 57-61 ms of physics (p50) where the single client's took 39 and the other seven's
-41-49.
+long it rests): a ratio to the single client compares the same work (gaits of each client's own made
+the worst client the one whose gaits cost most: docs/load.md, "Same gaits for every client").
 """
 
 from __future__ import annotations
@@ -69,15 +67,13 @@ BROWSER_NICE = {"browser": 10, "protocol": 19}
 """Nice of the browsers by driver (each browser process, its threads and scheduling group). The
 browser driver's pages are the load: level with the server's physics pool (+10), below its decoding.
 Beside the protocol clients one page checks what a page draws; it stands for a user's browser on
-another machine, so it takes what the server leaves (at +10, in the server's scheduling group, it
-used 0.5 of 2 cores against the physics threads' 1.3: 2026-12-04, docs/load.md), in the idle
-scheduling class too (``BrowserNice(idle=True)``)."""
+another machine, so it takes what the server leaves: +19 and the idle scheduling class too
+(``BrowserNice(idle=True)``; docs/load.md, "BROWSER_NICE")."""
 
 RSS_SETTLE_S = 60.0
-"""Seconds into the multi-client phase from which its RSS counts as settled: as the tabs join and
-drag, their first replays and ensembles allocate what a tab keeps (8 clients, 2026-12-05: 738 -> 825
-MB within 55 s, then +11 MB over the next 8 minutes). A least-squares line through that step reads
-as a slope of ~2 MB/min over 10 minutes, which is not a creep."""
+"""Seconds into the multi-client phase from which its RSS counts as settled: the tabs' first replays
+and ensembles allocate what a tab keeps, and a line fitted through that step reads as a creep that is
+none (docs/load.md, "RSS_SETTLE_S")."""
 
 
 def _ratio(pick, values: list[float], reference: float) -> float:

@@ -38,6 +38,7 @@ from snakeloco.app.bench.users.load_driver import CHROMIUM, CHROMIUM_ARGS, wait_
 from snakeloco.app.bench.users.processes import BrowserNice, RssSampler
 from snakeloco.app.export.gait_csv import read_gait_csv
 from snakeloco.app.server.lifecycle import DesignerServer, freeze_started, tune_process
+from snakeloco.sim.robot.description import DEFAULT_ROBOT
 from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE
 
 LAYOUT_TIMEOUT_S = 120.0
@@ -158,7 +159,9 @@ def bench_tabs(
                     path = Path(tmp) / f"tab{i}.csv"
                     info.value.save_as(path)
                     exports.append(time.monotonic() - t0)
-                    read_gait_csv(path.read_bytes())  # a whole, valid gait file, of this tab's gait
+                    read_gait_csv(
+                        path.read_bytes(), DEFAULT_ROBOT
+                    )  # a whole, valid gait file, of this tab's gait
                     own |= current()
                     text = path.read_text()
                     first = [

@@ -114,6 +114,7 @@ def run_gait(cmd: Gait) -> str:
     """Print the library (--list) and/or write one library gait as a gait CSV; returns what it printed."""
     from snakeloco.app.export.gait_csv import library_gait_csv
     from snakeloco.sim.gaits.library import library_table
+    from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
     if cmd.search_robust:
         from snakeloco.model.design.library import search_robust, write_library
@@ -131,7 +132,7 @@ def run_gait(cmd: Gait) -> str:
     text = library_table() if cmd.list else ""
     if cmd.name is not None:
         cmd.out.parent.mkdir(parents=True, exist_ok=True)
-        cmd.out.write_text(library_gait_csv(cmd.name))
+        cmd.out.write_text(library_gait_csv(cmd.name, DEFAULT_ROBOT))
         text += f"wrote {cmd.out} (library gait {cmd.name}: 2000 rows at 20 Hz, rad)"
     print(text.rstrip())
     return text

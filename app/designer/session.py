@@ -50,7 +50,7 @@ class Latents:
 
 @dataclass
 class DecodedGait:
-    """The model's view of a gait: shape (8, L, 2) rad, body_ds (500, 6), commands (2000, 8) rad."""
+    """The model's view of a gait: shape (n_joints, L, 2) rad, body_ds (500, 6), commands (2000, 8) rad."""
 
     latents: Latents | None
     shape: np.ndarray
@@ -73,7 +73,7 @@ class SimulatedGait:
     joint_angles: np.ndarray  # (2000, 8) rad
     body: np.ndarray  # (2000, 6)
     qpos: np.ndarray  # (2000, nq)
-    shape: np.ndarray  # (8, L, 2) re-measured from joint_angles
+    shape: np.ndarray  # (n_joints, L, 2) re-measured from joint_angles
     ensemble_body: np.ndarray  # (K, 2000, 6); member 0 is the replay itself
     figures: dict[str, float] = field(default_factory=dict)
     replay_ms: float = 0.0

@@ -32,7 +32,7 @@ import yaml
 from snakeloco.app.export.gait_csv import MEMBER_KEY, GaitCSVError, read_gait_csv
 from snakeloco.sim.gaits.excitation import RECORD
 from snakeloco.sim.physics.command_rule import CommandRule, lead_in_window
-from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
+from snakeloco.sim.robot.description import Robot
 
 FORMATS = ("csv", "ros2", "dynamixel", "gait-equation", "html")
 ROBOT_FORMATS: dict[str, tuple[str, str, dict]] = {
@@ -282,7 +282,7 @@ def read_dynamixel(text: str) -> tuple[np.ndarray, np.ndarray, list[int]]:
     return values[:, 0], values[:, 1:].astype(int), ids
 
 
-def gait_equation_of(text: str, robot: Robot = DEFAULT_ROBOT) -> dict:
+def gait_equation_of(text: str, robot: Robot) -> dict:
     """The named parameters behind a gait CSV: ``{"member": ...}`` (a structured-family member) or
     ``{"library": NAME, "gait_equation": ...}``; ExportError for a gait that is neither (or whose
     commands are not its parameters' to the bit: an edited file)."""
@@ -332,7 +332,7 @@ def write_gait_equation(params: dict, robot: Robot) -> str:
     return yaml.safe_dump(doc, sort_keys=False, width=100)
 
 
-def read_gait_equation(text: str, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+def read_gait_equation(text: str, robot: Robot) -> np.ndarray:
     """A gait-equation YAML back to its commands (T, J) rad on ``robot``, to the bit."""
     from snakeloco.sim.gaits.library import GaitEquation
     from snakeloco.sim.gaits.members import Member

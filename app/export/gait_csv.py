@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, field_validator
 
 from snakeloco.sim import RECORD
 from snakeloco.sim.physics.body import heading_text
-from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
+from snakeloco.sim.robot.description import Robot
 from snakeloco.sim.scores.consistency import PREDICTABLE
 
 N_ROWS = RECORD.n_samples
@@ -84,7 +84,7 @@ class GaitTable(BaseModel):
         return u
 
 
-def check_range(u: np.ndarray, robot: Robot = DEFAULT_ROBOT, limit: float | None = None) -> None:
+def check_range(u: np.ndarray, robot: Robot, limit: float | None = None) -> None:
     """A ValueError unless commands (2000, N) are ``robot``'s: N joints, within its command limit
     (or ``limit``)."""
     if u.shape[1] != robot.n_joints:
@@ -107,9 +107,7 @@ def _fmt(x: float) -> str:
     return repr(float(x))
 
 
-def write_gait_csv(
-    commands: np.ndarray, comments: dict[str, str] | None = None, robot: Robot = DEFAULT_ROBOT
-) -> str:
+def write_gait_csv(commands: np.ndarray, comments: dict[str, str] | None, robot: Robot) -> str:
     """CSV text of ``robot``'s commands (2000, N) rad, with ``# key: value`` comment lines first."""
     commands = np.asarray(commands, dtype=np.float64)
     GaitTable(time_s=np.arange(N_ROWS) * TIME_STEP, commands=commands)  # validate before writing
@@ -124,7 +122,7 @@ def write_gait_csv(
     return out.getvalue()
 
 
-def read_gait_csv(data: bytes | str, robot: Robot = DEFAULT_ROBOT, limit: float | None = None) -> GaitTable:
+def read_gait_csv(data: bytes | str, robot: Robot, limit: float | None = None) -> GaitTable:
     """Parse and validate a gait CSV of ``robot`` (its joint count and command limit, or ``limit``:
     ``np.inf`` for a caller that checks the range itself, saying where); raise GaitCSVError naming
     the problem."""
@@ -244,7 +242,7 @@ def gait_comments(
     return comments
 
 
-def library_gait_csv(name: str, robot: Robot = DEFAULT_ROBOT) -> str:
+def library_gait_csv(name: str, robot: Robot) -> str:
     """The library gait ``name`` (``sim.gaits.library.PRESETS``) on ``robot`` as gait CSV text, its equation
     and measured figures in the comments. On another robot than the paper's the gait is carried
     there by the serpenoid rule (``GaitEquation.on_robot``), and the comments say its figures were

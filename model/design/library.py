@@ -140,7 +140,7 @@ def search_robust(
                     figures = measure_gait(gait, simulator)
                 except SimulationError:
                     continue
-                report = robustness(gait.commands(), DEFAULT_SET, simulator)
+                report = robustness(gait.commands(simulator.robot), DEFAULT_SET, simulator)
                 if figures.spread <= MAX_SPREAD and report["worst_rel"] is not None:
                     confirmed.append((report["worst_rel"], c, figures, report))
             if not confirmed:

@@ -77,7 +77,7 @@ class Candidate:
     z_b: np.ndarray  # (Db,)
     predicted: np.ndarray  # (4,) path_end of the decoded path
     cost: float  # the search's objective
-    shape: np.ndarray  # (8, L, 2) rad, z_k = 0
+    shape: np.ndarray  # (n_joints, L, 2) rad, z_k = 0
     simulated: np.ndarray | None = None  # (4,) path_end of its own replay
     spread_m: float = float("nan")  # RMS distance of the perturbed replays' ends from its own
     broken: str | None = None

@@ -54,9 +54,9 @@ def replay_prior_gaits(model: GaitModel, cfg: CalibrateConfig, fit: Fit) -> dict
     ones; each group has its own seed, so adding a group leaves the gaits before it as they were.
 
     Returns arrays over the M = ``cfg.gait_count`` gaits, broken replays dropped: ``shape``
-    (M, 8, L, 2) decoded rad, ``stats`` (M, 4) the replay's statistics vector (``model.vae.stats``),
+    (M, n_joints, L, 2) decoded rad, ``stats`` (M, 4) the replay's statistics vector (``model.vae.stats``),
     ``body`` (M, 500, 6) the replay's body series at the model's rate, ``z_b`` (M, Db) and ``z_j``
-    (M, 8, Dj) the latents decoded, ``z_index`` (M,) which z_B draw (the extra z_k = 0 ones numbered
+    (M, n_joints, Dj) the latents decoded, ``z_index`` (M,) which z_B draw (the extra z_k = 0 ones numbered
     from n, the extra sampled ones from n + zero_count), ``mode`` (M,) index into ``MODES``, and
     ``broken`` (len(MODES),) counts.
     """

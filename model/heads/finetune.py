@@ -55,7 +55,7 @@ def fit_head(
     cfg: Schedule,
     log: Callable[[str], None] | None,
 ) -> dict:
-    """Stage 1: fit the statistics head to (joint shapes (N, 8, L, 2) rad, statistics vectors (N, 4))
+    """Stage 1: fit the statistics head to (joint shapes (N, n_joints, L, 2) rad, statistics vectors (N, 4))
     pairs with ``cfg``'s epochs, learning rate, batch size and seed. ``held_out`` names sets scored before and after (median relative error per statistic);
     the mean head loss over its "generated" and "dataset" sets chooses the best epoch."""
     net = model.net

@@ -53,10 +53,10 @@ class MemberDecoding:
 
     def _gain(self) -> np.ndarray | None:
         g = self._servo_response
-        return None if g is None else g[..., 0] + 1j * g[..., 1]  # (8, L)
+        return None if g is None else g[..., 0] + 1j * g[..., 1]  # (n_joints, L)
 
     def project(self, shape: np.ndarray) -> tuple[list[Member], np.ndarray]:
-        """Measured joint shapes (B, 8, L, 2) -> the members they project onto (their commanded
+        """Measured joint shapes (B, n_joints, L, 2) -> the members they project onto (their commanded
         coefficients fitted, ``sim.gaits.projection.project``) and the fits' relative residuals (B,)."""
         if not self.projects:
             raise ValueError("this checkpoint's family has no members to project onto")
@@ -67,7 +67,7 @@ class MemberDecoding:
         return project_many(np.stack([c.real, c.imag], axis=-1), self.config.members, self.robot)
 
     def member_shapes(self, members: list[Member]) -> np.ndarray:
-        """The joint shapes (B, 8, L, 2) the servos measure for members (commanded x servo gain)."""
+        """The joint shapes (B, n_joints, L, 2) the servos measure for members (commanded x servo gain)."""
         c = np.stack([m.shape(self.robot) for m in members])
         c = c[..., 0] + 1j * c[..., 1]
         if (g := self._gain()) is not None:
@@ -139,7 +139,7 @@ class MemberDecoding:
         self, z_b: np.ndarray, z_j: np.ndarray | None = None, with_stats: bool = True
     ) -> tuple[list[Member], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray] | None]:
         """Decode, project and predict: the members (B), the projections' residuals (B,), the
-        members' measured shapes (B, 8, L, 2), the paths predicted for them (B, 500, 6) (the
+        members' measured shapes (B, n_joints, L, 2), the paths predicted for them (B, 500, 6) (the
         network's own body decode where the checkpoint has no member head) and the statistics the
         model predicts for the members' shapes {name: (B,)} (``predict_stats``; None without
         ``with_stats``, which saves half a batch's time where only paths count: inverse design)."""

@@ -40,7 +40,7 @@ from snakeloco.model.options import HeadInputs, HeadPath
 from snakeloco.sim.gaits.members import Member
 from snakeloco.sim.gaits.structured import KINDS, StructuredConfig
 from snakeloco.sim.physics.body import mirror_body
-from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
+from snakeloco.sim.robot.description import Robot
 
 MEMBER_HEAD_WEIGHTS = "member_head.safetensors"
 CHANNEL_WEIGHTS = (1.0, 4.0, 4.0, 1.0, 1.0, 4.0)
@@ -54,7 +54,7 @@ class MemberHeadConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    support: list[list[bool]] = Field(description="(8, L) the coefficients fed in (the family's support).")
+    support: list[list[bool]] = Field(description="(n_joints, L) the coefficients fed in (the family's support).")
     inputs: HeadInputs = Field("coefficients", description="What describes a member to the head.")
     mirrored: bool = Field(False, description="Trained on every member and its mirror image too.")
     input_mean: list[float] = Field(
@@ -188,9 +188,9 @@ def with_mirror_images(
 def member_inputs(
     members: list[Member],
     support: np.ndarray,
-    z_b: np.ndarray | None = None,
-    inputs: HeadInputs = "coefficients",
-    robot: Robot = DEFAULT_ROBOT,
+    z_b: np.ndarray | None,
+    inputs: HeadInputs,
+    robot: Robot,
 ) -> np.ndarray:
     """Members (and their slider positions z_b (B, Db)) -> the head's inputs: their commanded
     coefficients on ``robot`` on the support (N, L), real and imaginary parts (B, 2 S), or their

@@ -57,7 +57,7 @@ def replay_sampler_gaits(model: GaitModel, cfg: SamplerConfig, fit: Fit) -> dict
     sampled (mode 1), project onto members (``model`` must project) and replay each member once.
 
     Returns, broken replays dropped: z_b (M, Db), mode (M,), z_index (M,) which draw, shape
-    (M, 8, L, 2) the members' commanded shapes, body (M, 500, 6) their replays at 5 Hz."""
+    (M, n_joints, L, 2) the members' commanded shapes, body (M, 500, 6) their replays at 5 Hz."""
     z = model.sample_z_b(cfg.samples, cfg.seed)
     runner = fit.open_backend(model.robot)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in GAIT_KEYS}

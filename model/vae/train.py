@@ -58,7 +58,7 @@ joints) below 0.5% of it (docs/model.md)."""
 
 
 def shape_support(shapes: np.ndarray) -> np.ndarray:
-    """Joint shapes (N, 8, L, 2) rad -> (8, L) bool: the coefficients the records excite."""
+    """Joint shapes (N, n_joints, L, 2) rad -> (n_joints, L) bool: the coefficients the records excite."""
     rms = np.sqrt((np.asarray(shapes, np.float64) ** 2).sum(-1).mean(0))
     return rms > SUPPORT_FRACTION * rms.max()
 

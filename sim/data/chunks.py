@@ -28,10 +28,10 @@ from snakeloco.sim.scores.consistency import ensemble_spread, perturbed_commands
 
 @dataclass
 class _Chunk:
-    commands: np.ndarray  # (B, T, 8) float32
-    joint_angles: np.ndarray  # (B, T, 8) float32
+    commands: np.ndarray  # (B, T, n_joints) float32
+    joint_angles: np.ndarray  # (B, T, n_joints) float32
     body: np.ndarray  # (B, T, 6) float32
-    phases: np.ndarray  # (B, 8, L) float64
+    phases: np.ndarray  # (B, n_joints, L) float64
     amplitude: np.ndarray  # (B,)
     attempts: np.ndarray  # (B,) int32
     failures: list[dict] = field(default_factory=list)
@@ -51,7 +51,7 @@ class _Chunk:
 
 
 def draw_sample(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """Phases (8, L) rad, float32 commands (T, 8) rad and amplitude U of sample ``index``'s attempt."""
+    """Phases (n_joints, L) rad, float32 commands (T, n_joints) rad and amplitude U of sample ``index``'s attempt."""
     rng = np.random.default_rng([cfg.seed, index, attempt])
     phases = random_phases(rng, cfg.excitation, cfg.robot.n_joints)
     commands, amplitude = multisine(phases, cfg.excitation)
@@ -60,7 +60,7 @@ def draw_sample(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarr
 
 
 def draw_record(cfg: GenerateConfig, index: int, attempt: int) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Structured record ``index``'s gait at ``attempt``: float32 commands (T, 8) rad, phases (8, L) of
+    """Structured record ``index``'s gait at ``attempt``: float32 commands (T, n_joints) rad, phases (n_joints, L) of
     its joint shape and what was drawn (``draw_structured``)."""
     shape, drawn = draw_structured(cfg.structured, cfg.seed, index, attempt, cfg.robot)
     # The float32 commands are stored; replay exactly those, so a replay of the file matches.
@@ -112,7 +112,7 @@ def _spread(body: np.ndarray, failures: list[str | None]) -> tuple[float, str | 
 
 
 def _ensemble(cfg: GenerateConfig, index: int, attempt: int, commands: np.ndarray) -> np.ndarray:
-    """The commands (T, 8) of a structured draw and its ``members`` - 1 perturbed copies: command
+    """The commands (T, n_joints) of a structured draw and its ``members`` - 1 perturbed copies: command
     noise, and where ``coefficient_noise`` is set, the joint shape's coefficients perturbed first."""
     sc, seed = cfg.structured, _noise_seed(cfg.seed, index, attempt)
     ensemble = perturbed_commands(commands.astype(np.float64), sc.members, seed=seed)
@@ -155,7 +155,7 @@ def simulate_structured(cfg: GenerateConfig, simulator: Simulator, indices: np.n
         draws += len(todo)
         ensembles = {
             j: _ensemble(cfg, int(indices[j]), int(attempt[j]), commands[j]) for j in todo
-        }  # (members, T, 8) each; the first check is its first screen_members
+        }  # (members, T, n_joints) each; the first check is its first screen_members
         rejected: dict[int, str] = {}
         first = np.concatenate([ensembles[j][:k] for j in todo])
         rows = {j: list(range(n * k, (n + 1) * k)) for n, j in enumerate(todo)}
@@ -269,8 +269,8 @@ def rebuild_chunk(cfg: GenerateConfig, simulator: Simulator, indices: np.ndarray
 
 
 def perturbed_shapes(shape: np.ndarray, k: int, rel_noise: float, rng: np.random.Generator) -> np.ndarray:
-    """``shape`` (8, L, 2) and k - 1 copies whose complex coefficients are each multiplied by
-    1 + rel_noise * eps (eps complex standard normal): (k, 8, L, 2)."""
+    """``shape`` (n_joints, L, 2) and k - 1 copies whose complex coefficients are each multiplied by
+    1 + rel_noise * eps (eps complex standard normal): (k, n_joints, L, 2)."""
     c = shape[..., 0] + 1j * shape[..., 1]
     eps = (rng.standard_normal((k - 1, *c.shape)) + 1j * rng.standard_normal((k - 1, *c.shape))) / np.sqrt(2)
     noisy = c[None] * (1.0 + rel_noise * eps)

@@ -15,10 +15,10 @@ key                shape            meaning
 ``body``           (N, 2000, 6)     body states at 20 Hz (``sim.BODY_CHANNELS``; m and rad)
 ``body_ds``        (N, 500, 6)      ``body[:, ::4]``: every 4th sample, 5 Hz, t = 0.2 k s
 ``freqs``          (L,)             excited frequencies (Hz), float64
-``phases``         (N, 8, L)        multisine phases (rad), float64
+``phases``         (N, n_joints, L)        multisine phases (rad), float64
 ``amplitude``      (N,)             shared per-component amplitude U (rad)
 ``attempts``       (N,)             int32: phase draws needed (1 = first draw simulated cleanly)
-``shape``          (N, 8, L, 2)     single-sided FFT coefficients of ``joint_angles`` at the excited
+``shape``          (N, n_joints, L, 2)     single-sided FFT coefficients of ``joint_angles`` at the excited
                                     bins (real, imag; rad), ``sim.joint_shape`` of the stored angles
 ``meta``           ()               JSON string: schema version, generating config, mujoco version,
                                     MJCF sha256, failure log

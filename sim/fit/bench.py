@@ -100,12 +100,12 @@ def single_runs(
     for k, truth in enumerate(truths):
         rng = np.random.default_rng(seed + 99 + k)
         result = simulator.simulate(
-            np.stack([PRESETS[g].gait.commands() for g in names]), robots=[truth] * len(names)
+            np.stack([PRESETS[g].gait.commands(simulator.robot) for g in names]), robots=[truth] * len(names)
         )
         for g, body, angles in zip(names, result.body, result.joint_angles, strict=True):
             run = synthetic_run(body, rng, g, angles if joints else None)
             report = fit_robot(
-                [(PRESETS[g].gait.commands(), run)],
+                [(PRESETS[g].gait.commands(simulator.robot), run)],
                 DEFAULT_ROBOT,
                 FitConfig(generations=generations, seed=seed),
                 simulator,
@@ -156,8 +156,8 @@ def bench_fit(
     try:
         for k, truth in enumerate(perturbed_robots(robots, seed)):
             rng = np.random.default_rng(seed * 1000 + k)
-            cmds = [PRESETS[g].gait.commands() for g in gaits]
-            held = [g.commands() for g in others.values()]
+            cmds = [PRESETS[g].gait.commands(simulator.robot) for g in gaits]
+            held = [g.commands(simulator.robot) for g in others.values()]
             result = simulator.simulate(np.stack(cmds + held), robots=[truth] * (len(cmds) + len(held)))
             pairs = [
                 (c, synthetic_run(b, rng, g, a if joints else None))

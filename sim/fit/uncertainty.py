@@ -91,7 +91,7 @@ def most_sensitive_gait(robot: Robot, name: str, simulator) -> dict:
         values[name] *= 2
     changed = robot_from_dict(values, f"{robot.name} with {name} changed")
     names = list(BASE_GAITS)
-    cmds = np.stack([PRESETS[n].gait.commands() for n in names for _ in range(2)])
+    cmds = np.stack([PRESETS[n].gait.commands(robot) for n in names for _ in range(2)])
     result = simulator.simulate(cmds, robots=[r for _ in names for r in (robot, changed)])
     if result is None:
         raise FitCancelled

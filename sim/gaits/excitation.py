@@ -96,7 +96,7 @@ def multisine(phases: np.ndarray, cfg: ExcitationConfig) -> tuple[np.ndarray, fl
         commands (T, N) rad, float64, and the shared per-component amplitude U (rad).
     """
     t = cfg.times  # (T,)
-    arg = 2.0 * np.pi * cfg.freqs[None, :, None] * t + phases[:, :, None]  # (8, L, T)
-    unit = np.sin(arg).sum(axis=1).T  # (T, 8)
+    arg = 2.0 * np.pi * cfg.freqs[None, :, None] * t + phases[:, :, None]  # (n_joints, L, T)
+    unit = np.sin(arg).sum(axis=1).T  # (T, n_joints)
     amplitude = cfg.command_limit / np.abs(unit).max()
     return unit * amplitude, float(amplitude)

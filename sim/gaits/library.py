@@ -41,13 +41,13 @@ def _layout(n_joints: int, pattern: str) -> tuple[np.ndarray, np.ndarray]:
     return modules, pitch
 
 
-def layout(robot: Robot = DEFAULT_ROBOT) -> tuple[np.ndarray, np.ndarray]:
+def layout(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
     """A robot's joints for the gait equation: module index k of each joint (1-based, as the MJCF names
     them) and which joints pitch (odd k on an alternating snake, none on a planar one), read-only."""
     return _layout(robot.n_joints, robot.joint_pattern)
 
 
-MODULES, PITCH = layout()
+MODULES, PITCH = layout(DEFAULT_ROBOT)
 """The default robot's modules (1..8) and pitch joints (odd k)."""
 
 
@@ -77,7 +77,7 @@ class GaitEquation(BaseModel):
         """Index l of the excited frequency the gait runs at."""
         return int(np.argmin(np.abs(RECORD.freqs - self.frequency)))
 
-    def shape(self, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+    def shape(self, robot: Robot) -> np.ndarray:
         """The gait's joint shape (N, L, 2) on ``robot``: c_kl = A_k e^{i(phi_k - pi/2)} at its bin,
         zero elsewhere (a planar robot's joints all take the yaw wave).
 
@@ -92,7 +92,7 @@ class GaitEquation(BaseModel):
         shape[:, self.bin_index, 1] = amplitude * np.sin(phase)
         return shape
 
-    def commands(self, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+    def commands(self, robot: Robot) -> np.ndarray:
         """Joint commands (2000, N) rad at 20 Hz over the record on ``robot``."""
         return shape_to_commands(self.shape(robot), limit=robot.command_limit)
 
@@ -209,7 +209,7 @@ def measure_gait(gait: GaitEquation, simulator, ensemble: int = 4, seed: int = 0
     perturbed members that break leave the ensemble."""
     from snakeloco.sim.scores.consistency import perturbed_commands
 
-    result = simulator.simulate(perturbed_commands(gait.commands(), ensemble, seed=seed))
+    result = simulator.simulate(perturbed_commands(gait.commands(simulator.robot), ensemble, seed=seed))
     if result.failures[0] is not None:
         raise SimulationError(result.failures[0])
     ok = [i for i, f in enumerate(result.failures) if f is None]

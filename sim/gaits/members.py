@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from snakeloco.sim.gaits.excitation import RECORD
 from snakeloco.sim.gaits.library import PITCH, GaitEquation, layout, turned
 from snakeloco.sim.gaits.spectra import shape_to_commands
-from snakeloco.sim.robot.description import COMMAND_LIMIT, DEFAULT_ROBOT, Robot
+from snakeloco.sim.robot.description import COMMAND_LIMIT, Robot
 
 STEERING_BIN = 0
 """The steering wave runs at the lowest excited frequency (0.05 Hz: 20 s periods)."""
@@ -46,7 +46,7 @@ class Member(BaseModel):
         "(``sim.gaits.structured.curve_wave``): the path bends into an arc. None: straight.",
     )
 
-    def shape(self, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+    def shape(self, robot: Robot) -> np.ndarray:
         """The member's commanded joint shape (N, L, 2) rad on ``robot`` (``sim.gaits.spectra``
         convention; its parameters are in that robot's units, rad per module of its joints)."""
         shape = self.wave.shape(robot)
@@ -57,7 +57,7 @@ class Member(BaseModel):
         shape[yaw, STEERING_BIN, 1] += self.steering_amplitude * np.sin(self.steering_phase)
         return shape
 
-    def commands(self, robot: Robot = DEFAULT_ROBOT) -> np.ndarray:
+    def commands(self, robot: Robot) -> np.ndarray:
         """Its joint commands (2000, N) rad at 20 Hz on ``robot``: what is replayed, drawn and
         exported."""
         return shape_to_commands(self.shape(robot), limit=robot.command_limit)

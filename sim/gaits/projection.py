@@ -30,7 +30,7 @@ from snakeloco.sim.gaits.structured import (
     library_gait,
     undulation_scale,
 )
-from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
+from snakeloco.sim.robot.description import Robot
 
 SPECIFIC_FIRST = ("undulate", "roll", "sidewind", "turn")
 """Kinds from the most to the least constrained: an undulation is also a turning wave with no pitch,
@@ -289,7 +289,7 @@ def _within_limit(member: Member, robot: Robot) -> tuple[Member, np.ndarray]:
     return member, member.shape(robot)
 
 
-def residual(shape: np.ndarray, member: Member | np.ndarray, robot: Robot = DEFAULT_ROBOT) -> float:
+def residual(shape: np.ndarray, member: Member | np.ndarray, robot: Robot) -> float:
     """Relative distance of a commanded shape (N, L, 2) from a member (or the member's shape) on
     ``robot``: ||c - c_m|| / ||c||."""
     shape = np.asarray(shape, np.float64)
@@ -301,7 +301,8 @@ def project(
     shape: np.ndarray,
     cfg: StructuredConfig,
     margin: float = SPECIFIC_MARGIN,
-    robot: Robot = DEFAULT_ROBOT,
+    *,
+    robot: Robot,
 ) -> tuple[Member, float]:
     """The member of family ``cfg`` on ``robot`` closest to a commanded joint shape (N, L, 2) rad,
     and the fit's relative residual (0 for a member: projecting a member gives it back). Of the
@@ -329,7 +330,7 @@ def project(
                 Member(kind=kind, wave=wave, steering_amplitude=amplitude, steering_phase=phase, curve=curve),
                 robot,
             )
-            r = residual(shape, theirs)
+            r = residual(shape, theirs, robot)
             if best is None or r < best[0] - 1e-9:
                 best = (r, member)
         if best is not None:
@@ -341,9 +342,7 @@ def project(
     return member, r
 
 
-def project_many(
-    shapes: np.ndarray, cfg: StructuredConfig, robot: Robot = DEFAULT_ROBOT
-) -> tuple[list[Member], np.ndarray]:
+def project_many(shapes: np.ndarray, cfg: StructuredConfig, robot: Robot) -> tuple[list[Member], np.ndarray]:
     """``project`` over commanded shapes (B, N, L, 2) on ``robot``: the members and residuals (B,)."""
     fits = [project(s, cfg, robot=robot) for s in np.asarray(shapes, np.float64)]
     return [m for m, _ in fits], np.array([r for _, r in fits])

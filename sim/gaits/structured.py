@@ -26,7 +26,7 @@ from snakeloco.sim.gaits.structured_config import AMPLITUDE_RANGES as AMPLITUDE_
 from snakeloco.sim.gaits.structured_config import KINDS as KINDS
 from snakeloco.sim.gaits.structured_config import NU_RANGES as NU_RANGES
 from snakeloco.sim.gaits.structured_config import StructuredConfig as StructuredConfig
-from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
+from snakeloco.sim.robot.description import Robot
 
 LIBRARY = StructuredConfig(
     kind_weights=(1.0, 2.0, 0.5, 0.5),
@@ -173,14 +173,14 @@ def for_robot(cfg: StructuredConfig, robot: Robot) -> StructuredConfig:
     return cfg.model_copy(update={"kind_weights": weights})
 
 
-def library_gait(kind: str, robot: Robot = DEFAULT_ROBOT) -> GaitEquation:
+def library_gait(kind: str, robot: Robot) -> GaitEquation:
     """The gait library's ``kind`` gait (``sim.gaits.library.PRESETS``) on ``robot`` (carried there by the
     serpenoid rule, ``GaitEquation.on_robot``), which a library family scales."""
     return PRESETS[kind].gait.on_robot(robot)
 
 
 def draw_library_wave(
-    kind: str, rng: np.random.Generator, cfg: StructuredConfig, robot: Robot = DEFAULT_ROBOT
+    kind: str, rng: np.random.Generator, cfg: StructuredConfig, robot: Robot
 ) -> GaitEquation:
     """A library family's ``kind`` wave (``StructuredConfig.library``): the library gait scaled by s
     in amplitude_scale, at one of the kind's frequencies, its offset drawn where library_offsets
@@ -200,12 +200,12 @@ def draw_library_wave(
     )
 
 
-def undulation_scale(wave: GaitEquation, robot: Robot = DEFAULT_ROBOT) -> float:
+def undulation_scale(wave: GaitEquation, robot: Robot) -> float:
     """An undulation's yaw amplitude relative to the library undulation's (on ``robot``)."""
     return wave.a_yaw / library_gait("undulate", robot).a_yaw
 
 
-def curve_wave(scale: float, frequency: float, mirrored: bool, robot: Robot = DEFAULT_ROBOT) -> GaitEquation:
+def curve_wave(scale: float, frequency: float, mirrored: bool, robot: Robot) -> GaitEquation:
     """The library's turning gait at ``scale`` of its amplitudes and at ``frequency``, as tuned or
     mirrored (yaw joints negated). Beside an undulation at another frequency it bends the path into
     an arc (docs/gaits.md, "The arcs family")."""
@@ -220,7 +220,7 @@ def curve_wave(scale: float, frequency: float, mirrored: bool, robot: Robot = DE
 
 
 def draw_structured(
-    cfg: StructuredConfig, seed: int, index: int, attempt: int, robot: Robot = DEFAULT_ROBOT
+    cfg: StructuredConfig, seed: int, index: int, attempt: int, robot: Robot
 ) -> tuple[np.ndarray, dict]:
     """Record ``index``'s gait at ``attempt`` on ``robot``: its commanded joint shape (N, L, 2) rad
     and what was drawn (kinds, waves, steering, curve, scale), JSON-ready. Waves are in the robot's

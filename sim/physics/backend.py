@@ -64,7 +64,7 @@ Fn = Callable[[Any, Job], Any]  # fn(simulator, job) -> result; a module-level f
 
 
 def simulate_bodies(simulator, commands: np.ndarray) -> tuple[np.ndarray, list[str | None]]:
-    """A job of evaluation and calibration: replay commands (B, T, 8); the body series at the
+    """A job of evaluation and calibration: replay commands (B, T, n_joints); the body series at the
     model's rate (B, 500, 6) float32 and each replay's break reason (None: ran cleanly)."""
     result = simulator.simulate(commands)
     return result.body[:, ::BODY_DOWNSAMPLE].astype(np.float32), result.failures

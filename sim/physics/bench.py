@@ -41,7 +41,7 @@ def bench_sim(samples: int | None = None, workers: int | None = None, repeats: i
     indices = np.arange(samples)
     # The generator's own first draws, so both runs simulate the very same trajectories.
     commands = np.stack([draw_sample(cfg, int(i), 0)[1] for i in indices]).astype(np.float64)
-    ctrl = expand_commands(commands, simulator.substeps, cfg.sim)  # (B, n_steps, 8), fixed
+    ctrl = expand_commands(commands, simulator.substeps, cfg.sim)  # (B, n_steps, n_joints), fixed
     steps = samples * simulator.n_steps
 
     def generator() -> None:

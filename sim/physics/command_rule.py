@@ -86,7 +86,7 @@ def expand_commands(
     first, last = begin // substeps, -(-end // substeps)  # the samples whose steps are asked for
     held, nxt = held[:, first:last], nxt[:, first:last]
     frac = (np.arange(substeps) / substeps)[None, None, :, None]  # (1, 1, S, 1)
-    ctrl = held[:, :, None] + (nxt - held)[:, :, None] * frac  # (B, samples, S, 8)
+    ctrl = held[:, :, None] + (nxt - held)[:, :, None] * frac  # (B, samples, S, n_joints)
     offset = first * substeps
     return ctrl.reshape(commands.shape[0], -1, n_joints)[:, begin - offset : end - offset]
 

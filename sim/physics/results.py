@@ -25,9 +25,9 @@ class ReplayResult:
     """Measured response to one record of commands at the command rate."""
 
     commands: np.ndarray
-    """(T, 8) commands actually applied (rad, float64)."""
+    """(T, n_joints) commands actually applied (rad, float64)."""
     joint_angles: np.ndarray
-    """(T, 8) measured joint angles (rad)."""
+    """(T, n_joints) measured joint angles (rad)."""
     body: np.ndarray
     """(T, 6) body states, channels as in ``BODY_CHANNELS``."""
     times: np.ndarray
@@ -42,7 +42,7 @@ class StreamedReplay:
     record samples (arrays as ``ReplayResult``'s, that long)."""
 
     samples: int
-    joint_angles: np.ndarray  # (samples, 8) rad
+    joint_angles: np.ndarray  # (samples, n_joints) rad
     qpos: np.ndarray  # (samples, nq)
     failure: str | None  # why the simulation broke (then the stream ends), or None
     done: bool  # the whole record is in
@@ -96,7 +96,7 @@ class Paused:
 class BatchResult:
     """Measurements of a batch; rows whose ``failures`` entry is not None are invalid."""
 
-    joint_angles: np.ndarray  # (B, T, 8) rad
+    joint_angles: np.ndarray  # (B, T, n_joints) rad
     body: np.ndarray  # (B, T, 6)
     failures: list[str | None]
     qpos: np.ndarray  # (B, T, nq) at the sample times

@@ -98,7 +98,7 @@ class Simulator(Streaming):
         runner: FairRunner | None = None,
         models: list[mujoco.MjModel] | None = None,
     ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Raw rollouts from the resting state (or from ``start``): ctrl (B, n_steps, 8) -> (state,
+        """Raw rollouts from the resting state (or from ``start``): ctrl (B, n_steps, n_joints) -> (state,
         sensordata).
 
         state is (B, n_steps, nstate) after each step; sensordata (B, n_steps, nsensordata) is
@@ -225,7 +225,7 @@ class Simulator(Streaming):
         """Simulate a batch of records under the command rule and measure them.
 
         Args:
-            commands: (B, T, 8) rad.
+            commands: (B, T, n_joints) rad.
             samples: simulate only the lead-in and the record's first this many samples (None: all
                 T); the results are then (B, samples, ...), the prefixes of the whole records',
                 and ``paused`` says where the rollouts stopped.
@@ -240,7 +240,7 @@ class Simulator(Streaming):
                 batch; None: this robot.
 
         Returns:
-            BatchResult with (B, T, 8) joint angles and (B, T, 6) body states; a failed row's
+            BatchResult with (B, T, n_joints) joint angles and (B, T, 6) body states; a failed row's
             ``failures`` entry names the problem (its measurements are then meaningless).
             Records are independent (same start, zero warm start): rolled out ``max_batch`` at a
             time, the results are one call's.
@@ -383,7 +383,7 @@ _default_simulator: Simulator | None = None
 
 
 def replay(commands: np.ndarray) -> ReplayResult:
-    """Replay one record of joint commands (T, 8) rad through the snake (``Simulator.replay``).
+    """Replay one record of joint commands (T, n_joints) rad through the snake (``Simulator.replay``).
     Raises ValueError (commands of the wrong shape or not finite) or SimulationError (the simulation
     diverged or threw the snake; the message says how and when)."""
     global _default_simulator

@@ -40,7 +40,7 @@ class Streaming:
         | Callable[[int], RolloutThreads | FairRunner | None]
         | None = None,
     ) -> Iterator[StreamedReplay]:
-        """Replay one record (T, 8) rad in chunks of ``chunk_samples`` record samples, yielding after
+        """Replay one record (T, n_joints) rad in chunks of ``chunk_samples`` record samples, yielding after
         each chunk everything simulated so far (the first chunk is the lead-in and ``first_samples``).
 
         The physics state and the solver's warm start carry over from chunk to chunk, so the arrays

@@ -22,7 +22,7 @@ ENSEMBLE_SIZE = 8
 def perturbed_commands(
     commands: np.ndarray, k: int, rel_noise: float = ENSEMBLE_NOISE, seed: int = 0
 ) -> np.ndarray:
-    """The commands (T, 8) and k-1 copies with relative noise u (1 + rel_noise eps): (k, T, 8)."""
+    """The commands (T, n_joints) and k-1 copies with relative noise u (1 + rel_noise eps): (k, T, n_joints)."""
     rng = np.random.default_rng(seed)
     eps = rng.standard_normal((k - 1, *commands.shape))
     return np.concatenate([commands[None], commands[None] * (1.0 + rel_noise * eps)], axis=0)

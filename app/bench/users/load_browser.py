@@ -221,7 +221,7 @@ def check_final_state(browser: Browser, d: DesignerClient, tmp: Path, index: int
     z_b = np.asarray(d.decoded.latents.z_b)[None]
     if d.model.projects:  # the exact member the decode projects onto: its commands, to the bit
         members, _, _, body, _ = d.model.decode_members(z_b)
-        commands = members[0].commands()
+        commands = members[0].commands(d.session.robot)
     else:
         shape, body = d.model.decode(z_b)
         commands = d.model.commands(shape[0])
@@ -233,7 +233,7 @@ def check_final_state(browser: Browser, d: DesignerClient, tmp: Path, index: int
         problems.append(f"the exported CSV did not arrive in the browser within {CATCH_UP_S:g} s")
         return problems
     text = path.read_text()
-    exported = read_gait_csv(text.encode()).commands
+    exported = read_gait_csv(text.encode(), d.session.robot).commands
     if not np.array_equal(exported, commands):
         problems.append("exported commands are not those of the final sliders")
     key = "# sliders: [" if d.decoded.latents.axes is not None else "# z_B: ["

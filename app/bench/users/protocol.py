@@ -25,18 +25,13 @@ import websockets
 from snakeloco.app.bench.users.wire import CAMERA, decode_frame, gui_update, parse_readout, subprotocol
 
 SEND_PERIOD_S = 0.05
-"""How often viser's slider sends a dragged value (it throttles to 50 ms and sends a trailing one).
-A drag's sends keep to its own 50 ms grid from its first: all the clients share one process and one
-event loop, and with each send timed from the one before, sends that one stall of that loop (a
-busy core) put out together stayed together for the rest of their drags, as no users on machines of
-their own would (bench load, 8 clients, 2026-12-05: 11.4% of the sends within 1 ms of another
-client's, 5.1-5.8% on grids of their own, 3.2% for independent users at that rate)."""
+"""How often viser's slider sends a dragged value (it throttles to 50 ms and sends a trailing one). A
+drag's sends keep to its own 50 ms grid from its first, so that one stall of the shared event loop
+does not bunch clients' sends for the rest of their drags (docs/load.md, "SEND_PERIOD_S")."""
 DWELL_SPREAD = 0.5
 """A client's rests after its drags are uniform within +-50% of ``--dwell``, and it starts after a
-rest drawn from 0 to ``--dwell``. With every client starting at once and resting exactly 3 s (60
-send periods), the clients' sends stayed on one 50 ms grid: 16.5-17% of the slider values reached
-the server within 1 ms of another client's, against 1.5% for independent users at that rate, and
-the values queued for the decode stage in bunches (bench load, 8 clients, 2026-12-04)."""
+rest drawn from 0 to ``--dwell``: exact rests kept every client's sends on one grid, unlike
+independent users (docs/load.md, "DWELL_SPREAD")."""
 DONE_STATES = ("done", "failed")
 JUMPS = 8
 """Moves of a client of the ``jumps`` pattern (issue 59's own load client): z_B 1 jumps to a random
