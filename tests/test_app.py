@@ -92,16 +92,16 @@ def test_export_import_export_round_trips_exactly(server):
     client, d = connect_headless(server)
     try:
         assert apply(d, d.sliders[1], -0.8, 60)
-        first = d.export_text()
+        first = d.files.export_text()
         assert first.startswith("# snakeloco gait") and "# z_B: [0.0, -0.8" in first  # z_B exactly
         rows = _data_rows(first)
         assert rows[0] == "time_s," + ",".join(f"joint_{k}" for k in range(1, 9)) and len(rows) == 2001
         assert apply(d, d.sliders[1], 0.3, 60)
-        version = d.import_bytes("gait.csv", first.encode())
+        version = d.files.import_bytes("gait.csv", first.encode())
         assert version is not None and d.wait_idle(60)
         # An export of this checkpoint comes back as the gait it was: its z_B decoded again (issue 59).
         assert d.version == version and d.decoded.source == "model" and d.decoded.latents.z_b[1] == -0.8
-        second = d.export_text()
+        second = d.files.export_text()
         assert _data_rows(second) == rows
         np.testing.assert_array_equal(
             read_gait_csv(second, robot=DEFAULT_ROBOT).commands,
@@ -110,11 +110,11 @@ def test_export_import_export_round_trips_exactly(server):
         # A file that is not this checkpoint's export is replayed exactly as written, the sliders where
         # it encodes.
         other = first.replace(d.model.hash, "0" * 64)
-        version = d.import_bytes("other.csv", other.encode())
+        version = d.files.import_bytes("other.csv", other.encode())
         assert version is not None and d.wait_idle(60)
         # Writing the encoding into the sliders ran their callbacks: none asked for a decode over it.
         assert d.version == version and d.decoded.source == "import: other.csv"
-        third = d.export_text()
+        third = d.files.export_text()
         assert _data_rows(third) == rows and "# z_B (encoded)" in third
         # The imported commands were replayed exactly as written (the simulator's replay, to the bit).
         expected = replay(read_gait_csv(first, robot=DEFAULT_ROBOT).commands)
@@ -133,7 +133,7 @@ def test_bad_import_keeps_the_current_gait(server):
         before = d.decoded.commands.copy()
         notes = _record_notifications(d)
         for name, (data, message) in bad_gait_files().items():
-            assert d.import_bytes(f"{name}.csv", data) is None, name
+            assert d.files.import_bytes(f"{name}.csv", data) is None, name
             assert notes[-1][0] == f"Import CSV: {name}.csv rejected" and message in notes[-1][1], (
                 name,
                 notes[-1],
@@ -202,7 +202,7 @@ def test_diverging_import_is_reported_and_the_server_keeps_serving(server):
     try:
         before = d.decoded.commands.copy()
         notes = _record_notifications(d)
-        assert d.import_bytes("wild.csv", _square_wave_csv()) is not None
+        assert d.files.import_bytes("wild.csv", _square_wave_csv()) is not None
         assert d.wait_idle(60)
         assert notes and "not loaded" in notes[-1][0] and "thrown into the air" in notes[-1][1]
         np.testing.assert_array_equal(d.decoded.commands, before)  # the current gait stays
@@ -218,14 +218,14 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
     client, d = connect_headless(server)
     try:
         wild = read_gait_csv(_square_wave_csv(), robot=DEFAULT_ROBOT).commands
-        decode = d._decoding.decode  # the server's decode stage (its process, or the tab's thread)
+        decode = d.decoding.decode  # the server's decode stage (its process, or the tab's thread)
 
         def decode_to_wild(path, latents, fallback):  # a real decode, a diverging gait's commands
             gait = decode(path, latents, fallback)
             gait.commands = wild
             return gait
 
-        d._decoding.decode = decode_to_wild
+        d.decoding.decode = decode_to_wild
         assert apply(d, d.sliders[0], -1.0, 60)
         assert d.simulated is None and d.scene.gen_path is not None
         assert (
@@ -248,7 +248,7 @@ def test_decoded_gait_that_breaks_physics_shows_a_failed_replay(server):
         assert apply(d, d.controls.zk_mode, "sampled", 60)
         assert "Replay failed" in d.controls.panel.content and "Resample z_k" in d.controls.panel.content
         # ... a replay drawn is the current gait's
-        d._decoding.decode, d.controls.zk_mode.value = decode, mode
+        d.decoding.decode, d.controls.zk_mode.value = decode, mode
         assert apply(d, d.sliders[0], 0.5, 60) and d.simulated is not None and replay_problems(d) == []
         d.simulated = d.session.replay(d.session.decode(Latents(z_b=(0.0,) * d.model.z_b_dim)))
         assert replay_problems(d) == ["drawn simulated path is not the final replay"]

@@ -304,14 +304,14 @@ def test_a_tab_keeps_its_newest_timings_indexed_and_counts_every_value():
 
     from snakeloco.app.designer.tab import TIMINGS_KEPT, DesignerClient
 
-    tab = SimpleNamespace(timings=deque(maxlen=TIMINGS_KEPT), _timing_by_version={}, values_received=0)
+    tab = SimpleNamespace(timings=deque(maxlen=TIMINGS_KEPT), timing_by_version={}, values_received=0)
     for version in range(1, 3 * TIMINGS_KEPT + 1):
         DesignerClient._record(tab, version)
     newest = list(range(2 * TIMINGS_KEPT + 1, 3 * TIMINGS_KEPT + 1))
     assert tab.values_received == 3 * TIMINGS_KEPT
     assert [t.version for t in tab.timings] == newest
-    assert sorted(tab._timing_by_version) == newest
-    assert all(tab._timing_by_version[t.version] is t for t in tab.timings)
+    assert sorted(tab.timing_by_version) == newest
+    assert all(tab.timing_by_version[t.version] is t for t in tab.timings)
     assert not hasattr(tab.timings[0], "__dict__")  # slots
 
 

@@ -13,14 +13,14 @@ def test_follow_snake_keeps_the_camera_on_the_snake(server):
         camera = d.client.camera
         offset = np.asarray(camera.position) - np.asarray(camera.look_at)
         d.controls.follow.value = True
-        d._draw_snake(1500)  # 75 s into the replay: the snake has moved
+        d.draw_snake(1500)  # 75 s into the replay: the snake has moved
         center = d.scene.snake.batched_positions.mean(axis=0)
         np.testing.assert_allclose(camera.look_at, center, atol=1e-6)
         np.testing.assert_allclose(
             np.asarray(camera.position) - np.asarray(camera.look_at), offset, atol=1e-6
         )
         d.controls.follow.value = False
-        d._draw_snake(10)
+        d.draw_snake(10)
         np.testing.assert_allclose(camera.look_at, center, atol=1e-6)  # left where it was
     finally:
         client.close()

@@ -164,10 +164,10 @@ def test_the_designer_switches_to_a_family_of_another_robot(member_checkpoint, t
         assert d.scene.kinematics.robot.n_links == 13 and len(d.controls.plots["commands"].series) == 13
         assert d.decoded.commands.shape == (2000, 12) and d.simulated is not None
         assert d.simulated.qpos.shape[-1] == TWELVE.compile().nq  # replayed on its own robot
-        text = d.export_text()
+        text = d.files.export_text()
         assert "joint_12" in text and d.model.robot_warning(d.session.robot) is None
         assert (
-            d.import_bytes(
+            d.files.import_bytes(
                 "eight.csv",
                 write_gait_csv(PRESETS["roll"].gait.commands(DEFAULT_ROBOT), None, DEFAULT_ROBOT).encode(),
             )
@@ -263,12 +263,12 @@ def test_build_quick_goes_from_a_description_to_a_served_five_joint_designer(tmp
         assert d.session.robot == FIVE and d.scene.kinematics.robot.n_links == 6
         assert d.decoded.commands.shape == (2000, 5) and d.simulated is not None
         assert d.simulated.qpos.shape[-1] == FIVE.compile().nq
-        text = d.export_text()
+        text = d.files.export_text()
         header = next(line for line in text.splitlines() if not line.startswith("#"))
         assert header.split(",")[1:] == [f"joint_{i}" for i in range(1, 6)]
         exported = d.decoded.commands.copy()
         before = d.version
-        assert d.import_bytes("five.csv", text.encode()) is not None
+        assert d.files.import_bytes("five.csv", text.encode()) is not None
         assert d.version > before and d.wait_idle(60)
         assert np.allclose(d.decoded.commands, exported, atol=1e-5) and d.simulated is not None
         assert d.simulated.qpos.shape[-1] == FIVE.compile().nq and srv.errors == []

@@ -223,11 +223,20 @@ def test_the_designer_plays_a_steerable_gait_closed_loop_and_says_what_it_did(ch
         assert tuple(fan.colors.reshape(-1, 3)[0]) == LOOP_COLOR
         t, u = d.controls.loop.plot.data
         assert len(t) == len(u) > 100 and np.nanmax(np.abs(u)) > 0  # it steered
-        assert '# steering: {"kind":"yaw_offset"' in d.export_text()  # kept with the gait it was found for
+        assert (
+            '# steering: {"kind":"yaw_offset"' in d.files.export_text()
+        )  # kept with the gait it was found for
         assert apply(d, d.controls.baseline, "roll", 120)
         assert d.loop.done.wait(240)
         assert "no steering input" in d.controls.loop.status.content and not d.scene.loop_fan
         assert apply(d, d.controls.baseline, "undulate", 120)
+        # A running closed loop shows its bar, and Cancel stops it (issue 71); this gait then plays open loop.
+        job = d.controls.loop.job
+        assert job.bar.visible and job.cancel.visible and not d.loop.done.is_set()
+        for callback in job.cancel._impl.update_cb:  # what a click on Cancel runs
+            callback(None)
+        assert d.loop.done.is_set() and d.loop.worker.wait_idle(20), "the closed loop went on after Cancel"
+        assert d.controls.loop.status.content.startswith("**Cancelled**") and not job.bar.visible
         d.controls.loop.enabled.value = False
         d.loop._toggled()
         assert not d.scene.loop_fan and "off" in d.controls.loop.status.content

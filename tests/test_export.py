@@ -232,19 +232,19 @@ def test_the_designer_exports_for_the_robot_and_shares_its_replay(checkpoint, tm
     try:
         notes = []
         d.client.add_notification = lambda title, body, **kw: notes.append((title, body))
-        gait = d.export_text()
-        name, data = d.export_for_robot("ROS 2 trajectory (100 Hz)")
+        gait = d.files.export_text()
+        name, data = d.files.export_for_robot("ROS 2 trajectory (100 Hz)")
         assert name.endswith(".yaml")
         _, positions, _ = export.read_ros2(data.decode())
         want = export.trajectory(export.read_gait_csv(gait, robot=DEFAULT_ROBOT).commands, DEFAULT_ROBOT, 100)
         np.testing.assert_allclose(positions, want.positions, atol=1e-9)
-        _, data = d.export_for_robot("CSV 100 Hz + velocities")
+        _, data = d.files.export_for_robot("CSV 100 Hz + velocities")
         assert "vel_1" in data.decode()
         # The tiny paper-family checkpoint's gaits are no family member: refused, with the reason.
-        assert d.export_for_robot("Gait equation (YAML)") is None
+        assert d.files.export_for_robot("Gait equation (YAML)") is None
         assert notes and "not a member of the structured family" in notes[-1][1]
         assert set(ROBOT_FORMATS) == set(d.controls.robot_format.options)
-        name, page = d.share()
+        name, page = d.files.share()
         assert name.endswith(".html") and b"__VISER_EMBED_DATA__" in page and len(page) > 5e5
     finally:
         client.close()

@@ -53,9 +53,9 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
         # Sliders, export/import and design all work for the new family's z_B.
         assert apply(d1, d1.sliders[1], 0.5)
         assert d1.decoded.latents.z_b == (0.0, 0.5) and d1.simulated is not None
-        text = d1.export_text()
+        text = d1.files.export_text()
         before = d1.version
-        assert d1.import_bytes("again.csv", text.encode()) is not None
+        assert d1.files.import_bytes("again.csv", text.encode()) is not None
         assert d1.version > before and d1.wait_idle(60)
         # an export of this family comes back as the gait it was (its z_B decoded again)
         assert d1.decoded.source == "model" and d1.decoded.latents.z_b == (0.0, 0.5) and len(d1.sliders) == 2
@@ -69,7 +69,7 @@ def test_the_gait_family_dropdown_switches_one_tab_and_everything_works_in_both(
         assert d1.design.worker.wait_idle(120) and len(d1.design.candidates[0].z_b) == 2
 
         before = d1.version
-        assert d1.switch_family("paper") is not None
+        assert d1.moves.switch_family("paper") is not None
         assert d1.version > before and d1.wait_idle(60)
         assert len(d1.sliders) == 3 and d1.decoded.latents.z_b == (0.0, 0.0, 0.0)
         assert d1.design.candidates == []  # the other model's candidates are gone

@@ -135,7 +135,10 @@ def test_a_newcomers_first_hour_in_the_browser():
             lambda: d.idle() and d.decoded.latents.axes[0] == 2.0 and d.simulated is not None, 120
         )
         assert wait_until(lambda: _left_of_panel(d), 15), "drag"
-        exported, model_cell = d.export_text(), readout.locator('[data-key="model-distance"]').inner_text()
+        exported, model_cell = (
+            d.files.export_text(),
+            readout.locator('[data-key="model-distance"]').inner_text(),
+        )
         d.controls.family.value = "paper"
         assert wait_until(lambda: d.model.family == "paper" and d.idle() and d.simulated is not None, 120)
         assert wait_until(lambda: _left_of_panel(d), 15), "family switch"
@@ -154,7 +157,7 @@ def test_a_newcomers_first_hour_in_the_browser():
         sync_api.expect(page.locator(".u-title", has_text="heading (deg)")).to_be_visible(timeout=30000)
         assert page.locator(".u-title", has_text="yaw (rad)").count() == 0
         # 5. The exported gait imports as exported: the same model path in the readout.
-        d.import_bytes("mine.csv", exported.encode())
+        d.files.import_bytes("mine.csv", exported.encode())
         assert wait_until(
             # z_B -> axes is a matrix product: the slider comes back to the last bit or two (BLAS kernels differ)
             lambda: (

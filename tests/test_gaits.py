@@ -121,9 +121,9 @@ def test_baseline_dropdown_makes_a_library_gait_the_current_one(checkpoint):
         np.testing.assert_array_equal(d.decoded.commands, commands)
         np.testing.assert_array_equal(d.simulated.body, replay(commands).body)  # replayed as it is
         assert d.simulated.figures and len(d.simulated.ensemble_body) == 2
-        exported = read_gait_csv(d.export_text(), robot=DEFAULT_ROBOT)
+        exported = read_gait_csv(d.files.export_text(), robot=DEFAULT_ROBOT)
         np.testing.assert_array_equal(exported.commands, commands)  # and exportable
-        assert "# z_B (encoded)" in d.export_text()  # the sliders sit where it encodes
+        assert "# z_B (encoded)" in d.files.export_text()  # the sliders sit where it encodes
         # A slider move replaces it with a decoded gait and clears the dropdown, so the library gait
         # can be picked again.
         assert apply(d, d.sliders[0], 0.4, 120)

@@ -31,11 +31,11 @@ def test_an_exported_gait_imports_as_it_was_exported(member_checkpoint):
     client, d = connect_headless(srv)
     try:
         assert apply(d, d.sliders[0], 0.37)  # somewhere off the slider grid's zero
-        exported, z = d.export_text(), d.decoded.latents.z_b
+        exported, z = d.files.export_text(), d.decoded.latents.z_b
         model_row = d.controls.readout.content.split("Model")[1][:200]
         assert apply(d, d.sliders[0], -1.0)
         before = d.version
-        assert d.import_bytes("mine.csv", exported.encode()) is not None and d.version > before
+        assert d.files.import_bytes("mine.csv", exported.encode()) is not None and d.version > before
         assert d.wait_idle(60)
         assert d.decoded.latents is not None and d.decoded.latents.z_b == z  # the model's gait again
         assert d.sliders[0].value == pytest.approx(0.37)
@@ -43,12 +43,12 @@ def test_an_exported_gait_imports_as_it_was_exported(member_checkpoint):
         assert d.controls.plots["forward (m)"] is not None and d.simulated is not None
 
         # A file with no model path says so in the readout, and the sliders show where it encodes.
-        assert d.import_bytes(
+        assert d.files.import_bytes(
             "roll.csv", library_gait_csv("roll", robot=DEFAULT_ROBOT).encode()
         ) is not None and d.wait_idle(60)
         assert d.decoded.latents is None and "none: the file names no z_B" in d.controls.readout.content
         other = exported.replace(d.model.hash, "f" * 64)
-        assert d.import_bytes("other.csv", other.encode()) is not None and d.wait_idle(60)
+        assert d.files.import_bytes("other.csv", other.encode()) is not None and d.wait_idle(60)
         assert "exported from another checkpoint" in d.controls.readout.content
         assert srv.errors == []
     finally:

@@ -149,7 +149,7 @@ def test_a_tab_answers_sliders_exports_and_cancel_while_it_designs_during_an_ens
             )
             worst["slider"] = max(worst["slider"], time.perf_counter() - t0)
             t0, received = time.perf_counter(), client.bytes_received
-            d.export()
+            d.files.export()
             assert wait_until(lambda n=received: client.bytes_received > n + 1000, ANSWER_S), (
                 "no download came"
             )

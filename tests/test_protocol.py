@@ -140,7 +140,7 @@ def test_a_tab_whose_page_has_left_draws_nothing_more(checkpoint):
             assert wait_until(lambda: connection_closed(d.client), 30)
             assert not d.is_current(version)  # a replay's chunk or ensemble draws nothing more
             for frame in (7, 11):  # the animation's draws, at poses the snake is not in
-                d._draw_snake(frame)
+                d.draw_snake(frame)
             time.sleep(0.3)  # the animation thread's own frames meanwhile
         assert [str(w.message) for w in caught] == []
         close()

@@ -318,14 +318,14 @@ def test_the_designer_moves_within_a_cluster_shows_the_member_and_flags_off_the_
             d.decoded.commands, member.commands(DEFAULT_ROBOT)
         )  # replayed: exactly the member
         assert "Gait: undulation" in d.controls.readout.content
-        text = d.export_text()
+        text = d.files.export_text()
         np.testing.assert_array_equal(
             read_member(text).commands(DEFAULT_ROBOT), read_gait_csv(text, robot=DEFAULT_ROBOT).commands
         )
-        d.show_latents(np.full(d.model.z_b_dim, 8.0))  # far from every record
+        d.moves.show_latents(np.full(d.model.z_b_dim, 8.0))  # far from every record
         assert d.wait_idle(60) and d.decoded.off_data
         assert "Off the data" in d.controls.readout.content
-        d.random_z()
+        d.moves.random_z()
         assert d.wait_idle(60)
         lat = d.decoded.latents
         assert lat.component == density.names.index(d.controls.component.value)

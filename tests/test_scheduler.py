@@ -246,7 +246,7 @@ def test_tabs_decode_in_turns_each_its_newest_value(checkpoint):
     srv = quiet_server(checkpoint)
     try:
         tabs = [connect_headless(srv) for _ in range(2)]
-        assert all(d._decoding is srv.decoding for _, d in tabs)
+        assert all(d.decoding is srv.decoding for _, d in tabs)
         inside, most, decoded = [0], [0], []
         count, real = threading.Lock(), srv.decoding.decode
 

@@ -186,7 +186,7 @@ def _designer(checkpoint, gaits: tuple[str, ...], log) -> dict:
         tab.wait_idle(120)
         tab.loop.done.wait(600)
         for name in gaits:
-            version = tab.load_baseline(name)
+            version = tab.files.load_baseline(name)
             deadline = time.monotonic() + 900
             while (
                 not (tab.loop.version == version and tab.loop.done.is_set()) and time.monotonic() < deadline

@@ -123,7 +123,7 @@ def main(out: Path) -> dict:
             lambda: d.idle() and d.decoded.latents is not None and d.decoded.latents.axes[0] == 2.0, 120
         )
         shot(page, d, "2-drag")
-        exported = d.export_text()
+        exported = d.files.export_text()
         first = d.model.family  # the default family; the newcomer tries the other one, then back
         other = "paper" if first == "structured" else "structured"
         d.controls.family.value = other
@@ -135,7 +135,7 @@ def main(out: Path) -> dict:
         time.sleep(1)
         assert wait_until(lambda: d.idle() and d.simulated is not None, 120)
         shot(page, d, "4-cluster")
-        d.import_bytes("exported.csv", exported.encode())
+        d.files.import_bytes("exported.csv", exported.encode())
         time.sleep(1)
         assert wait_until(lambda: d.idle() and d.simulated is not None, 120)
         shot(page, d, "5-import")

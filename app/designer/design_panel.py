@@ -69,19 +69,19 @@ class DesignPanel:
         self._shown: str | None = None  # the candidate the search's end made the gait (not re-picked)
         self._lock = threading.Lock()
         self.progress: DesignProgress | None = None  # the running design's
-        self.bar = JobBar(controls.job, controls.status, self.cancel, tab._guarded)
+        self.bar = JobBar(controls.job, controls.status, self.cancel, tab.guarded)
         client = tab.client
         self.marker = client.scene.add_icosphere(
             "/design/target", radius=0.08, color=MARKER_COLOR, position=self._marker_position(), visible=False
         )
-        c, g = controls, tab._guarded
+        c, g = controls, tab.guarded
         c.button.on_click(g(lambda _e: self.request()))
         for handle in (c.forward, c.sideways):
             handle.on_update(g(lambda _e: self._move_marker()))
         c.candidate.on_update(g(lambda _e: self.pick(c.candidate.value)))
         client.scene.on_click()(g(lambda event: self._on_click(event)))
         self.worker = LatestWorker(
-            self._job, name=f"design-{client.client_id}", on_error=lambda exc: tab._report(f"design: {exc}")
+            self._job, name=f"design-{client.client_id}", on_error=lambda exc: tab.report(f"design: {exc}")
         )
 
     # --- target ----------------------------------------------------------------------------------
@@ -141,7 +141,7 @@ class DesignPanel:
         )
 
     def _current(self, version: int) -> bool:
-        return version == self._version and not self.tab._closed.is_set()
+        return version == self._version and not self.tab.closed.is_set()
 
     def _job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, target = item
@@ -205,7 +205,7 @@ class DesignPanel:
         if label not in labels or (not shown and label == self._shown):
             return None
         self._shown = label if shown else None
-        return self.tab.show_latents(self.candidates[labels.index(label)].z_b)
+        return self.tab.moves.show_latents(self.candidates[labels.index(label)].z_b)
 
     def forget(self) -> None:
         """Drop the candidates (of a model the tab has just left) and stop a running search."""

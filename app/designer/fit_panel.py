@@ -90,13 +90,13 @@ class FitPanel:
         self._lock = threading.Lock()
         self.line = None
         self._started: float | None = None  # the running fit's start (perf_counter)
-        self.bar = JobBar(controls.job, controls.status, self.cancel, tab._guarded)
-        c, g = controls, tab._guarded
+        self.bar = JobBar(controls.job, controls.status, self.cancel, tab.guarded)
+        c, g = controls, tab.guarded
         c.measured_button.on_upload(g(lambda _e: self._on_upload()))
         c.fit_button.on_click(g(lambda _e: self.request()))
         c.robot.on_update(g(lambda _e: self.choose(c.robot.value)))
         self.worker = LatestWorker(
-            self._job, name=f"fit-{tab.client.client_id}", on_error=lambda exc: tab._report(f"fit: {exc}")
+            self._job, name=f"fit-{tab.client.client_id}", on_error=lambda exc: tab.report(f"fit: {exc}")
         )
 
     def _on_upload(self) -> None:
@@ -153,7 +153,7 @@ class FitPanel:
 
     def _job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, gait_version, commands, run = item
-        current = lambda: version == self._version and not self.tab._closed.is_set()  # noqa: E731
+        current = lambda: version == self._version and not self.tab.closed.is_set()  # noqa: E731
         wanted = lambda: current() and self.tab.version == gait_version  # noqa: E731
         simulator = self.tab.session.simulator_for(Turn.FIT, wanted)
         done = [0]
@@ -202,7 +202,7 @@ class FitPanel:
         gait = self.tab.decoded
         if gait.latents is not None:  # the model's gait: decoded again, its path kept, replayed here
             return self.tab.request_decode()
-        return self.tab._submit(
+        return self.tab.submit(
             self.tab.physics, ("load", gait.source, f"Robot: {label}", gait.commands, gait.no_model)
         )
 

@@ -1,4 +1,4 @@
-"""A tab's jobs, as a mixin of ``DesignerClient``: decode -> draw | replay -> draw -> ensemble -> draw ->
+"""A tab's jobs, a part ``DesignerClient`` holds (``tab.jobs``): decode -> draw | replay -> draw -> ensemble -> draw ->
 variations -> draw.
 
 Each job runs on its own ``LatestWorker`` thread with the version of the request it serves, and
@@ -32,83 +32,87 @@ each time; the snake's pose goes every animation frame)."""
 
 
 class TabJobs:
-    """The jobs of a ``DesignerClient`` (its session, workers, scene, controls and draw lock)."""
+    """The jobs of a ``DesignerClient`` ``tab``: its decode, physics and ensemble workers run these."""
 
-    _varied_robots: tuple | None = None  # (the session's robot, its variations of the default set)
+    def __init__(self, tab) -> None:
+        self.tab = tab
+        self._varied_robots: tuple | None = None  # (the session's robot, its variations of the default set)
+        self._path_drawn = 0.0  # when a streaming replay's path was last sent
+        self._readout_drawn = 0.0  # and its readout
 
     def _timing(self, version: int) -> Timing:
-        return self._timing_by_version.get(version) or Timing(version, time.perf_counter())
+        return self.tab.timing_by_version.get(version) or Timing(version, time.perf_counter())
 
-    def _decode_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+    def decode_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, latents = item
-        density = self.model.config.density
+        density = self.tab.model.config.density
         if (
-            not self.is_current(version)
-            or len(latents.z_b) != self.model.z_b_dim
+            not self.tab.is_current(version)
+            or len(latents.z_b) != self.tab.model.z_b_dim
             or (
                 latents.component is not None and (density is None or latents.component >= len(density.names))
             )
         ):
             return  # superseded (or sliders of a family this tab has just left)
-        with self._decoding.turns:  # in the order the tabs' values came
-            if not self.is_current(version):
+        with self.tab.decoding.turns:  # in the order the tabs' values came
+            if not self.tab.is_current(version):
                 return  # superseded while other tabs decoded: this worker has the newer value
             timing = self._timing(version)
             timing.started = time.perf_counter()
-            decoded = self._decoding.decode(self.session.model.path, latents, self.session.decode)
+            decoded = self.tab.decoding.decode(self.tab.session.model.path, latents, self.tab.session.decode)
             decoded = self._on_session_robot(decoded)
             timing.decode_ms = decoded.decode_ms
-        with self._draw_lock:
-            if not self.is_current(version):
+        with self.tab.draw_lock:
+            if not self.tab.is_current(version):
                 return
-            self.decoded, self.simulated, self.streaming = decoded, None, None
-            self._draw_decoded(decoded)
+            self.tab.decoded, self.tab.simulated, self.tab.streaming = decoded, None, None
+            self.tab.draw_decoded(decoded)
             timing.decoded = time.perf_counter()
-            self.views_drawn += 1
-            self.physics.submit((version, ("gait", decoded)))
+            self.tab.views_drawn += 1
+            self.tab.physics.submit((version, ("gait", decoded)))
         self._predict_variations(version, decoded)
 
     def _on_session_robot(self, decoded: DecodedGait) -> DecodedGait:
         """A member's path on the robot the tab replays on, where that is not the checkpoint's and
         its physics head covers it (a fitted robot: ``serve --robot``); else ``decoded`` as it is."""
-        robot = self.session.robot
-        if decoded.member is None or robot.mjcf_sha256 == self.model.robot.mjcf_sha256:
+        robot = self.tab.session.robot
+        if decoded.member is None or robot.mjcf_sha256 == self.tab.model.robot.mjcf_sha256:
             return decoded
-        if not self.model.covers(robot):
+        if not self.tab.model.covers(robot):
             return decoded
-        body = self.model.predict_variation_paths(decoded.member, [robot])[0]
+        body = self.tab.model.predict_variation_paths(decoded.member, [robot])[0]
         return dataclasses.replace(decoded, body_ds=body)
 
     def _predict_variations(self, version: int, decoded: DecodedGait) -> None:
         """Draw the physics head's predicted Variations fan and say its line (a checkpoint with a
         physics head, a gait that is a family member); the replays check it (``_variations``)."""
-        if not self.show_variations or decoded.member is None or self.model.physics_head is None:
+        if not self.tab.show_variations or decoded.member is None or self.tab.model.physics_head is None:
             return
-        robot = self.session.robot
+        robot = self.tab.session.robot
         if self._varied_robots is None or self._varied_robots[0] != robot:
             self._varied_robots = (robot, [v.apply(robot) for v in DEFAULT_SET])
-        bodies = self.model.predict_variation_paths(decoded.member, self._varied_robots[1])
+        bodies = self.tab.model.predict_variation_paths(decoded.member, self._varied_robots[1])
         report = summarise(decoded.body_ds, DEFAULT_SET, list(bodies), [None] * len(bodies))
-        with self._draw_lock:
-            if not self.is_current(version):
+        with self.tab.draw_lock:
+            if not self.tab.is_current(version):
                 return
-            self.predicted = (version, report)
-            with self.client.atomic():
-                self.scene.draw_predicted_variations(bodies)
-                if self.simulated is None:  # a finished replay's readout says it when it is drawn
-                    if self.streaming is not None:
-                        self.show_readout(decoded, "streaming", self.streaming.body)
+            self.tab.predicted = (version, report)
+            with self.tab.client.atomic():
+                self.tab.scene.draw_predicted_variations(bodies)
+                if self.tab.simulated is None:  # a finished replay's readout says it when it is drawn
+                    if self.tab.streaming is not None:
+                        self.tab.says.show_readout(decoded, "streaming", self.tab.streaming.body)
                     else:
-                        self.show_readout(decoded, "simulating")
+                        self.tab.says.show_readout(decoded, "simulating")
 
-    def _physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+    def physics_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, (kind, *payload) = item
-        if not self.is_current(version):
+        if not self.tab.is_current(version):
             return
         timing = self._timing(version)
-        is_current = lambda: self.is_current(version)  # noqa: E731
+        is_current = lambda: self.tab.is_current(version)  # noqa: E731
         if kind == "load":
-            self._load_job(*payload, timing, is_current)
+            self.tab.files.load_job(*payload, timing, is_current)
         else:
             self._simulate(payload[0], timing, is_current)
 
@@ -117,29 +121,31 @@ class TabJobs:
         path grows. Returns whether the replay is still wanted (else it stops at this chunk)."""
         if not np.isfinite(timing.first_chunk):
             timing.first_chunk = time.perf_counter()
-        with self._draw_lock:
+        with self.tab.draw_lock:
             if not is_current():
                 return False
-            first = self.streaming is None
-            self.streaming = part
+            first = self.tab.streaming is None
+            self.tab.streaming = part
             now = time.perf_counter()
             if first or now - self._path_drawn > STREAM_PATH_PERIOD_S:  # the snake moves every frame
                 self._path_drawn = now
-                with self.client.atomic():
-                    self.scene.draw_streaming(part.body, part.qpos[0])
-            if (first or now - self._readout_drawn > STREAM_READOUT_PERIOD_S) and self.decoded is not None:
+                with self.tab.client.atomic():
+                    self.tab.scene.draw_streaming(part.body, part.qpos[0])
+            if (
+                first or now - self._readout_drawn > STREAM_READOUT_PERIOD_S
+            ) and self.tab.decoded is not None:
                 self._readout_drawn = now
-                self.show_readout(self.decoded, "streaming", part.body)
+                self.tab.says.show_readout(self.tab.decoded, "streaming", part.body)
             if first:
-                self.playback.restart()
-                self._draw_snake(0)
-                self.client.flush()
+                self.tab.playback.restart()
+                self.tab.draw_snake(0)
+                self.tab.client.flush()
                 timing.first_motion = time.perf_counter()
         return True
 
     def _simulate(self, decoded: DecodedGait, timing: Timing, is_current) -> SimulatedGait | None:
         try:
-            sim = self.session.replay_streamed(
+            sim = self.tab.session.replay_streamed(
                 decoded,
                 lambda part: self._draw_part(part, timing, is_current),
                 settled=lambda: time.perf_counter() - timing.submitted >= SETTLED_S,
@@ -148,45 +154,45 @@ class TabJobs:
             )
         except SimulationError as exc:
             timing.failed = str(exc)
-            with self._draw_lock:
+            with self.tab.draw_lock:
                 if is_current():
-                    self.controls.panel.content = panel.failed_text(decoded, str(exc))
-                    self.show_readout(decoded, "failed", reason=str(exc))
-                    self.client.add_notification(
+                    self.tab.controls.panel.content = panel.failed_text(decoded, str(exc))
+                    self.tab.says.show_readout(decoded, "failed", reason=str(exc))
+                    self.tab.client.add_notification(
                         "Replay failed", str(exc), color="red", auto_close_seconds=8.0
                     )
             return None
         if sim is None:
             return None  # superseded mid-stream
         timing.replay_ms = sim.replay_ms
-        with self._draw_lock:
+        with self.tab.draw_lock:
             if not is_current():
                 return None
-            self.simulated, self.streaming = sim, None
-            self._draw_simulated(decoded, sim, ensemble=False)
+            self.tab.simulated, self.tab.streaming = sim, None
+            self.tab.draw_simulated(decoded, sim, ensemble=False)
             timing.replayed = time.perf_counter()
-            self.ensembles.submit((timing.version, decoded, sim))
-            self.loop.request(timing.version, decoded, sim)
+            self.tab.ensembles.submit((timing.version, decoded, sim))
+            self.tab.loop.request(timing.version, decoded, sim)
         return sim
 
-    def _ensemble_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
+    def ensemble_job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, decoded, sim = item
-        if not self.is_current(version):
+        if not self.tab.is_current(version):
             return
         timing = self._timing(version)
-        is_current = lambda: self.is_current(version)  # noqa: E731
-        sim = self.session.run_ensemble(
+        is_current = lambda: self.tab.is_current(version)  # noqa: E731
+        sim = self.tab.session.run_ensemble(
             decoded, sim, version, lambda b: self._draw_members(b, is_current), wanted=is_current
         )
         if sim is None:
             return  # superseded between batches, or while a batch waited for other tabs' batches
         timing.ensemble_ms = sim.ensemble_ms
-        with self._draw_lock:
+        with self.tab.draw_lock:
             if not is_current():
                 return
-            self._draw_simulated(decoded, sim, ensemble=True)
+            self.tab.draw_simulated(decoded, sim, ensemble=True)
             timing.ensembled = time.perf_counter()
-        if self.show_variations:
+        if self.tab.show_variations:
             self._variations(version, decoded, sim, is_current)
 
     def _variations(self, version: int, decoded: DecodedGait, sim: SimulatedGait, is_current) -> dict | None:
@@ -195,9 +201,9 @@ class TabJobs:
         each batch as it comes (the Variations fan) and, at the end, the readout's line. Dropped
         unrun once the gait changes."""
         t0 = time.perf_counter()
-        robot = self.session.robot
+        robot = self.tab.session.robot
         robots = [v.apply(robot) for v in DEFAULT_SET]
-        simulator = self.session.simulator_for(Turn.VARIATIONS, is_current)
+        simulator = self.tab.session.simulator_for(Turn.VARIATIONS, is_current)
         bodies, failures = [], []
         for i in range(0, len(robots), simulator.workers):
             part = robots[i : i + simulator.workers]
@@ -206,27 +212,27 @@ class TabJobs:
                 return None
             bodies += list(result.body)
             failures += result.failures
-            with self._draw_lock:
+            with self.tab.draw_lock:
                 if not is_current():
                     return None
-                with self.client.atomic():
-                    self.scene.draw_variations(
+                with self.tab.client.atomic():
+                    self.tab.scene.draw_variations(
                         [b for b, f in zip(result.body, result.failures, strict=True) if f is None]
                     )
         report = summarise(sim.body, DEFAULT_SET, bodies, failures)
         report["seconds"] = time.perf_counter() - t0
-        with self._draw_lock:
+        with self.tab.draw_lock:
             if not is_current():
                 return None
-            self.variations = (version, report)
-            self.show_readout(decoded, "done", sim.body)
+            self.tab.variations = (version, report)
+            self.tab.says.show_readout(decoded, "done", sim.body)
         return report
 
     def _draw_members(self, bodies: np.ndarray, is_current) -> bool:
         """Draw the ensemble members in so far; whether the ensemble is still wanted."""
-        with self._draw_lock:
+        with self.tab.draw_lock:
             if not is_current():
                 return False
-            with self.client.atomic():
-                self.scene.draw_fan(bodies)
+            with self.tab.client.atomic():
+                self.tab.scene.draw_fan(bodies)
         return True

@@ -21,6 +21,7 @@ import numpy as np
 import viser
 import viser.uplot as uplot
 
+from snakeloco.app.designer.job_bar import JobBar, JobControls, build_job_controls
 from snakeloco.app.server.viser_patches import set_plot_data
 from snakeloco.app.server.workers import LatestWorker
 from snakeloco.sim import BODY_TIMES
@@ -42,6 +43,7 @@ class LoopControls:
     enabled: viser.GuiCheckboxHandle
     status: viser.GuiMarkdownHandle
     plot: viser.GuiUplotHandle
+    job: JobControls
 
 
 def build_loop_controls(gui: viser.GuiApi) -> LoopControls:
@@ -53,6 +55,7 @@ def build_loop_controls(gui: viser.GuiApi) -> LoopControls:
             "the teal fan, each run stopped at the path's end (docs/closed-loop.md)",
         )
         status = gui.add_markdown("The steering loop plays each replayed gait on other robots.")
+        job = build_job_controls(gui, "closed-loop replays of this gait")
         t = np.array([0.0, 1.0])
         plot = gui.add_uplot(
             data=(t, np.full(2, np.nan)),
@@ -61,7 +64,7 @@ def build_loop_controls(gui: viser.GuiApi) -> LoopControls:
             title="steering input, nominal robot",
             aspect=2.0,
         )
-    return LoopControls(enabled, status, plot)
+    return LoopControls(enabled, status, plot, job)
 
 
 def loop_summary(report: dict, open_line: str | None) -> str:
@@ -96,12 +99,14 @@ class LoopPanel:
         self.seconds: float | None = None  # request to fan drawn, the last time
         self._asked = 0.0
         self.done = threading.Event()  # set when the last request's fan is drawn (or it said why not)
-        c, g = controls, tab._guarded
+        self._cancelled = -1  # the gait version whose closed loop was cancelled
+        self.bar = JobBar(controls.job, controls.status, self.cancel, tab.guarded)
+        c, g = controls, tab.guarded
         c.enabled.on_update(g(lambda _e: self._toggled()))
         self.worker = LatestWorker(
             self._job,
             name=f"loop-{tab.client.client_id}",
-            on_error=lambda exc: tab._report(f"closed loop: {exc}"),
+            on_error=lambda exc: tab.report(f"closed loop: {exc}"),
         )
 
     @property
@@ -121,20 +126,31 @@ class LoopPanel:
         if not self.enabled:
             self.done.set()
             return
-        self.controls.status.content = "Finding the gait's steering input ..."
+        self.bar.start("Finding the gait's steering input ...")
         self.worker.submit((version, decoded, sim))
+
+    def cancel(self) -> None:
+        """Stop this gait's closed-loop replays (the next gait's run as usual)."""
+        self._cancelled = self.version
+        self.bar.end(
+            f"**Cancelled** after {time.perf_counter() - self._asked:.0f} s: this gait plays open loop here. "
+            "The next gait is played closed loop again."
+        )
+        self.done.set()
 
     def _toggled(self) -> None:
         if self.enabled and self.tab.decoded is not None and self.tab.simulated is not None:
             self.request(self.tab.version, self.tab.decoded, self.tab.simulated)
         elif not self.enabled:
             self.tab.scene.draw_closed_loop([])
-            self.controls.status.content = "Closed loop is off: gaits play open loop."
+            self.bar.end("Closed loop is off: gaits play open loop.")
 
     def _job(self, _worker_version: int, item: tuple, _is_newest) -> None:
         version, decoded, _sim = item
         tab = self.tab
-        wanted = lambda: tab.version == version and self.enabled and not tab._closed.is_set()  # noqa: E731
+        wanted = lambda: (  # noqa: E731
+            tab.version == version and self.enabled and self._cancelled != version and not tab.closed.is_set()
+        )
         simulator = tab.session.simulator_for(Turn.CLOSED_LOOP, wanted)
         try:
             steering = find_steering(decoded.commands, simulator, seconds=PROBE_SECONDS, check=False)
@@ -142,12 +158,12 @@ class LoopPanel:
                 self.found = (version, steering)
             if not steering.steers:
                 if wanted():
-                    self.controls.status.content = f"**{steering.line()}**: this gait plays open loop."
+                    self.bar.end(f"**{steering.line()}**: this gait plays open loop.")
                     self.done.set()
                 return
             if wanted():
-                self.controls.status.content = (
-                    f"**{steering.line()}**; replaying it closed loop on 12 robots ..."
+                self.bar.show(
+                    0.3, f"**{steering.line()}**; replaying it closed loop on 12 robots ...", force=True
                 )
             reference, record = nominal_path(decoded.commands, simulator, steering.period)
             shown = self._shown_path(decoded, record, steering.period, simulator.excitation.sample_rate)
@@ -158,7 +174,7 @@ class LoopPanel:
             return
         except SimulationError as exc:
             if wanted():
-                self.controls.status.content = f"**Closed loop failed**: {exc}"
+                self.bar.end(f"**Closed loop failed**: {exc}")
                 self.done.set()
             return
         if not wanted():
@@ -175,12 +191,12 @@ class LoopPanel:
             open_line = readout_line(tab.variations[1]).removeprefix("on other robots: ")
         nominal = runs[0]
         times = nominal.times[::PLOT_STEP] - simulator.config.lead_in / simulator.excitation.sample_rate
-        with tab._draw_lock:
+        with tab.draw_lock:
             if not wanted():
                 return
             self.report = report
             tab.scene.draw_closed_loop(paths)
-            self.controls.status.content = loop_summary(report, open_line)
+            self.bar.end(loop_summary(report, open_line))
             set_plot_data(self.controls.plot, (times, nominal.steering[::PLOT_STEP]))
             self.seconds = time.perf_counter() - self._asked
         self.done.set()

@@ -115,7 +115,7 @@ class Playback:
         self._playing = True
         self._wake = threading.Event()  # set to wake a paused thread (played again, or closing)
         self._position = 0.0
-        self._draw, self._ready, self._closed = draw, ready, closed
+        self._draw, self._ready, self.closed = draw, ready, closed
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -150,12 +150,12 @@ class Playback:
     def _run(self) -> None:
         last_scrub = 0.0
         step = RECORD.sample_rate / FRAME_HZ  # record samples per frame at speed 1
-        while not self._closed.is_set():
+        while not self.closed.is_set():
             if not self._playing:
                 self._wake.wait(PAUSED_WAIT_S)
                 self._wake.clear()  # then reads ``_playing`` again, which is set before the wake
                 continue
-            if self._closed.wait(1.0 / FRAME_HZ):
+            if self.closed.wait(1.0 / FRAME_HZ):
                 return
             if not self.playing or not self._ready():
                 continue
@@ -168,7 +168,7 @@ class Playback:
                     self.controls.scrubber.value = round(self.frame / RECORD.sample_rate, 2)
                     last_scrub = now
             except Exception:  # the tab went away mid-update; the disconnect handler cleans up
-                if self._closed.is_set():
+                if self.closed.is_set():
                     return
 
     def join(self, timeout: float = 5.0) -> None:

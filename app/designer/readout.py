@@ -180,29 +180,29 @@ STREAM_READOUT_PERIOD_S = 1.0
 
 
 class TabReadout:
-    """The readout of ``DesignerClient`` (mixed in: it uses the tab's controls, scene and current gait)."""
+    """What a ``DesignerClient`` ``tab``'s readout says of its current gait."""
 
-    readout: Readout | None = None
-    variations: tuple[int, dict] | None = (
-        None  # (request version, ``sim.scores.robustness`` report) of the gait
-    )
-
-    predicted: tuple[int, dict] | None = None  # (request version, the physics head's report) of the gait
+    def __init__(self, tab) -> None:
+        self.tab = tab
 
     def _variations_line(self) -> str:
         """The variations' line for the current gait: the replays' (with how far the physics head's
         prediction was from them), or the prediction's until they are in ('' without either)."""
         from snakeloco.sim.scores.robustness import prediction_line, readout_line
 
-        predicted = self.predicted[1] if self.predicted and self.predicted[0] == self.version else None
-        if self.variations is None or self.variations[0] != self.version:
+        predicted = (
+            self.tab.predicted[1]
+            if self.tab.predicted and self.tab.predicted[0] == self.tab.version
+            else None
+        )
+        if self.tab.variations is None or self.tab.variations[0] != self.tab.version:
             return "" if predicted is None else "predicted " + readout_line(predicted)
-        line = readout_line(self.variations[1])
-        return line if predicted is None else f"{line}; {prediction_line(predicted, self.variations[1])}"
+        line = readout_line(self.tab.variations[1])
+        return line if predicted is None else f"{line}; {prediction_line(predicted, self.tab.variations[1])}"
 
     def _cluster_line(self, gait) -> str:
         """Where a decoded gait's z_B sits when it has left the Gait cluster its sliders move in."""
-        density = self.model.config.density
+        density = self.tab.model.config.density
         lat = gait.latents
         if density is None or lat is None or lat.component is None:
             return ""
@@ -224,7 +224,7 @@ class TabReadout:
             words = f"Gait: {gait.member.describe()}"
         else:
             words = "" if gait.source == "model" else f"Gait: {gait.source}"
-        self.readout = Readout(
+        self.tab.readout = Readout(
             model=PathEnd.of(gait.body_ds) if gait.body_ds is not None else None,
             mujoco=PathEnd.of(body) if body is not None and len(body) > 1 else None,
             state=state,
@@ -233,9 +233,9 @@ class TabReadout:
             reason=reason,
             gait=words,
             off_data=gait.off_data,
-            ring=self.scene.end_spread is not None,
+            ring=self.tab.scene.end_spread is not None,
             sliders=gait.latents.sliders if gait.latents is not None else None,
-            robot=self.model.robot_warning(self.session.robot) or "",
+            robot=self.tab.model.robot_warning(self.tab.session.robot) or "",
             variations=self._variations_line(),
             no_model=gait.no_model,
             cluster=self._cluster_line(gait),
@@ -247,5 +247,5 @@ class TabReadout:
             "ring": BAND_COLOR,
             "variations": VARIATION_COLOR,
         }
-        self.controls.readout.content = readout_html(self.readout, colors)
-        return self.readout
+        self.tab.controls.readout.content = readout_html(self.tab.readout, colors)
+        return self.tab.readout

@@ -30,7 +30,7 @@ from snakeloco.app.designer.jobs import TabJobs
 from snakeloco.app.designer.latent_moves import LatentMoves
 from snakeloco.app.designer.loop_panel import LoopPanel
 from snakeloco.app.designer.playback import PAUSE_WHEN_HIDDEN_JS, SOFTWARE_RENDERING_JS, Playback
-from snakeloco.app.designer.readout import TabReadout
+from snakeloco.app.designer.readout import Readout, TabReadout
 from snakeloco.app.designer.scene import END_SPREAD, TabScene
 from snakeloco.app.designer.session import DecodedGait, GaitSession, Latents, SimulatedGait, Timing
 from snakeloco.app.server.decode_process import DecodePool
@@ -59,8 +59,10 @@ TIMINGS_KEPT = 1000
 a drag phase sends (docs/load.md, "TIMINGS_KEPT")."""
 
 
-class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
-    """One browser tab: GUI, scene, session, a decode worker and a physics worker."""
+class DesignerClient:
+    """One browser tab: GUI, scene, session, its workers, and the parts it is composed of: ``jobs``
+    (what the workers run), ``files`` (export, import, library), ``moves`` (latents moved from
+    Python) and ``says`` (the readout), each holding the tab."""
 
     def __init__(
         self,
@@ -79,7 +81,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self.client = client
         self.show_variations = variations
         """Replay each gait on the default physics variations after its ensemble (the Variations fan)."""
-        self._decoding = decoding or DecodePool([], 0, processes=0)
+        self.decoding = decoding or DecodePool([], 0, processes=0)
         """The server's decode stage, shared by its tabs (``app.server.decode_process``): each decode takes a
         turn, in the order the tabs' values came, each tab's newest value when its turn comes, and
         runs in one of the server's decode processes, away from the server's GIL (else in this tab's
@@ -103,20 +105,23 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self.decoded: DecodedGait | None = None
         self.simulated: SimulatedGait | None = None
         self.streaming = None  # the current gait's streamed replay so far (sim.StreamedReplay)
-        self._path_drawn = 0.0
-        self._readout_drawn = 0.0
+        self.readout: Readout | None = None  # what the readout says now (``TabReadout.show_readout``)
+        self.variations: tuple[int, dict] | None = None  # (request version, its variations' report)
+        self.predicted: tuple[int, dict] | None = None  # (request version, the physics head's report)
+        self.jobs, self.files = TabJobs(self), GaitFiles(self)
+        self.moves, self.says = LatentMoves(self), TabReadout(self)
         self.timings: deque[Timing] = deque(maxlen=TIMINGS_KEPT)
         self.values_received = 0  # slider values since the tab joined (all, not only those timed)
         self.views_drawn = 0  # decoded views drawn since the tab joined
-        self._timing_by_version: dict[int, Timing] = {}
-        self._draw_lock = threading.RLock()
-        self._programmatic_z: tuple[float, ...] | None = None  # slider values set from Python
-        self._shown_z: tuple[float, ...] | None = None  # the exact z_B they stand for
-        self._z_lock = threading.RLock()
+        self.timing_by_version: dict[int, Timing] = {}
+        self.draw_lock = threading.RLock()
+        self.programmatic_z: tuple[float, ...] | None = None  # slider values set from Python
+        self.shown_z: tuple[float, ...] | None = None  # the exact z_B they stand for
+        self.z_lock = threading.RLock()
         self._setting_z = False
-        self._quiet_zk = {"mode": 0, "seed": 0, "temperature": 0}  # z_k controls set by show_latents
-        self._quiet_component_events = 0
-        self._closed = threading.Event()
+        self.quiet_zk = {"mode": 0, "seed": 0, "temperature": 0}  # z_k controls set by show_latents
+        self.quiet_component_events = 0
+        self.closed = threading.Event()
         self._version = 0
         self._version_lock = threading.Lock()
         self.controls = build_controls(
@@ -124,7 +129,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
             model.z_b_dim,
             tuple(self.models),
             family,
-            self._component_names(model),
+            self.moves.component_names(model),
             wide=client.camera.image_width >= WIDE_PX,
             n_joints=self.session.robot.n_joints,
         )
@@ -134,19 +139,21 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self.design = DesignPanel(self, self.controls.design)
         self.fit = FitPanel(self, self.controls.fit)
         self.loop = LoopPanel(self, self.controls.loop, enabled=closed_loop)
-        report = lambda exc: self._report(f"{type(exc).__name__}: {exc}")  # noqa: E731
-        self.decoder = LatestWorker(self._decode_job, name=f"decode-{client.client_id}", on_error=report)
-        self.physics = LatestWorker(self._physics_job, name=f"physics-{client.client_id}", on_error=report)
+        report = lambda exc: self.report(f"{type(exc).__name__}: {exc}")  # noqa: E731
+        self.decoder = LatestWorker(self.jobs.decode_job, name=f"decode-{client.client_id}", on_error=report)
+        self.physics = LatestWorker(
+            self.jobs.physics_job, name=f"physics-{client.client_id}", on_error=report
+        )
         # Ensembles on a worker of their own: a new gait's replay starts at once instead of waiting
         # for the previous gait's ensemble batch (and the batches of other tabs queued before it).
         self.ensembles = LatestWorker(
-            self._ensemble_job, name=f"ensemble-{client.client_id}", on_error=report
+            self.jobs.ensemble_job, name=f"ensemble-{client.client_id}", on_error=report
         )
         self.playback = Playback(
             self.controls,
-            self._draw_snake,
+            self.draw_snake,
             lambda: (self.simulated is not None or self.streaming is not None) and not self.page_left,
-            self._closed,
+            self.closed,
             name=f"animate-{client.client_id}",
         )
         run_javascript(client, PAUSE_WHEN_HIDDEN_JS)
@@ -158,23 +165,23 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         """The z_B sliders, one per latent dimension."""
         return self.controls.sliders
 
-    def _wire_sliders(self) -> None:
-        c, g = self.controls, self._guarded
+    def wire_sliders(self) -> None:
+        c, g = self.controls, self.guarded
         for s in c.sliders:
             s.on_update(g(lambda _e: self._on_latents_changed()))
         if c.component is not None:
-            c.component.on_update(g(lambda _e: self._on_component_changed()))
-        c.reset_button.on_click(g(lambda _e: self._set_z(np.zeros(self.model.z_b_dim))))
-        c.random_button.on_click(g(lambda _e: self.random_z()))
+            c.component.on_update(g(lambda _e: self.moves.on_component_changed()))
+        c.reset_button.on_click(g(lambda _e: self.set_z(np.zeros(self.model.z_b_dim))))
+        c.random_button.on_click(g(lambda _e: self.moves.random_z()))
 
     def _wire(self) -> None:
-        c, g = self.controls, self._guarded
-        self._wire_sliders()
-        c.family.on_update(g(lambda _e: self.switch_family(c.family.value)))
-        c.zk_mode.on_update(g(lambda _e: self._on_zk_changed("mode")))
-        c.zk_seed.on_update(g(lambda _e: self._on_zk_changed("seed")))
+        c, g = self.controls, self.guarded
+        self.wire_sliders()
+        c.family.on_update(g(lambda _e: self.moves.switch_family(c.family.value)))
+        c.zk_mode.on_update(g(lambda _e: self.moves.on_zk_changed("mode")))
+        c.zk_seed.on_update(g(lambda _e: self.moves.on_zk_changed("seed")))
         c.zk_temperature.on_update(
-            g(lambda _e: self._on_zk_changed("temperature") if c.zk_mode.value == "sampled" else None)
+            g(lambda _e: self.moves.on_zk_changed("temperature") if c.zk_mode.value == "sampled" else None)
         )
         c.resample_button.on_click(g(lambda _e: self._resample()))
         c.play_button.on_click(g(lambda _e: self.playback.toggle()))
@@ -183,27 +190,27 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         for layer in c.layers.values():
             layer.on_update(g(lambda _e: self._apply_layers()))
         c.light.on_update(g(lambda _e: self._on_light_changed()))
-        c.export_button.on_click(g(lambda _e: self.export()))
-        c.robot_export_button.on_click(g(lambda _e: self.export_for_robot(c.robot_format.value)))
-        c.share_button.on_click(g(lambda _e: self.share()))
-        c.baseline.on_update(g(lambda _e: self.load_baseline(c.baseline.value)))
-        c.import_button.on_upload(g(lambda _e: self._on_upload()))
+        c.export_button.on_click(g(lambda _e: self.files.export()))
+        c.robot_export_button.on_click(g(lambda _e: self.files.export_for_robot(c.robot_format.value)))
+        c.share_button.on_click(g(lambda _e: self.files.share()))
+        c.baseline.on_update(g(lambda _e: self.files.load_baseline(c.baseline.value)))
+        c.import_button.on_upload(g(lambda _e: self.files.on_upload()))
 
-    def _report(self, message: str) -> None:
-        if self._on_error is not None and not self._closed.is_set():  # not a gone tab's
+    def report(self, message: str) -> None:
+        if self._on_error is not None and not self.closed.is_set():  # not a gone tab's
             self._on_error(f"client {self.client.client_id}: {message}")
 
-    def _guarded(self, fn: Callable) -> Callable:
+    def guarded(self, fn: Callable) -> Callable:
         """A GUI callback that reports instead of raising: one tab's error never reaches viser."""
 
         def run(event) -> None:
             try:
                 fn(event)
             except Exception as exc:
-                if self._closed.is_set():
+                if self.closed.is_set():
                     return  # the tab went away mid-callback
                 traceback.print_exc()
-                self._report(f"{type(exc).__name__}: {exc}")
+                self.report(f"{type(exc).__name__}: {exc}")
 
         return run
 
@@ -230,16 +237,16 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
 
     def request_decode(self) -> int:
         """Submit the GUI's current latents (latest wins); returns the request version."""
-        self._clear_baseline()
-        return self._submit(self.decoder, self.current_latents())
+        self.clear_baseline()
+        return self.submit(self.decoder, self.current_latents())
 
-    def _clear_baseline(self) -> None:
+    def clear_baseline(self) -> None:
         """The Baseline dropdown back to "none" once another gait replaces a library one, so that
         picking the library gait again loads it again (a dropdown fires only on a change)."""
         if self.controls.baseline.value != NO_BASELINE:
             self.controls.baseline.value = NO_BASELINE
 
-    def _submit(self, worker: LatestWorker, request: object) -> int:
+    def submit(self, worker: LatestWorker, request: object) -> int:
         # Versions are taken and submitted under one lock, so workers always hold the newest request.
         with self._version_lock:
             self._version += 1
@@ -260,7 +267,7 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
     def page_left(self) -> bool:
         """Whether this tab is closed or its page's connection is (viser closes the tab a moment after
         its connection): then nothing is drawn, as nothing would be delivered."""
-        return self._closed.is_set() or connection_closed(self.client)
+        return self.closed.is_set() or connection_closed(self.client)
 
     def idle(self) -> bool:
         return self.decoder.idle() and self.physics.idle() and self.ensembles.idle()
@@ -279,24 +286,24 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         timing = Timing(version=version, submitted=time.perf_counter())
         self.values_received += 1
         if len(self.timings) == self.timings.maxlen:  # versions rise: the oldest leaves both
-            self._timing_by_version.pop(self.timings[0].version, None)
-        self._timing_by_version[version] = timing
+            self.timing_by_version.pop(self.timings[0].version, None)
+        self.timing_by_version[version] = timing
         self.timings.append(timing)
 
     def _on_latents_changed(self) -> None:
         # Reading under the lock that _write_sliders holds: a callback never sees half-set sliders.
-        with self._z_lock:
+        with self.z_lock:
             if self._setting_z:
                 return
             z = tuple(float(s.value) for s in self.sliders)
-            if self._programmatic_z is not None and np.allclose(z, self._programmatic_z, atol=1e-9):
+            if self.programmatic_z is not None and np.allclose(z, self.programmatic_z, atol=1e-9):
                 return  # the sliders show an imported gait's encoding: keep that gait
-            self._programmatic_z = None
+            self.programmatic_z = None
         self.request_decode()
 
-    def _write_sliders(self, z: np.ndarray) -> tuple[float, ...]:
+    def write_sliders(self, z: np.ndarray) -> tuple[float, ...]:
         values = tuple(float(v) for v in np.clip(np.round(z, 2), -SLIDER_RANGE, SLIDER_RANGE))
-        with self._z_lock:
+        with self.z_lock:
             self._setting_z = True
             try:
                 with self.client.atomic():
@@ -306,11 +313,11 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
                 self._setting_z = False
         return values
 
-    def _set_z(self, z: np.ndarray) -> None:
+    def set_z(self, z: np.ndarray) -> None:
         """Move all sliders at once (Reset, Random) and decode once."""
-        with self._z_lock:
-            self._programmatic_z = None
-            self._write_sliders(z)
+        with self.z_lock:
+            self.programmatic_z = None
+            self.write_sliders(z)
         self.request_decode()
 
     def _resample(self) -> None:
@@ -318,46 +325,46 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         self.controls.zk_seed.value = int(self.controls.zk_seed.value) + 1
 
     def _apply_layers(self) -> None:
-        with self._draw_lock, self.client.atomic():
+        with self.draw_lock, self.client.atomic():
             self.scene.apply_layers(simulated=self.simulated is not None)
-        self._draw_snake()  # a snake whose layer was off was not posed meanwhile
+        self.draw_snake()  # a snake whose layer was off was not posed meanwhile
 
     def _on_light_changed(self) -> None:
         """Light or full rendering; the shaded grid goes with it (off when light, back when full)."""
         light = bool(self.controls.light.value)
-        with self._draw_lock, self.client.atomic():
+        with self.draw_lock, self.client.atomic():
             self.scene.set_light(light)
         self.controls.layers["Grid"].value = not light  # its own on_update applies the layers
 
     # --- drawing ---------------------------------------------------------------------------------
 
     def _frame(self, force: bool = False) -> None:
-        with self._draw_lock:
+        with self.draw_lock:
             self.scene.frame(force=force)
 
-    def _draw_decoded(self, gait: DecodedGait) -> None:
+    def draw_decoded(self, gait: DecodedGait) -> None:
         with self.client.atomic():
             self.scene.draw_decoded(gait)
             self.controls.show_paths(gait.body_ds, None)
             self.controls.show_commands(gait.commands)
             self.controls.panel.content = panel.decoded_text(gait)
-            self.show_readout(gait, "simulating")
+            self.says.show_readout(gait, "simulating")
             if gait.body_ds is not None:
                 self.scene.frame()
         self.client.flush()  # now, not at the end of viser's next 1/60 s window
 
-    def _draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
+    def draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
         with self.client.atomic():
             self.scene.draw_simulated(gait, sim, ensemble)
             if not ensemble:  # the ensemble's draw follows the replay's: the same two series
                 self.controls.show_paths(gait.body_ds, sim.body[::BODY_DOWNSAMPLE])
-                self.show_readout(gait, "done", sim.body)
+                self.says.show_readout(gait, "done", sim.body)
                 self.scene.frame()
             self.controls.panel.content = panel.simulated_text(gait, sim, ensemble)
-        self._draw_snake()
+        self.draw_snake()
         self.client.flush()
 
-    def _draw_snake(self, frame: int | None = None) -> None:
+    def draw_snake(self, frame: int | None = None) -> None:
         """Pose the snake at record sample ``frame`` (default: the playback's) of the current replay
         (nothing once the page has left)."""
         motion = self.simulated if self.simulated is not None else self.streaming
@@ -367,11 +374,11 @@ class DesignerClient(TabJobs, GaitFiles, LatentMoves, TabReadout):
         qpos = motion.qpos
         if motion is self.streaming:  # physics is still filling in: hold the newest pose there is
             frame = min(frame, len(qpos) - 1)
-        with self._draw_lock, self.client.atomic():
+        with self.draw_lock, self.client.atomic():
             self.scene.draw_snake(qpos[frame % len(qpos)], follow=self.controls.follow.value)
 
     def close(self) -> None:
-        self._closed.set()
+        self.closed.set()
         self.design.close()
         self.fit.close()
         self.loop.close()

@@ -54,7 +54,9 @@ class MemberHeadConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    support: list[list[bool]] = Field(description="(n_joints, L) the coefficients fed in (the family's support).")
+    support: list[list[bool]] = Field(
+        description="(n_joints, L) the coefficients fed in (the family's support)."
+    )
     inputs: HeadInputs = Field("coefficients", description="What describes a member to the head.")
     mirrored: bool = Field(False, description="Trained on every member and its mirror image too.")
     input_mean: list[float] = Field(
