@@ -1,0 +1,150 @@
+"""Measurement behind issue 70's first decision: does the snake's anisotropic floor friction survive off
+MuJoCo's plane, and what would re-aligning the contact frames cost?
+
+The robot's floor pairs give friction (along, across) on the contact frame's two tangent axes. Only the
+capsule-plane collider orients that frame along the capsule (MuJoCo issue #67); on a heightfield or a box
+the tangents follow from the normal alone, so "along" lands on an arbitrary direction. This module
+replays one gait, open loop, on the same robot over three grounds (the plane, a flat heightfield, a flat
+box), each stepped either by ``mj_step`` or by a staged step that rewrites every floor contact's frame
+along its link before the constraints are built (``mj_fwdPosition``, the frames re-aligned,
+``mj_makeConstraint`` + ``mj_island`` + ``mj_projectConstraint``, then ``mj_forwardSkip`` past the
+position stage and ``mj_implicit``). It reports where each replay ends and what a replay costs.
+
+``python -m snakeloco.sim.physics.anisotropy_probe [GAIT ...]`` prints the table docs/terrain.md shows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import mujoco
+import numpy as np
+
+from snakeloco.sim.gaits.library import PRESETS
+from snakeloco.sim.physics.command_rule import CommandRule, expand_commands
+from snakeloco.sim.robot.description import BODY_SITE, DEFAULT_ROBOT, FLOOR, Robot
+
+GROUNDS = ("plane", "hfield", "box")
+HFIELD_HALF_M = 40.0
+"""Half the side of the flat heightfield and the box (m): wider than any gait's 100 s path."""
+
+
+def ground_model(robot: Robot, ground: str) -> mujoco.MjModel:
+    """``robot`` on ``ground``: its plane, or a flat heightfield or box whose top is the plane z = 0,
+    with the robot's own anisotropic floor pairs."""
+    spec = robot.build_spec()
+    if ground == "plane":
+        return spec.compile()
+    floor = spec.geom(FLOOR)
+    if ground == "hfield":
+        field = spec.add_hfield(
+            name="ground", size=[HFIELD_HALF_M, HFIELD_HALF_M, 0.1, 0.1], nrow=65, ncol=65
+        )
+        field.userdata = np.zeros(65 * 65)  # flat: its top is z = 0
+        floor.type = mujoco.mjtGeom.mjGEOM_HFIELD
+        floor.hfieldname = "ground"
+        floor.pos = [0, 0, 0]
+    else:
+        floor.type = mujoco.mjtGeom.mjGEOM_BOX
+        floor.size = [HFIELD_HALF_M, HFIELD_HALF_M, 0.1]
+        floor.pos = [0, 0, -0.1]
+    return spec.compile()
+
+
+def realign(model: mujoco.MjModel, data: mujoco.MjData, floor: int) -> int:
+    """Rotate each floor contact's tangent axes about its normal so that the first lies along the link's
+    capsule axis (as the capsule-plane collider sets it); returns the contacts changed."""
+    n = data.ncon
+    if n == 0:
+        return 0
+    con = data.contact[:n]
+    g1, g2 = con.geom[:, 0], con.geom[:, 1]
+    rows = np.flatnonzero((g1 == floor) | (g2 == floor))
+    if len(rows) == 0:
+        return 0
+    links = np.where(g1[rows] == floor, g2[rows], g1[rows])
+    axes = data.geom_xmat[links].reshape(-1, 3, 3)[:, :, 2]  # a capsule's axis is its frame's z
+    frames = con.frame[rows].reshape(-1, 3, 3)
+    normal = frames[:, 0]
+    along = axes - (axes * normal).sum(axis=1, keepdims=True) * normal
+    norm = np.linalg.norm(along, axis=1, keepdims=True)
+    keep = norm[:, 0] > 1e-9  # a link standing on its end keeps its frame
+    along[keep] /= norm[keep]
+    along[~keep] = frames[~keep, 1]
+    across = np.cross(normal, along)
+    frame = np.stack([normal, along, across], axis=1).reshape(-1, 9)
+    data.contact.frame[rows] = frame  # the struct array's view: written through
+    return len(rows)
+
+
+def staged_step(model: mujoco.MjModel, data: mujoco.MjData, floor: int) -> None:
+    """``mj_step`` (implicit integrator) with the floor contacts' frames re-aligned before the constraints."""
+    mujoco.mj_fwdPosition(model, data)
+    if realign(model, data, floor):
+        mujoco.mj_makeConstraint(model, data)
+        mujoco.mj_island(model, data)
+        mujoco.mj_projectConstraint(model, data)
+    mujoco.mj_sensorPos(model, data)
+    mujoco.mj_forwardSkip(model, data, mujoco.mjtStage.mjSTAGE_POS, 1)
+    mujoco.mj_sensorVel(model, data)
+    mujoco.mj_sensorAcc(model, data)
+    mujoco.mj_implicit(model, data)
+
+
+def replay_end(model: mujoco.MjModel, commands: np.ndarray, staged: bool) -> tuple[np.ndarray, float]:
+    """Where the body site ends (x, y m) after ``commands`` (T, J), and the seconds the replay took."""
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    substeps = round(1.0 / (20.0 * model.opt.timestep))
+    targets = expand_commands(commands[None], substeps, CommandRule())[0]
+    site = model.site(BODY_SITE).id
+    floor = model.geom(FLOOR).id
+    start = data.site_xpos[site][:2].copy()
+    t0 = time.perf_counter()
+    for u in targets:
+        data.ctrl[:] = u
+        if staged:
+            staged_step(model, data, floor)
+        else:
+            mujoco.mj_step(model, data)
+    return data.site_xpos[site][:2] - start, time.perf_counter() - t0
+
+
+def probe(gaits: list[str], seconds: float, robot: Robot = DEFAULT_ROBOT) -> list[dict]:
+    rows = []
+    for gait in gaits:
+        commands = PRESETS[gait].gait.commands(robot)[: round(seconds * 20)]
+        reference = None
+        for ground in GROUNDS:
+            model = ground_model(robot, ground)
+            for staged in (False, True):
+                end, took = replay_end(model, commands, staged)
+                if reference is None:
+                    reference = end
+                miss = float(np.linalg.norm(end - reference))
+                rows.append(
+                    {
+                        "gait": gait,
+                        "ground": ground,
+                        "step": "staged" if staged else "mj_step",
+                        "end_m": [round(float(v), 3) for v in end],
+                        "distance_m": round(float(np.linalg.norm(end)), 3),
+                        "off_plane_rel": round(miss / max(float(np.linalg.norm(reference)), 1e-9), 4),
+                        "seconds": round(took, 2),
+                    }
+                )
+                print(rows[-1], flush=True)
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("gaits", nargs="*", default=["undulate", "sidewind"])
+    parser.add_argument("--seconds", type=float, default=100.0, help="replay length (s)")
+    args = parser.parse_args()
+    probe(args.gaits, args.seconds)
+
+
+if __name__ == "__main__":
+    main()
