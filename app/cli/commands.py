@@ -318,7 +318,31 @@ class Build(Command):
     backend: Annotated[BackendConfig, Flat] = BackendConfig()
 
 
+class WorldShow(Command):
+    """Check a world description (YAML, or a shipped world's name: rough, steps, pegs, slope10) and print its figures. A bad file is refused naming the field and the reason."""
+
+    world: Annotated[str, tyro.conf.Positional] = "flat"
+    """World description YAML or a shipped world's name (sim/worlds/); flat: today's plane."""
+    json: Json = False
+
+
+class WorldMjcf(Command):
+    """Write a robot on a world as a MuJoCo model (MJCF, built with mujoco.MjSpec)."""
+
+    world: Annotated[str, tyro.conf.Positional]
+    """World description YAML or a shipped world's name."""
+    out: Path
+    """Destination .xml."""
+    robot: Path | None = None
+    """Robot description YAML; none: the default robot."""
+
+
+class World(Command):
+    """The ground as data (docs/terrain.md): `snakeloco world show WORLD.yaml` (check it, print its figures), `snakeloco world mjcf WORLD.yaml --out X.xml [--robot ROBOT.yaml]` (a robot on it, as MuJoCo's model)."""
+
+
 ROBOT_COMMANDS: dict[str, type[Command]] = {"show": RobotShow, "mjcf": RobotMjcf}
+WORLD_COMMANDS: dict[str, type[Command]] = {"show": WorldShow, "mjcf": WorldMjcf}
 
 
 COMMANDS: dict[str, type[Command]] = {
@@ -335,5 +359,6 @@ COMMANDS: dict[str, type[Command]] = {
     "export": Export,
     "fit-robot": FitRobot,
     "robot": Robot,  # the same: `snakeloco robot ...` parses ROBOT_COMMANDS
+    "world": World,  # `snakeloco world ...` parses WORLD_COMMANDS
     "build": Build,
 }

@@ -18,6 +18,7 @@ from snakeloco.app.bench.options import BENCH_HELP, BENCH_MODULES, BENCHES
 from snakeloco.app.cli.commands import (
     COMMANDS,
     ROBOT_COMMANDS,
+    WORLD_COMMANDS,
     Build,
     Calibrate,
     Design,
@@ -33,6 +34,9 @@ from snakeloco.app.cli.commands import (
     Robustness,
     Serve,
     Train,
+    World,
+    WorldMjcf,
+    WorldShow,
 )
 from snakeloco.app.cli.options import Command, OptionError, parse, parse_one
 from snakeloco.app.cli.outputs import outputs_problem
@@ -45,6 +49,8 @@ from snakeloco.app.cli.robot_commands import (
     run_robot_mjcf,
     run_robot_show,
     run_robustness,
+    run_world_mjcf,
+    run_world_show,
 )
 from snakeloco.model.options import PRESETS
 
@@ -257,6 +263,8 @@ RUNNERS = {
     Export: run_export,
     FitRobot: run_fit_robot,
     RobotMjcf: run_robot_mjcf,
+    WorldShow: run_world_show,
+    WorldMjcf: run_world_mjcf,
     Build: run_build,
     **dict.fromkeys(BENCHES.values(), run_bench),
 }
@@ -278,6 +286,8 @@ def parse_args(args: list[str]) -> Command:
         return parse(BENCHES, args[1:], "snakeloco bench", BENCH_HELP)
     if args[:1] == ["robot"]:
         return parse(ROBOT_COMMANDS, args[1:], "snakeloco robot", Robot.__doc__)
+    if args[:1] == ["world"]:
+        return parse(WORLD_COMMANDS, args[1:], "snakeloco world", World.__doc__)
     name = _preset(args) if args[:1] == ["train"] else None
     if name in PRESETS:
         # The preset supplies the defaults; the flags given beside it still override them. (An unknown

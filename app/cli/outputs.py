@@ -21,6 +21,7 @@ OUTPUTS: dict[type, dict[str, str]] = {
     c.Calibrate: {"out": "dir", "gaits": "file"},
     c.Figures: {"out": "dir"},
     c.RobotMjcf: {"out": "file"},
+    c.WorldMjcf: {"out": "file"},
     c.Export: {"out": "file"},
     c.FitRobot: {"out": "file"},
 }

@@ -9,7 +9,16 @@ from pathlib import Path
 
 import numpy as np
 
-from snakeloco.app.cli.commands import Build, Export, FitRobot, RobotMjcf, RobotShow, Robustness
+from snakeloco.app.cli.commands import (
+    Build,
+    Export,
+    FitRobot,
+    RobotMjcf,
+    RobotShow,
+    Robustness,
+    WorldMjcf,
+    WorldShow,
+)
 from snakeloco.app.cli.options import OptionError
 from snakeloco.sim.physics.body import BODY_CHANNELS, heading_text
 
@@ -216,3 +225,42 @@ def repeated_line(f: dict) -> str:
         f", over the channels physics repeats ({', '.join(keep)}) {f['body_r2_reconstruction_repeated']:.3f} "
         f"(from the gait alone {f['body_r2_repeated']:.3f})"
     )
+
+
+def _world(name: str):
+    from snakeloco.sim.world.description import DEFAULT_WORLD, WorldError, load_world
+
+    if name == "flat":
+        return DEFAULT_WORLD
+    try:
+        return load_world(name)
+    except WorldError as exc:
+        raise OptionError(str(exc)) from None
+
+
+def run_world_show(cmd: WorldShow) -> dict:
+    """Print a world description's figures (refusing a bad file with the field and reason)."""
+    world = _world(cmd.world)
+    figures = world.figures()
+    width = max(map(len, figures))
+    print("\n".join(f"{k:<{width}}  {v}" for k, v in figures.items()))
+    if cmd.json:
+        print(jsonlib.dumps({"world": world.model_dump(mode="json"), "figures": figures}))
+    return figures
+
+
+def run_world_mjcf(cmd: WorldMjcf) -> Path:
+    """Write a robot on a world as MJCF."""
+    from snakeloco.sim.world.description import WorldError
+
+    world, robot = _world(cmd.world), _robot(cmd.robot)
+    try:
+        text = world.mjcf(robot)
+    except WorldError as exc:
+        raise OptionError(str(exc)) from None
+    cmd.out.parent.mkdir(parents=True, exist_ok=True)
+    cmd.out.write_text(text)
+    print(
+        f"wrote {cmd.out} ({robot.name} on {world.name}: {len(world.ground_geoms())} ground geoms beside the plane)"
+    )
+    return cmd.out

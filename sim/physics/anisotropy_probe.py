@@ -52,18 +52,28 @@ def ground_model(robot: Robot, ground: str) -> mujoco.MjModel:
     return spec.compile()
 
 
-def realign(model: mujoco.MjModel, data: mujoco.MjData, floor: int) -> int:
-    """Rotate each floor contact's tangent axes about its normal so that the first lies along the link's
-    capsule axis (as the capsule-plane collider sets it); returns the contacts changed."""
+def ground_ids(model: mujoco.MjModel) -> np.ndarray:
+    """The ids of the plane and of a world's ground geoms (``sim.world``: ``ground_*``, pegs aside)."""
+    names = [model.geom(i).name for i in range(model.ngeom)]
+    return np.array(
+        [i for i, n in enumerate(names) if n == FLOOR or (n.startswith("ground_") and "peg" not in n)]
+    )
+
+
+def realign(model: mujoco.MjModel, data: mujoco.MjData, floor: int | np.ndarray) -> int:
+    """Rotate each ground contact's tangent axes about its normal so that the first lies along the link's
+    capsule axis (as the capsule-plane collider sets it); ``floor``: the ground geom id(s). Returns
+    the contacts changed."""
     n = data.ncon
     if n == 0:
         return 0
     con = data.contact[:n]
     g1, g2 = con.geom[:, 0], con.geom[:, 1]
-    rows = np.flatnonzero((g1 == floor) | (g2 == floor))
+    on1, on2 = np.isin(g1, floor), np.isin(g2, floor)
+    rows = np.flatnonzero(on1 | on2)
     if len(rows) == 0:
         return 0
-    links = np.where(g1[rows] == floor, g2[rows], g1[rows])
+    links = np.where(on1[rows], g2[rows], g1[rows])
     axes = data.geom_xmat[links].reshape(-1, 3, 3)[:, :, 2]  # a capsule's axis is its frame's z
     frames = con.frame[rows].reshape(-1, 3, 3)
     normal = frames[:, 0]
@@ -78,7 +88,7 @@ def realign(model: mujoco.MjModel, data: mujoco.MjData, floor: int) -> int:
     return len(rows)
 
 
-def staged_step(model: mujoco.MjModel, data: mujoco.MjData, floor: int) -> None:
+def staged_step(model: mujoco.MjModel, data: mujoco.MjData, floor: int | np.ndarray) -> None:
     """``mj_step`` (implicit integrator) with the floor contacts' frames re-aligned before the constraints."""
     mujoco.mj_fwdPosition(model, data)
     if realign(model, data, floor):
@@ -99,7 +109,7 @@ def replay_end(model: mujoco.MjModel, commands: np.ndarray, staged: bool) -> tup
     substeps = round(1.0 / (20.0 * model.opt.timestep))
     targets = expand_commands(commands[None], substeps, CommandRule())[0]
     site = model.site(BODY_SITE).id
-    floor = model.geom(FLOOR).id
+    floor = ground_ids(model)
     start = data.site_xpos[site][:2].copy()
     t0 = time.perf_counter()
     for u in targets:
@@ -109,6 +119,35 @@ def replay_end(model: mujoco.MjModel, commands: np.ndarray, staged: bool) -> tup
         else:
             mujoco.mj_step(model, data)
     return data.site_xpos[site][:2] - start, time.perf_counter() - t0
+
+
+def on_worlds(
+    gaits: list[str], worlds: list[str], seconds: float, robot: Robot = DEFAULT_ROBOT
+) -> list[dict]:
+    """Each gait on the plane and on each shipped world (``sim/worlds``), re-aligned off the plane:
+    where it ends, how far from the plane's end, and the seconds a replay took."""
+    from snakeloco.sim.world.description import load_world
+
+    rows = []
+    for gait in gaits:
+        commands = PRESETS[gait].gait.commands(robot)[: round(seconds * 20)]
+        flat, _ = replay_end(ground_model(robot, "plane"), commands, staged=False)
+        for name in worlds:
+            world = load_world(name)
+            end, took = replay_end(world.compile(robot), commands, staged=not world.flat)
+            rows.append(
+                {
+                    "gait": gait,
+                    "world": name,
+                    "end_m": [round(float(v), 3) for v in end],
+                    "distance_m": round(float(np.linalg.norm(end)), 3),
+                    "plane_distance_m": round(float(np.linalg.norm(flat)), 3),
+                    "off_plane_rel": round(float(np.linalg.norm(end - flat) / np.linalg.norm(flat)), 4),
+                    "seconds": round(took, 2),
+                }
+            )
+            print(rows[-1], flush=True)
+    return rows
 
 
 def probe(gaits: list[str], seconds: float, robot: Robot = DEFAULT_ROBOT) -> list[dict]:
@@ -142,8 +181,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("gaits", nargs="*", default=["undulate", "sidewind"])
     parser.add_argument("--seconds", type=float, default=100.0, help="replay length (s)")
+    parser.add_argument("--worlds", nargs="*", help="shipped worlds (or YAML files) to replay on instead")
     args = parser.parse_args()
-    probe(args.gaits, args.seconds)
+    if args.worlds:
+        on_worlds(args.gaits, args.worlds, args.seconds)
+    else:
+        probe(args.gaits, args.seconds)
 
 
 if __name__ == "__main__":
