@@ -87,9 +87,8 @@ def test_the_readout_says_when_a_slider_move_left_the_gait_cluster():
     from snakeloco.app.designer.readout import TabReadout
     from snakeloco.model import load_pretrained
 
-    tab = TabReadout()
-    tab.model = load_pretrained("structured")
-    density = tab.model.config.density
+    tab = TabReadout(SimpleNamespace(model=load_pretrained("structured")))
+    density = tab.tab.model.config.density
     means = np.asarray(density.means)
     gait = SimpleNamespace(latents=SimpleNamespace(component=0, z_b=tuple(means[0])))
     assert tab._cluster_line(gait) == ""
