@@ -32,15 +32,19 @@ def _robot(path: Path | None):
         raise OptionError(str(exc)) from None
 
 
-def run_robot_show(cmd: RobotShow) -> dict:
-    """Print a robot description's derived figures (refusing a bad file with the field and reason)."""
-    robot = _robot(cmd.robot)
-    figures = robot.figures()
+def _show(kind: str, description, json: bool) -> dict:
+    """Print a description's figures, one per line (and with ``json`` it and them as one JSON line)."""
+    figures = description.figures()
     width = max(map(len, figures))
     print("\n".join(f"{k:<{width}}  {v}" for k, v in figures.items()))
-    if cmd.json:
-        print(jsonlib.dumps({"robot": robot.model_dump(mode="json"), "figures": figures}))
+    if json:
+        print(jsonlib.dumps({kind: description.model_dump(mode="json"), "figures": figures}))
     return figures
+
+
+def run_robot_show(cmd: RobotShow) -> dict:
+    """Print a robot description's derived figures (refusing a bad file with the field and reason)."""
+    return _show("robot", _robot(cmd.robot), cmd.json)
 
 
 def run_robot_mjcf(cmd: RobotMjcf) -> Path:
@@ -240,13 +244,7 @@ def _world(name: str):
 
 def run_world_show(cmd: WorldShow) -> dict:
     """Print a world description's figures (refusing a bad file with the field and reason)."""
-    world = _world(cmd.world)
-    figures = world.figures()
-    width = max(map(len, figures))
-    print("\n".join(f"{k:<{width}}  {v}" for k, v in figures.items()))
-    if cmd.json:
-        print(jsonlib.dumps({"world": world.model_dump(mode="json"), "figures": figures}))
-    return figures
+    return _show("world", _world(cmd.world), cmd.json)
 
 
 def run_world_mjcf(cmd: WorldMjcf) -> Path:

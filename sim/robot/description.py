@@ -22,8 +22,9 @@ from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from snakeloco.sim.robot.files import read_yaml, validated
 from snakeloco.sim.robot.sensing import Sensing
 
 if TYPE_CHECKING:
@@ -314,44 +315,14 @@ DEFAULT_ROBOT = Robot()
 """The paper's robot: ``sim/snake.xml``."""
 
 
-def validation_message(exc: ValidationError) -> str:
-    """One line per problem, each naming the field: 'n_joints: Input should be greater than or
-    equal to 4 (got 2)'."""
-    lines = []
-    for err in exc.errors():
-        where = ".".join(str(p) for p in err["loc"]) or "robot"
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
-            msg = "unknown field (a typo? see `snakeloco robot show --help` for the fields)"
-        got = f" (got {err['input']!r})" if err["loc"] and err["type"] != "extra_forbidden" else ""
-        lines.append(f"{where}: {msg}{got}")
-    return "; ".join(lines)
-
-
 def robot_from_dict(data: object, source: str = "robot") -> Robot:
     """Validate a parsed description; RobotError names ``source``, the field and the reason."""
-    if not isinstance(data, dict):
-        raise RobotError(f"{source}: a robot description is a mapping of fields, got {type(data).__name__}")
-    try:
-        return Robot.model_validate(data)
-    except ValidationError as exc:
-        raise RobotError(f"{source}: {validation_message(exc)}") from None
+    return validated(Robot, data, source, RobotError, "robot")
 
 
 def load_robot(path: str | Path) -> Robot:
     """Read a robot description from YAML (or JSON, a subset); RobotError names the problem."""
-    import yaml
-
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise RobotError(f"{path}: cannot read ({exc.strerror})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise RobotError(f"{path}: not YAML ({str(exc).splitlines()[0]})") from None
-    return robot_from_dict({} if data is None else data, str(path))
+    return robot_from_dict(read_yaml(Path(path), RobotError), str(path))
 
 
 def resolve_robot(robot: Robot | str | Path | None) -> Robot:

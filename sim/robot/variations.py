@@ -28,8 +28,8 @@ from snakeloco.sim.robot.description import (
     Robot,
     RobotError,
     robot_from_dict,
-    validation_message,
 )
+from snakeloco.sim.robot.files import validation_message
 from snakeloco.sim.robot.sensing import SENSING_FIELDS
 
 PhysicalField = Literal[

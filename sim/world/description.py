@@ -22,9 +22,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from snakeloco.sim.robot.description import FLOOR, Robot, validation_message
+from snakeloco.sim.robot.description import FLOOR, Robot, read_yaml, validated
 
 if TYPE_CHECKING:
     import mujoco
@@ -267,29 +267,13 @@ WORLDS_DIR = Path(__file__).resolve().parent.parent / "worlds"
 
 def world_from_dict(data: object, source: str = "world") -> World:
     """Validate a parsed world; WorldError names ``source``, the field and the reason."""
-    if not isinstance(data, dict):
-        raise WorldError(f"{source}: a world description is a mapping of fields, got {type(data).__name__}")
-    try:
-        return World.model_validate(data)
-    except ValidationError as exc:
-        message = validation_message(exc).replace("snakeloco robot show", "snakeloco world show")
-        raise WorldError(f"{source}: {message}") from None
+    return validated(World, data, source, WorldError, "world")
 
 
 def load_world(path: str | Path) -> World:
     """A world from YAML: a path, or the name of a shipped world (``rough``, ``steps``, ...)."""
-    import yaml
-
     path = Path(path)
     if not path.exists() and (WORLDS_DIR / f"{path.name}.yaml").exists():
         path = WORLDS_DIR / f"{path.name}.yaml"
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        shipped = ", ".join(sorted(p.stem for p in WORLDS_DIR.glob("*.yaml")))
-        raise WorldError(f"{path}: cannot read ({exc.strerror}); shipped worlds: {shipped}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise WorldError(f"{path}: not YAML ({str(exc).splitlines()[0]})") from None
-    return world_from_dict({} if data is None else data, str(path))
+    shipped = ", ".join(sorted(p.stem for p in WORLDS_DIR.glob("*.yaml")))
+    return world_from_dict(read_yaml(path, WorldError, f"; shipped worlds: {shipped}"), str(path))
