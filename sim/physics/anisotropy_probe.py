@@ -95,10 +95,8 @@ def staged_step(model: mujoco.MjModel, data: mujoco.MjData, floor: int | np.ndar
         mujoco.mj_makeConstraint(model, data)
         mujoco.mj_island(model, data)
         mujoco.mj_projectConstraint(model, data)
-    mujoco.mj_sensorPos(model, data)
-    mujoco.mj_forwardSkip(model, data, mujoco.mjtStage.mjSTAGE_POS, 1)
-    mujoco.mj_sensorVel(model, data)
-    mujoco.mj_sensorAcc(model, data)
+    mujoco.mj_sensorPos(model, data)  # mj_forwardSkip past the position stage skips its sensors too
+    mujoco.mj_forwardSkip(model, data, mujoco.mjtStage.mjSTAGE_POS, 0)
     mujoco.mj_implicit(model, data)
 
 

@@ -210,6 +210,17 @@ class Robot(BaseModel):
 
     # The model.
 
+    @property
+    def floor_friction(self) -> list[float]:
+        """A floor pair's five friction coefficients: along and across the link (the contact frame's
+        first and second tangents), torsional, and rolling twice."""
+        return [
+            self.friction_along,
+            self.friction_across,
+            self.friction_torsion,
+            *[self.friction_rolling] * 2,
+        ]
+
     def build_spec(self) -> mujoco.MjSpec:
         """The robot as a ``mujoco.MjSpec``: the same elements in the same order as ``sim/snake.xml``
         for the default description, so the compiled models are equal field by field."""
@@ -263,10 +274,8 @@ class Robot(BaseModel):
             if i == body_link:
                 body.add_site(name=BODY_SITE, pos=[body_x, 0, 0])
             parent = body
-        friction = [self.friction_along, self.friction_across, self.friction_torsion]
-        friction += [self.friction_rolling] * 2  # axial, lateral, torsional, rolling, rolling
         for name in self.link_geoms:
-            spec.add_pair(geomname1=FLOOR, geomname2=name, condim=3, friction=friction)
+            spec.add_pair(geomname1=FLOOR, geomname2=name, condim=3, friction=self.floor_friction)
         for k, joint in enumerate(self.joint_names, start=1):
             servo = spec.add_actuator(name=f"servo{k}", target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
             servo.set_to_position(kp=self.servo_kp, kv=self.servo_kv)

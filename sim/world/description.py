@@ -242,13 +242,11 @@ class World(_Part):
                     friction=[robot.friction_along, robot.friction_torsion, robot.friction_rolling],
                     rgba=[0.45, 0.42, 0.38, 1],
                 )
-        friction = [robot.friction_along, robot.friction_across, robot.friction_torsion]
-        friction += [robot.friction_rolling] * 2
         for ground in self.ground_geoms():
             if ground.startswith(f"{GROUND}_peg"):
                 continue
             for link in robot.link_geoms:
-                spec.add_pair(geomname1=ground, geomname2=link, condim=3, friction=friction)
+                spec.add_pair(geomname1=ground, geomname2=link, condim=3, friction=robot.floor_friction)
         return spec
 
     def compile(self, robot: Robot) -> mujoco.MjModel:
