@@ -82,6 +82,7 @@ def test_wheel_installs_under_one_name_with_its_data(tmp_path):
     assert {t for t in top if not t.endswith(".dist-info")} == {"snakeloco"}, top
     for needed in (
         "snakeloco/sim/snake.xml",
+        "snakeloco/sim/physics/ground_contact.c",
         "snakeloco/sim/robots/planar6.yaml",
         "snakeloco/sim/gaits/library.json",
         "snakeloco/model/pretrained/model.safetensors",

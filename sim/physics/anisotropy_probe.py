@@ -5,10 +5,9 @@ The robot's floor pairs give friction (along, across) on the contact frame's two
 capsule-plane collider orients that frame along the capsule (MuJoCo issue #67); on a heightfield or a box
 the tangents follow from the normal alone, so "along" lands on an arbitrary direction. This module
 replays one gait, open loop, on the same robot over three grounds (the plane, a flat heightfield, a flat
-box), each stepped either by ``mj_step`` or by a staged step that rewrites every floor contact's frame
-along its link before the constraints are built (``mj_fwdPosition``, the frames re-aligned,
-``mj_makeConstraint`` + ``mj_island`` + ``mj_projectConstraint``, then ``mj_forwardSkip`` past the
-position stage and ``mj_implicit``). It reports where each replay ends and what a replay costs.
+box), each stepped either by ``mj_step`` or by the staged step of ``sim.physics.ground_contact``, which
+rewrites every floor contact's frame along its link before the constraints are built. It reports where
+each replay ends and what a replay costs.
 
 ``python -m snakeloco.sim.physics.anisotropy_probe [GAIT ...]`` prints the table docs/terrain.md shows.
 """
@@ -22,6 +21,7 @@ import mujoco
 import numpy as np
 
 from snakeloco.sim.gaits.library import PRESETS
+from snakeloco.sim.physics import ground_contact
 from snakeloco.sim.physics.command_rule import CommandRule, expand_commands
 from snakeloco.sim.robot.description import BODY_SITE, DEFAULT_ROBOT, FLOOR, Robot
 
@@ -52,52 +52,14 @@ def ground_model(robot: Robot, ground: str) -> mujoco.MjModel:
     return spec.compile()
 
 
-def ground_ids(model: mujoco.MjModel) -> np.ndarray:
-    """The ids of the plane and of a world's ground geoms (``sim.world``: ``ground_*``, pegs aside)."""
-    names = [model.geom(i).name for i in range(model.ngeom)]
-    return np.array(
-        [i for i, n in enumerate(names) if n == FLOOR or (n.startswith("ground_") and "peg" not in n)]
-    )
-
-
-def realign(model: mujoco.MjModel, data: mujoco.MjData, floor: int | np.ndarray) -> int:
-    """Rotate each ground contact's tangent axes about its normal so that the first lies along the link's
-    capsule axis (as the capsule-plane collider sets it); ``floor``: the ground geom id(s). Returns
-    the contacts changed."""
-    n = data.ncon
-    if n == 0:
-        return 0
-    con = data.contact[:n]
-    g1, g2 = con.geom[:, 0], con.geom[:, 1]
-    on1, on2 = np.isin(g1, floor), np.isin(g2, floor)
-    rows = np.flatnonzero(on1 | on2)
-    if len(rows) == 0:
-        return 0
-    links = np.where(on1[rows], g2[rows], g1[rows])
-    axes = data.geom_xmat[links].reshape(-1, 3, 3)[:, :, 2]  # a capsule's axis is its frame's z
-    frames = con.frame[rows].reshape(-1, 3, 3)
-    normal = frames[:, 0]
-    along = axes - (axes * normal).sum(axis=1, keepdims=True) * normal
-    norm = np.linalg.norm(along, axis=1, keepdims=True)
-    keep = norm[:, 0] > 1e-9  # a link standing on its end keeps its frame
-    along[keep] /= norm[keep]
-    along[~keep] = frames[~keep, 1]
-    across = np.cross(normal, along)
-    frame = np.stack([normal, along, across], axis=1).reshape(-1, 9)
-    data.contact.frame[rows] = frame  # the struct array's view: written through
-    return len(rows)
-
-
-def staged_step(model: mujoco.MjModel, data: mujoco.MjData, floor: int | np.ndarray) -> None:
-    """``mj_step`` (implicit integrator) with the floor contacts' frames re-aligned before the constraints."""
-    mujoco.mj_fwdPosition(model, data)
-    if realign(model, data, floor):
-        mujoco.mj_makeConstraint(model, data)
-        mujoco.mj_island(model, data)
-        mujoco.mj_projectConstraint(model, data)
-    mujoco.mj_sensorPos(model, data)  # mj_forwardSkip past the position stage skips its sensors too
-    mujoco.mj_forwardSkip(model, data, mujoco.mjtStage.mjSTAGE_POS, 0)
-    mujoco.mj_implicit(model, data)
+def ground_flags(model: mujoco.MjModel) -> np.ndarray:
+    """(ngeom,) uint8: 1 on the plane and on a world's ground geoms (``sim.world``: ``ground_*``, pegs
+    aside): the contacts the probe re-aligns (the plane's too, to show it changes nothing)."""
+    flags = np.zeros(model.ngeom, dtype=np.uint8)
+    for i in range(model.ngeom):
+        name = model.geom(i).name
+        flags[i] = name == FLOOR or (name.startswith("ground_") and "peg" not in name)
+    return flags
 
 
 def replay_end(model: mujoco.MjModel, commands: np.ndarray, staged: bool) -> tuple[np.ndarray, float]:
@@ -107,13 +69,13 @@ def replay_end(model: mujoco.MjModel, commands: np.ndarray, staged: bool) -> tup
     substeps = round(1.0 / (20.0 * model.opt.timestep))
     targets = expand_commands(commands[None], substeps, CommandRule())[0]
     site = model.site(BODY_SITE).id
-    floor = ground_ids(model)
+    flags = ground_flags(model)
     start = data.site_xpos[site][:2].copy()
     t0 = time.perf_counter()
     for u in targets:
         data.ctrl[:] = u
         if staged:
-            staged_step(model, data, floor)
+            ground_contact.step(model, data, flags)
         else:
             mujoco.mj_step(model, data)
     return data.site_xpos[site][:2] - start, time.perf_counter() - t0

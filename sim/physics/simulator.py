@@ -14,9 +14,9 @@ from collections.abc import Callable, Sequence
 
 import mujoco
 import numpy as np
-from mujoco import rollout as mj_rollout
 
 from snakeloco.sim.gaits.excitation import ExcitationConfig
+from snakeloco.sim.physics import ground_contact
 from snakeloco.sim.physics.body import body_states
 from snakeloco.sim.physics.command_rule import CommandRule, expand_commands, why_broken
 from snakeloco.sim.physics.results import (
@@ -31,6 +31,7 @@ from snakeloco.sim.physics.stream import STATE_SPEC as _STATE_SPEC
 from snakeloco.sim.physics.stream import Streaming
 from snakeloco.sim.physics.threads import FifoLock, RolloutThreads, resolve_workers
 from snakeloco.sim.robot.description import BODY_SITE, Robot, resolve_robot
+from snakeloco.sim.world.description import DEFAULT_WORLD, World
 
 VARIATION_MODELS_KEPT = 64
 """Compiled variation models a simulator keeps (the default set is 12; a fit's candidates come and go)."""
@@ -38,7 +39,8 @@ VARIATION_MODELS_KEPT = 64
 
 class Simulator(Streaming):
     """Batched open-loop rollouts of the snake on ``workers`` threads (``RolloutThreads``: MuJoCo's
-    rollout with the GIL released).
+    rollout with the GIL released), on ``world`` (default: the flat plane; off the plane the ground
+    contacts keep the links' anisotropic friction, ``sim.physics.ground_contact``).
 
     ``nice`` > 0 runs the rollouts on threads at that much lower CPU priority (Linux), leaving the
     calling thread's own priority alone: an interactive server keeps physics out of the way of
@@ -55,15 +57,16 @@ class Simulator(Streaming):
         nice: int = 0,
         max_batch: int | None = None,
         robot: Robot | None = None,
+        world: World | None = None,
     ) -> None:
         self.excitation = excitation or ExcitationConfig()
         self.config = config or CommandRule()
         self.robot = resolve_robot(robot)
-        self.model = self.robot.compile()
+        self.world = world or DEFAULT_WORLD
+        self.model = self.compile(self.robot)
         self._variation_models: OrderedDict[Robot, mujoco.MjModel] = OrderedDict()
         self.workers = resolve_workers(workers)
-        # Records rolled out per call: a rollout keeps every physics step (~16 MB per record), so a
-        # larger batch runs as consecutive calls of this many (2 per thread keeps both balanced).
+        # Records per rollout call (each keeps every step, ~16 MB): 2 per thread keeps both busy.
         self.max_batch = max(1, int(max_batch or 2 * self.workers))
         self._data = mujoco.MjData(self.model)
         self._pool = None  # one worker at the caller's priority: roll out on the calling thread
@@ -128,7 +131,7 @@ class Simulator(Streaming):
             if wanted is not None and not wanted():
                 return None  # left while it waited for the callers before it
             if self._pool is None and warm_out is None:
-                mj_rollout.rollout(
+                ground_contact.rollout(
                     models or m,
                     self._data,
                     initial,
@@ -139,7 +142,7 @@ class Simulator(Streaming):
                 )
             elif self._pool is None:  # one row at a time, each one's final warm start kept
                 for i in range(batch):
-                    mj_rollout.rollout(
+                    ground_contact.rollout(
                         m if models is None else models[i],
                         self._data,
                         initial[i : i + 1],
@@ -185,6 +188,10 @@ class Simulator(Streaming):
         """The rollout threads (``RolloutThreads``), or None where rollouts run on the caller's thread."""
         return self._pool
 
+    def compile(self, robot: Robot) -> mujoco.MjModel:
+        """``robot`` on this simulator's world (the default world: the robot's own model, bit for bit)."""
+        return robot.compile() if self.world == DEFAULT_WORLD else self.world.compile(robot)
+
     def latency_steps(self, robot: Robot) -> int:
         """A robot's command latency in whole physics steps of this simulator."""
         return round(robot.latency / self.model.opt.timestep)
@@ -200,7 +207,7 @@ class Simulator(Streaming):
             changed = [f for f in fixed if getattr(robot, f) != getattr(self.robot, f)]
             if changed:
                 raise ValueError(f"a variation changes physics, not {', '.join(changed)}")
-            model = self._variation_models[robot] = robot.compile()
+            model = self._variation_models[robot] = self.compile(robot)
             while len(self._variation_models) > VARIATION_MODELS_KEPT:  # a fit's candidates: each new
                 self._variation_models.popitem(last=False)
         self._variation_models.move_to_end(robot)
@@ -342,10 +349,7 @@ class Simulator(Streaming):
 
     def _diagnose(self, state: np.ndarray, sens: np.ndarray, first: int = 0) -> list[str | None]:
         dt = self.model.opt.timestep
-        failures: list[str | None] = []
-        for b in range(state.shape[0]):
-            failures.append(self.diagnose_steps(state[b], sens[b], dt, first))
-        return failures
+        return [self.diagnose_steps(state[b], sens[b], dt, first) for b in range(state.shape[0])]
 
     def diagnose_steps(self, state: np.ndarray, sens: np.ndarray, dt: float, first: int = 0) -> str | None:
         """Why a rollout's steps (``state``/``sens`` rows are steps ``first``, ``first`` + 1, ...)

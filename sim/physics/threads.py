@@ -18,6 +18,8 @@ import mujoco
 import numpy as np
 from mujoco import rollout as mj_rollout
 
+from snakeloco.sim.physics import ground_contact
+
 
 def set_thread_nice(value: int | None) -> int | None:
     """Set the calling thread's nice value (Linux: per thread; threads and processes it starts
@@ -197,7 +199,7 @@ def rollout_row(
         data = local.data.get(model.signature)
         if data is None:
             data = local.data[model.signature] = mujoco.MjData(model)
-    local.runner.rollout(model, data, **arrays)
+    ground_contact.rollout(model, data, runner=local.runner, **arrays)
     if warm_out is not None:
         warm_out[:] = data.qacc_warmstart
 
