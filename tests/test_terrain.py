@@ -199,11 +199,25 @@ def test_world_show_and_mjcf_commands(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["world", "show", str(tmp_path / "missing.yaml")])
     assert "shipped worlds: pegs, rough, slope10, steps" in capsys.readouterr().err
-    robot_slope = DEFAULT_ROBOT.model_copy(update={"slope_deg": 5.0})
-    from snakeloco.sim.world.description import WorldError, load_world
 
-    with pytest.raises(WorldError, match="set the slope in one place"):
-        load_world("slope10").compile(robot_slope)
+
+def test_a_robots_own_slope_tilts_a_sloped_world_further():
+    """A slope variation (or an old robot file's slope) replayed on a sloped world: the tilts compose."""
+    from snakeloco.sim.world.description import World, load_world
+
+    world = load_world("slope10")
+    ahead = DEFAULT_ROBOT.model_copy(
+        update={"slope_deg": 5.0, "slope_direction_deg": world.slope_direction_deg}
+    )
+    g = np.array(load_world("slope10").compile(ahead).opt.gravity)
+    tilt = np.degrees(np.arccos(-g[2] / np.linalg.norm(g)))
+    assert tilt == pytest.approx(15.0, abs=1e-9) and np.linalg.norm(g) == pytest.approx(9.81)
+    across = DEFAULT_ROBOT.model_copy(update={"slope_deg": 5.0, "slope_direction_deg": 90.0})
+    g = np.array(World(slope_deg=10.0).compile(across).opt.gravity)
+    assert g[0] < 0 and g[1] < 0  # downhill -x (the world's) and -y (the robot's)
+    np.testing.assert_allclose(
+        World(slope_deg=10.0).compile(DEFAULT_ROBOT).opt.gravity, World(slope_deg=10.0).gravity(DEFAULT_ROBOT)
+    )
 
 
 # --- the staged step in the simulator: native, numpy, and the plane untouched ---------------------
@@ -282,3 +296,83 @@ def test_a_low_rough_ground_carries_the_undulation_as_the_plane_does():
     # 0.33 m with MuJoCo's own frames.
     assert abs(np.linalg.norm(rough) - np.linalg.norm(plane)) <= 0.15 * np.linalg.norm(plane), (plane, rough)
     assert ground_contact.ground_flags(Simulator(world=_rough_world(0.001)).model) is not None
+
+
+# --- --world on the commands ----------------------------------------------------------------------
+
+
+def test_robustness_on_a_world_measures_the_nominal_from_the_flat_grounds_end(tmp_path, capsys):
+    import json
+
+    from snakeloco.app.cli.main import main
+
+    gait = tmp_path / "undulate.csv"
+    main(["gait", "undulate", "--out", str(gait)])
+    one = tmp_path / "one.yaml"
+    one.write_text("- name: slippery\n  scale: {friction_along: 0.5, friction_across: 0.5}\n")
+    main(["robustness", str(gait), "--world", "steps", "--set", str(one), "--json"])
+    out = capsys.readouterr().out
+    report = json.loads(out.strip().splitlines()[-1])
+    assert "on steps" in out and "on the flat ground" in out
+    nominal, flat = report["nominal"], report["flat"]
+    assert report["world"] == "steps" and flat["distance_m"] > 25  # measured 32.6 m on the plane
+    gap = np.hypot(nominal["forward"] - flat["forward"], nominal["sideways"] - flat["sideways"])
+    assert nominal["end_error_m"] == pytest.approx(gap) and gap > 0.1  # the steps change where it ends
+    assert nominal["rel"] == pytest.approx(gap / flat["distance_m"], rel=1e-6)
+    with pytest.raises(SystemExit):
+        main(["robustness", str(gait), "--world", str(tmp_path / "nowhere.yaml")])
+    assert "shipped worlds" in capsys.readouterr().err
+
+
+def test_a_dataset_on_a_world_says_so_and_the_default_worlds_meta_is_unchanged():
+    from snakeloco.sim import GenerateConfig
+    from snakeloco.sim.world.description import load_world
+
+    assert "world" not in GenerateConfig().to_meta()
+    meta = GenerateConfig(world=load_world("rough")).to_meta()
+    assert meta["world"]["rough"]["height_m"] == 0.02
+    assert GenerateConfig.model_validate(meta).world == load_world("rough")
+
+
+@pytest.mark.slow
+def test_design_on_a_world_verifies_its_candidates_there(tmp_path, checkpoint, capsys):
+    import json
+
+    from snakeloco.app.cli.main import main
+    from snakeloco.app.export.gait_csv import read_gait_csv
+    from snakeloco.model.design.search import path_end
+    from snakeloco.sim.data.dataset import BODY_DOWNSAMPLE
+    from snakeloco.sim.physics.simulator import Simulator
+    from snakeloco.sim.world.description import load_world
+
+    out = tmp_path / "design"
+    quick = [
+        "--screen",
+        "64",
+        "--starts",
+        "2",
+        "--generations",
+        "6",
+        "--population",
+        "8",
+        "--candidates",
+        "2",
+    ]
+    target = ["--forward", "0.5", "--sideways", "0.0", "--checkpoint", str(checkpoint), "--world", "rough"]
+    main(["design", *target, *quick, "--rounds", "1", "--out", str(out), "--json", "--workers", "2"])
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["world"] == "rough"
+    rough, flat = Simulator(world=load_world("rough")), Simulator()
+
+    def end(simulator, commands):
+        body = simulator.replay(commands).body[::BODY_DOWNSAMPLE]
+        return path_end(body.astype(np.float32).astype(np.float64))
+
+    moved = 0.0
+    for c in report["candidates"]:
+        commands = read_gait_csv((tmp_path / c["csv"]).read_bytes(), robot=DEFAULT_ROBOT).commands
+        there = end(rough, commands)
+        assert there[0] == pytest.approx(c["simulated"]["forward"], abs=1e-4)
+        assert there[1] == pytest.approx(c["simulated"]["sideways"], abs=1e-4)
+        moved = max(moved, float(np.hypot(*(end(flat, commands)[:2] - there[:2]))))
+    assert moved > 0.01  # the flat ground would have put them elsewhere

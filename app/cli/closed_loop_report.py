@@ -9,15 +9,19 @@ import time
 import numpy as np
 
 
-def closed_loop_report(cmd, text: str, commands: np.ndarray, robot, variations) -> dict:
+def closed_loop_report(cmd, text: str, commands: np.ndarray, robot, variations, world=None) -> dict:
     """Run and print the closed-loop table; returns the report (JSON-ready, ``runs`` dropped)."""
     from snakeloco.app.export.controller import gait_steering
     from snakeloco.sim.physics.backend import open_backend
     from snakeloco.sim.physics.simulator import Simulator
     from snakeloco.sim.scores.closed_loop import closed_loop_robustness
 
-    simulator = Simulator(workers=cmd.workers, robot=robot)
-    runner = None if cmd.backend.backend == "local" else open_backend(cmd.backend, cmd.workers, robot=robot)
+    simulator = Simulator(workers=cmd.workers, robot=robot, world=world)
+    runner = (
+        None
+        if cmd.backend.backend == "local"
+        else open_backend(cmd.backend, cmd.workers, robot=robot, world=world)
+    )
     t0 = time.perf_counter()
     try:
         steering, origin = gait_steering(text, commands, simulator)
@@ -29,7 +33,8 @@ def closed_loop_report(cmd, text: str, commands: np.ndarray, robot, variations) 
     report.pop("runs")
     report["steering_from"] = origin
     report["seconds"] = round(time.perf_counter() - t0, 2)
-    print("\n".join(closed_loop_lines(report, f"{cmd.gait} on {robot.name}", cmd.set)))
+    on = f" on {report['world']}" if "world" in report else ""
+    print("\n".join(closed_loop_lines(report, f"{cmd.gait} on {robot.name}{on}", cmd.set)))
     if cmd.json:
         print(jsonlib.dumps(report))
     return report

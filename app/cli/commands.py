@@ -16,7 +16,7 @@ import tyro
 from pydantic import Field
 
 from snakeloco.app.bench.options import Bench
-from snakeloco.app.cli.options import Checkpoint, Command, Ensemble, Flat, Json, Seed, Workers
+from snakeloco.app.cli.options import Checkpoint, Command, Ensemble, Flat, Json, Seed, Workers, WorldName
 from snakeloco.model.design.config import DesignConfig, Target
 from snakeloco.model.options import (
     PRESETS,
@@ -50,6 +50,8 @@ class Generate(Command):
     robot: Path | None = None
     """A robot description (YAML, `snakeloco robot show`) to simulate on (default: the paper's 8-joint
     snake, sim/snake.xml); its joint count sets the dataset's joint axis."""
+    world: WorldName = "flat"
+    """The ground the records are simulated on (docs/terrain.md): flat (the plane), a shipped world or a world YAML."""
     structured_preset: Literal[tuple(STRUCTURED_PRESETS)] | None = None  # type: ignore[valid-type]
     """With --family structured: which structured family (snakeloco.sim.STRUCTURED_PRESETS). Default
     arcs: the gait library's four kinds (undulation either way at 0.29-0.93 Hz, sidewinding,
@@ -134,6 +136,8 @@ class Design(Command):
     """Simulation threads (default: all cores)."""
     robot: Path | None = None
     """Robot description YAML the candidates are verified on (a fitted robot: `snakeloco fit-robot`); default: the paper's robot."""
+    world: WorldName = "flat"
+    """The ground the candidates are verified on (docs/terrain.md): flat (the plane), a shipped world or a world YAML."""
     robust: bool = False
     """Rank the verified candidates by their error over the default physics variations (each one replayed on every variation: docs/variations.md), not on the nominal robot alone."""
     robust_score: Literal["worst", "p90"] = "worst"
@@ -222,6 +226,8 @@ class Robustness(Command):
     backend: Annotated[BackendConfig, Flat] = BackendConfig()
     robot: Path | None = None
     """Robot description YAML the gait runs on (default: the paper's robot, sim/snake.xml)."""
+    world: WorldName = "flat"
+    """The ground the gait runs on (docs/terrain.md): flat (the plane), a shipped world or a world YAML; on a world the nominal row's end error is from the end of the path the gait takes on the flat ground."""
     workers: Workers = None
     """Simulation threads (default: all cores). Does not change the result."""
     json: Json = False

@@ -12,12 +12,14 @@ def write_design(cmd) -> dict:
     import sys
 
     from snakeloco.app.cli.options import OptionError
+    from snakeloco.app.cli.robot_commands import world_option
     from snakeloco.app.export.gait_csv import PATH_KEY, STEERING_KEY, write_gait_csv
     from snakeloco.model import load_pretrained
     from snakeloco.model.design.search import design
     from snakeloco.sim.robot.description import RobotError, resolve_robot
 
     t0 = time.perf_counter()
+    world = world_option(cmd.world)
     model = load_pretrained(cmd.checkpoint)
     try:
         robot = resolve_robot(cmd.robot) if cmd.robot is not None else model.robot
@@ -41,7 +43,13 @@ def write_design(cmd) -> dict:
         from snakeloco.model.design.closed_loop import closed_loop_design
 
         result = closed_loop_design(
-            searched, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers, robot=robot
+            searched,
+            cmd.target,
+            cmd.config,
+            backend=cmd.backend,
+            workers=cmd.workers,
+            robot=robot,
+            world=world,
         )
     elif cmd.robust:
         from snakeloco.model.design.robust import robust_design
@@ -54,10 +62,17 @@ def write_design(cmd) -> dict:
             workers=cmd.workers,
             robot=robot,
             score=cmd.robust_score,
+            world=world,
         )
     else:
         result = design(
-            searched, cmd.target, cmd.config, backend=cmd.backend, workers=cmd.workers, robot=robot
+            searched,
+            cmd.target,
+            cmd.config,
+            backend=cmd.backend,
+            workers=cmd.workers,
+            robot=robot,
+            world=world,
         )
     robust = result.extra.get("robust")
     cmd.out.mkdir(parents=True, exist_ok=True)
@@ -102,6 +117,7 @@ def write_design(cmd) -> dict:
         "rounds": result.rounds,
         "seconds": time.perf_counter() - t0,
         "robot": robot.name,
+        "world": world.name,
         "robust": None if robust is None else result.extra["score"],
         "closed_loop": bool(result.extra.get("closed_loop")),
         "beyond_reach": result.extra.get("beyond_reach"),

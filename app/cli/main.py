@@ -75,6 +75,10 @@ def run_generate(cmd: Generate) -> Path:
             cfg = cfg.model_copy(update={"robot": load_robot(cmd.robot)})
         except RobotError as exc:
             raise OptionError(str(exc)) from None
+    if cmd.world != "flat":
+        from snakeloco.app.cli.robot_commands import world_option
+
+        cfg = cfg.model_copy(update={"world": world_option(cmd.world)})
     t0 = time.perf_counter()
     progress = Progress(cfg.num_samples, "generate", unit="sample")
     try:

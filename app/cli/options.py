@@ -125,6 +125,8 @@ Checkpoint = Annotated[
         metavar="structured|paper|DIR",
     ),
 ]
+WorldName = Annotated[str, tyro.conf.arg(metavar="flat|rough|steps|pegs|slope10|FILE.yaml")]
+"""The ground a command replays on: flat (the plane), a shipped world (``sim/worlds``) or a world YAML."""
 Json = Annotated[bool, tyro.conf.arg(help="Print the figures as one JSON object on the last line.")]
 
 

@@ -65,8 +65,9 @@ def run_robustness(cmd: Robustness) -> dict:
     from snakeloco.sim.robot.description import RobotError
     from snakeloco.sim.robot.variations import variation_set
     from snakeloco.sim.scores.robustness import readout_line, robustness
+    from snakeloco.sim.world.description import WorldError
 
-    robot = _robot(cmd.robot)
+    robot, world = _robot(cmd.robot), world_option(cmd.world)
     try:
         text = cmd.gait.read_text()
         table = read_gait_csv(text, robot)
@@ -78,18 +79,26 @@ def run_robustness(cmd: Robustness) -> dict:
     if cmd.closed_loop:
         from snakeloco.app.cli.closed_loop_report import closed_loop_report
 
-        return closed_loop_report(cmd, text, table.commands, robot, variations)
+        return closed_loop_report(cmd, text, table.commands, robot, variations, world)
     t0 = time.perf_counter()
-    report = robustness(table.commands, variations, Simulator(workers=cmd.workers, robot=robot))
+    simulator = Simulator(workers=cmd.workers, robot=robot, world=world)
+    try:
+        report = robustness(table.commands, variations, simulator)
+    except WorldError as exc:
+        raise OptionError(f"--world: {exc}") from None
+    finally:
+        simulator.close()
     report.pop("bodies")
     report["seconds"] = round(time.perf_counter() - t0, 2)
     nom = report["nominal"]
     lines = [
-        f"{cmd.gait} on {robot.name} and {len(variations)} variations ({cmd.set} set), "
+        f"{cmd.gait} on {robot.name}{_on(world)} and {len(variations)} variations ({cmd.set} set), "
         f"{report['seconds']:.1f} s",
         f"{'':<28}{'forward m':>10}{'sideways m':>11}{'direction':>10}  {'heading change':<24}{'end error m':>12}{'rel':>7}",
-        f"{'nominal':<28}{_end_cells(nom)}",
+        f"{'nominal':<28}{_end_cells(nom)}" + _off_flat(nom),
     ]
+    if "flat" in report:
+        lines.insert(2, f"{'on the flat ground':<28}{_end_cells(report['flat'])}")
     for r in report["variations"]:
         if r["failure"] is not None:
             lines.append(f"{r['name']:<28}  broke: {r['failure']}")
@@ -100,6 +109,17 @@ def run_robustness(cmd: Robustness) -> dict:
     if cmd.json:
         print(jsonlib.dumps(report))
     return report
+
+
+def _on(world) -> str:
+    return "" if world.name == "flat" and world.flat else f" on {world.name}"
+
+
+def _off_flat(nominal: dict) -> str:
+    """The nominal row's end error from the flat ground's end, where it was replayed on a world."""
+    if "end_error_m" not in nominal:
+        return ""
+    return f"{nominal['end_error_m']:>12.2f}{100 * nominal['rel']:>6.0f}%"
 
 
 def _end_cells(end: dict) -> str:
@@ -231,7 +251,9 @@ def repeated_line(f: dict) -> str:
     )
 
 
-def _world(name: str):
+def world_option(name: str):
+    """``--world``'s ground: flat (the default plane), a shipped world's name or a world YAML; a bad
+    one is refused naming the file, the field and the reason."""
     from snakeloco.sim.world.description import DEFAULT_WORLD, WorldError, load_world
 
     if name == "flat":
@@ -244,14 +266,14 @@ def _world(name: str):
 
 def run_world_show(cmd: WorldShow) -> dict:
     """Print a world description's figures (refusing a bad file with the field and reason)."""
-    return _show("world", _world(cmd.world), cmd.json)
+    return _show("world", world_option(cmd.world), cmd.json)
 
 
 def run_world_mjcf(cmd: WorldMjcf) -> Path:
     """Write a robot on a world as MJCF."""
     from snakeloco.sim.world.description import WorldError
 
-    world, robot = _world(cmd.world), _robot(cmd.robot)
+    world, robot = world_option(cmd.world), _robot(cmd.robot)
     try:
         text = world.mjcf(robot)
     except WorldError as exc:

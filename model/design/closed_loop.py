@@ -93,8 +93,9 @@ def closed_loop_design(
     variations: tuple[Variation, ...] = DEFAULT_SET,
     cancelled=None,
     progress: DesignProgress | None = None,
+    world=None,
 ) -> DesignResult:
-    """Design for ``target`` (twice the candidates), then rank the best verified ones by their
+    """Design for ``target`` (twice the candidates, on ``world``: default the flat plane), then rank the best verified ones by their
     closed-loop worst miss over ``variations`` (module docstring). ``met``: the best one's nominal and
     worst misses within the tolerance. ``cancelled`` and ``progress`` as ``design``'s."""
     from snakeloco.sim.physics.simulator import Simulator
@@ -103,8 +104,8 @@ def closed_loop_design(
     progress = progress or DesignProgress()
     wide = cfg.model_copy(update={"candidates": min(2 * cfg.candidates, 32)})
     robot = robot or model.robot
-    runner = open_backend(backend, workers, robot=robot)
-    simulator = Simulator(workers=workers, robot=robot)
+    runner = open_backend(backend, workers, robot=robot, world=world)
+    simulator = Simulator(workers=workers, robot=robot, world=world)
     try:
         result = design(model, target, wide, runner=runner, cancelled=cancelled, progress=progress)
         pool = sorted((c for c in result.candidates if c.simulated is not None), key=lambda c: c.error_m)

@@ -151,13 +151,14 @@ def robust_design(
     cancelled=None,
     progress: DesignProgress | None = None,
     predicted: bool = True,
+    world=None,
 ) -> DesignResult:
     """Design for ``target`` (twice the candidates; searching with the physics head's predicted fan
     over ``variations`` where the checkpoint has one and ``predicted``), then rank the verified
     candidates by their ``score`` ("worst" or "p90") error over ``variations`` (every one
     replayed), those whose nominal error is within the tolerance first. ``met``: the best one's
     nominal and worst-case errors both within the tolerance. ``runner``: an open backend to replay
-    on (the designer's turns; left open), else one opened here; ``cancelled`` and ``progress`` as
+    on (the designer's turns; left open), else one opened here (on ``world``); ``cancelled`` and ``progress`` as
     ``design``'s."""
     cfg = cfg or DesignConfig()
     progress = progress or DesignProgress()
@@ -167,7 +168,7 @@ def robust_design(
     fan = None
     if predicted and getattr(model, "physics_head", None) is not None:
         fan = PredictedFan(model, [v.apply(robot) for v in variations], score)
-    runner = runner or open_backend(backend, workers, robot=robot)
+    runner = runner or open_backend(backend, workers, robot=robot, world=world)
     # Every candidate the searches may verify, replayed on each variation (given back once known).
     on_others = progress.plan(
         (wide.candidates + (cfg.candidates if fan is not None else 0)) * len(variations)

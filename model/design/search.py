@@ -269,13 +269,14 @@ def design(
     progress: DesignProgress | None = None,
     robot=None,
     fan: FanCost | None = None,
+    world=None,
 ) -> DesignResult:
     """Search, verify in MuJoCo (on ``runner``, an open backend, or one opened from ``backend``), and
     refine the best verified candidates for what physics did, for up to ``cfg.rounds`` rounds.
     ``cancelled`` is polled between search generations (True: stop; the result is then not meant to
     be used); ``progress`` (``DesignProgress``) is told each step, the replays it plans and runs. ``robot``: the
     ``sim.robot.description.Robot`` the candidates are verified on where a backend is opened here (default: the
-    checkpoint's robot). ``fan``: the search also minimises a predicted variations fan's miss
+    checkpoint's robot), on ``world`` (``sim.world``; default: the flat plane). ``fan``: the search also minimises a predicted variations fan's miss
     (``model.design.robust.PredictedFan``)."""
     cfg = cfg or DesignConfig()
     progress = progress or DesignProgress()
@@ -294,7 +295,7 @@ def design(
         t0 = time.perf_counter()
         progress.plan(1)
         progress.step("replaying the family's nearest gait (the target is beyond its reach)")
-        runner = runner or open_backend(backend, workers, robot=robot or model.robot)
+        runner = runner or open_backend(backend, workers, robot=robot or model.robot, world=world)
         try:
             verified = verify(model, [nearest], target, cfg, runner, members=1)
         finally:
@@ -337,7 +338,7 @@ def design(
             what = "replaying" if rnd == 1 else "corrected for what physics did: replaying"
             progress.step(f"{what} {len(proposed)} candidates (round {rnd} of at most {cfg.rounds})")
             t0 = time.perf_counter()
-            runner = runner or open_backend(backend, workers, robot=robot or model.robot)
+            runner = runner or open_backend(backend, workers, robot=robot or model.robot, world=world)
             verified = rank(verified + verify(model, proposed, target, cfg, runner, members=1), target, cfg)
             physics_s += time.perf_counter() - t0
             replays += len(proposed)

@@ -23,6 +23,7 @@ from snakeloco.sim.physics.backend import BackendConfig, open_backend
 from snakeloco.sim.physics.simulator import Simulator
 from snakeloco.sim.physics.threads import resolve_workers
 from snakeloco.sim.robot.description import load_model, mjcf_sha256
+from snakeloco.sim.world.description import DEFAULT_WORLD
 
 MEMORY_BUDGET = 512 * 2**20
 """Bytes of rollout buffers per chunk; bounds peak memory whatever the dataset size."""
@@ -106,10 +107,12 @@ def generate_dataset(
         STRUCTURED_CHUNK if structured else default_chunk_size(resolve_workers(workers), cfg)
     )
     physics = {"mujoco_version": mujoco.__version__, "mjcf_sha256": mjcf_sha256(cfg.robot)}
+    if cfg.world != DEFAULT_WORLD:  # the ground too (default: left out, as every dataset before worlds)
+        physics["world"] = cfg.world.model_dump(mode="json")
     known: dict[int, dict] = {}
     if screened is not None:
         chunk_size, known = read_progress(screened, cfg, physics)
-    runner = open_backend(backend, workers, cfg.excitation, cfg.sim, cfg.robot)
+    runner = open_backend(backend, workers, cfg.excitation, cfg.sim, cfg.robot, cfg.world)
     try:
         with open_writer(cfg, out, chunk_size, physics) as writer:
             if known and writer.chunk_size != chunk_size:

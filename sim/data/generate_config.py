@@ -12,6 +12,7 @@ from snakeloco.sim.gaits.excitation import RECORD, ExcitationConfig
 from snakeloco.sim.gaits.structured import StructuredConfig
 from snakeloco.sim.physics.command_rule import CommandRule
 from snakeloco.sim.robot.description import DEFAULT_ROBOT, Robot
+from snakeloco.sim.world.description import DEFAULT_WORLD, World
 
 
 class GenerateConfig(BaseModel):
@@ -44,6 +45,11 @@ class GenerateConfig(BaseModel):
         "arrays' joint axis.",
         json_schema_extra={"cli": False},
     )
+    world: World = Field(
+        DEFAULT_WORLD,
+        description="The ground the records are simulated on (``sim.world``; default: the flat plane).",
+        json_schema_extra={"cli": False},
+    )
     structured: StructuredConfig = Field(
         StructuredConfig(),
         description="How the structured family draws and screens its gaits (its defaults are documented "
@@ -59,6 +65,7 @@ class GenerateConfig(BaseModel):
         exclude = ({"family", "structured"} if paper else set()) | (
             {"robot"} if self.robot == DEFAULT_ROBOT else set()
         )  # the default robot left out too: datasets written before robots were data hash the same
+        exclude |= {"world"} if self.world == DEFAULT_WORLD else set()  # and the default world
         meta = self.model_dump(mode="json", exclude=exclude or None)
         if not paper:  # undulation ranges at their defaults are left out the same way (older files)
             default = StructuredConfig()

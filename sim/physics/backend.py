@@ -29,6 +29,7 @@ from snakeloco.sim.data.dataset import BODY_DOWNSAMPLE
 from snakeloco.sim.gaits.excitation import RECORD, ExcitationConfig
 from snakeloco.sim.physics.command_rule import CommandRule
 from snakeloco.sim.robot.description import Robot, resolve_robot
+from snakeloco.sim.world.description import DEFAULT_WORLD, World
 
 RAY_MISSING = "--backend ray needs Ray: pip install 'snakeloco[scale]' (or pip install 'ray>=2.9')"
 CONNECT_TIMEOUT_S = 10.0
@@ -76,13 +77,18 @@ class LocalBackend:
     name = "local"
 
     def __init__(
-        self, workers: int | None, excitation: ExcitationConfig, sim: CommandRule, robot: Robot | None = None
+        self,
+        workers: int | None,
+        excitation: ExcitationConfig,
+        sim: CommandRule,
+        robot: Robot | None = None,
+        world: World | None = None,
     ) -> None:
         from snakeloco.sim.physics.simulator import Simulator
         from snakeloco.sim.physics.threads import resolve_workers
 
         self.workers = resolve_workers(workers)
-        self.simulator = Simulator(self.workers, excitation, sim, robot=robot)
+        self.simulator = Simulator(self.workers, excitation, sim, robot=robot, world=world)
         self._owned = True
 
     @classmethod
@@ -107,8 +113,9 @@ class LocalBackend:
 
 
 @functools.cache
-def _worker_simulator(excitation_json: str, sim_json: str, robot_json: str):
-    """One single-threaded simulator per Ray worker process and robot, made on its first task and kept."""
+def _worker_simulator(excitation_json: str, sim_json: str, robot_json: str, world_json: str):
+    """One single-threaded simulator per Ray worker process, robot and world, made on its first task and
+    kept."""
     from snakeloco.sim.physics.simulator import Simulator
 
     return Simulator(
@@ -116,12 +123,13 @@ def _worker_simulator(excitation_json: str, sim_json: str, robot_json: str):
         ExcitationConfig.model_validate_json(excitation_json),
         CommandRule.model_validate_json(sim_json),
         robot=Robot.model_validate_json(robot_json),
+        world=World.model_validate_json(world_json),
     )
 
 
-def _run_task(fn: Fn, excitation_json: str, sim_json: str, robot_json: str, job: Job) -> Any:
+def _run_task(fn: Fn, excitation_json: str, sim_json: str, robot_json: str, world_json: str, job: Job) -> Any:
     """The body of every Ray task: ``fn`` on this worker's simulator."""
-    return fn(_worker_simulator(excitation_json, sim_json, robot_json), job)
+    return fn(_worker_simulator(excitation_json, sim_json, robot_json, world_json), job)
 
 
 def _check_reachable(address: str) -> None:
@@ -176,6 +184,7 @@ class RayBackend:
         excitation: ExcitationConfig,
         sim: CommandRule,
         robot: Robot | None = None,
+        world: World | None = None,
     ):
         try:
             import ray
@@ -204,6 +213,7 @@ class RayBackend:
             excitation.model_dump_json(),
             sim.model_dump_json(),
             resolve_robot(robot).model_dump_json(),
+            (world or DEFAULT_WORLD).model_dump_json(),
         )
         self._task = ray.remote(_run_task).options(
             num_cpus=1, max_retries=TASK_RETRIES, retry_exceptions=False
@@ -252,14 +262,16 @@ def open_backend(
     excitation: ExcitationConfig = RECORD,
     sim: CommandRule | None = None,
     robot: Robot | None = None,
+    world: World | None = None,
 ) -> LocalBackend | RayBackend:
     """The backend ``cfg`` names (default local); ``workers``: local threads, or the CPUs of a Ray
-    instance started here; ``robot``: what it replays on (default: the paper's robot). Close it
+    instance started here; ``robot`` on ``world``: what it replays on (default: the paper's robot on
+    the plane). Close it
     (``close``) when done."""
     cfg = cfg or BackendConfig()
     sim = sim or CommandRule()
     if cfg.backend == "local":
         if cfg.ray_address is not None:
             raise BackendError("--ray-address is for --backend ray")
-        return LocalBackend(workers, excitation, sim, robot)
-    return RayBackend(cfg.ray_address, workers, excitation, sim, robot)
+        return LocalBackend(workers, excitation, sim, robot, world)
+    return RayBackend(cfg.ray_address, workers, excitation, sim, robot, world)

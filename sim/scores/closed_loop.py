@@ -18,7 +18,7 @@ from snakeloco.sim.control.follower import FollowerConfig
 from snakeloco.sim.control.steering import Steering
 from snakeloco.sim.physics.results import SimulationError
 from snakeloco.sim.robot.variations import Variation
-from snakeloco.sim.scores.robustness import MIN_DISTANCE
+from snakeloco.sim.scores.robustness import MIN_DISTANCE, flat_simulator, on_world
 
 
 def closed_loop_rows(simulator, job: tuple) -> list:
@@ -75,7 +75,8 @@ def closed_loop_robustness(
     runner=None,
 ) -> dict:
     """Play ``commands`` with ``steering`` on the nominal robot and each variation, following
-    ``reference`` (None: ``nominal_reference``), in one batch (``runner``: a backend, ``sim.physics.backend``,
+    ``reference`` (None: ``nominal_reference``, on the flat default ground where ``simulator`` is on
+    a world), in one batch (``runner``: a backend, ``sim.physics.backend``,
     whose jobs each run a few rows on its own simulator of the same robot; None: ``simulator``'s threads).
 
     Returns ``{"steering", "reference_end", "distance_m", "nominal": row, "variations": [row + name,
@@ -85,7 +86,13 @@ def closed_loop_robustness(
     the share of time the input sat at its limit. A gait without a steering input is played open loop
     (its rows say so through ``steering``)."""
     commands = np.asarray(commands, np.float64)
-    if reference is None:
+    if reference is None and on_world(simulator):  # the path it would take on flat ground
+        flat = flat_simulator(simulator)
+        try:
+            reference = nominal_reference(commands, flat, steering.period)
+        finally:
+            flat.close()
+    elif reference is None:
         reference = nominal_reference(commands, simulator, steering.period)
     nominal = simulator.robot
     robots = [nominal, *(v.apply(nominal) for v in variations)]
@@ -139,7 +146,7 @@ def closed_loop_robustness(
             r["name"] for r in out_rows if r["failure"] is None and end == "arrive" and not r["arrived"]
         ],
         "runs": runs,
-    }
+    } | ({"world": simulator.world.name} if on_world(simulator) else {})
 
 
 def closed_loop_table(

@@ -21,6 +21,7 @@ from snakeloco.sim.physics.body import travel
 from snakeloco.sim.physics.results import SimulationError
 from snakeloco.sim.robot.description import Robot
 from snakeloco.sim.robot.variations import Variation
+from snakeloco.sim.world.description import DEFAULT_WORLD
 
 MIN_DISTANCE = 0.5
 """Metres: below this nominal distance the relative error is taken against 0.5 m."""
@@ -53,7 +54,8 @@ def robustness(
     ``simulator``: a ``sim.physics.simulator.Simulator`` of ``robot`` (one is made where None). Returns
     ``{"nominal": {forward, sideways, distance_m, direction_deg, heading_change_deg, turns},
     "variations": [{name, params, forward, sideways, ..., end_error_m, rel, failure}], "worst_end_error_m", "worst_rel",
-    "worst"}``, the body series under ``"bodies"`` ((1 + V, T, 6), nominal first; NaN rows where a
+    "worst"}`` (on a world other than the flat default also ``"world"`` and ``"flat"``: the flat replay's
+    end, the nominal's ``end_error_m`` and ``rel`` from it), the body series under ``"bodies"`` ((1 + V, T, 6), nominal first; NaN rows where a
     variation broke) for drawing.
     """
     if simulator is None:
@@ -67,7 +69,45 @@ def robustness(
     result = simulator.simulate(batch, robots=robots)
     if result.failures[0] is not None:
         raise SimulationError(f"the nominal replay broke: {result.failures[0]}")
-    return summarise(result.body[0], variations, result.body[1:], result.failures[1:])
+    report = summarise(result.body[0], variations, result.body[1:], result.failures[1:])
+    if on_world(simulator):
+        report["world"] = simulator.world.name
+        report["flat"] = off_the_flat(report["nominal"], flat_replay(commands, simulator))
+    return report
+
+
+def on_world(simulator) -> bool:
+    """Whether ``simulator`` replays on a world other than the default flat plane."""
+    world = getattr(simulator, "world", None)
+    return world is not None and world != DEFAULT_WORLD
+
+
+def flat_simulator(simulator):
+    """A simulator of ``simulator``'s robot on the default flat ground (close it after use)."""
+    from snakeloco.sim.physics.simulator import Simulator
+
+    return Simulator(simulator.workers, simulator.excitation, simulator.config, robot=simulator.robot)
+
+
+def flat_replay(commands: np.ndarray, simulator) -> np.ndarray:
+    """The body series (T, 6) of ``commands`` on ``simulator``'s robot on the default flat ground: the
+    path a gait replayed on a world is measured from."""
+    flat = flat_simulator(simulator)
+    try:
+        return flat.replay(commands).body
+    finally:
+        flat.close()
+
+
+def off_the_flat(nominal: dict, flat_body: np.ndarray) -> dict:
+    """Where the flat ground's replay ends, and the world's nominal end error from it: ``nominal``
+    gains ``end_error_m`` and ``rel`` (from the flat end, over the flat distance)."""
+    flat = end_point(flat_body)
+    flat_xy = np.array([flat["forward"], flat["sideways"]])
+    xy = np.array([nominal["forward"], nominal["sideways"]])
+    nominal["end_error_m"] = float(np.hypot(*(xy - flat_xy)))
+    nominal["rel"] = float(relative_change(xy, flat_xy))
+    return flat
 
 
 def summarise(

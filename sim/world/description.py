@@ -145,18 +145,17 @@ class World(_Part):
         return self.rough is None and self.steps is None and self.pegs is None
 
     def gravity(self, robot: Robot) -> tuple[float, float, float]:
-        """Gravity (m/s^2) with this world's slope; a robot's own ``slope_deg`` (old files) where the
-        world sets none. WorldError where both set one."""
-        if self.slope_deg == 0.0:
-            return robot.gravity
-        if robot.slope_deg != 0.0:
-            raise WorldError(
-                f"world {self.name}: slope_deg {self.slope_deg} and the robot's slope_deg {robot.slope_deg}: "
-                "set the slope in one place (the world)"
-            )
+        """Gravity (m/s^2) with this world's slope, tilted further by a robot's own ``slope_deg`` (an old
+        robot file, or a slope variation replayed on this world): the two tilts compose."""
         s, d = math.radians(self.slope_deg), math.radians(self.slope_direction_deg)
-        g = 9.81
-        return (-g * math.sin(s) * math.cos(d), -g * math.sin(s) * math.sin(d), -g * math.cos(s))
+        world = np.array([-math.sin(s) * math.cos(d), -math.sin(s) * math.sin(d), -math.cos(s)])
+        own = np.asarray(robot.gravity, np.float64) / 9.81  # the robot's tilt of straight down
+        axis = np.cross([0.0, 0.0, -1.0], own)  # rotate by the tilt that takes down to ``own``
+        sin, cos = np.linalg.norm(axis), -own[2]
+        if sin > 1e-12:
+            k = axis / sin
+            world = world * cos + np.cross(k, world) * sin + k * (k @ world) * (1 - cos)
+        return tuple(float(v) for v in 9.81 * world)
 
     def figures(self) -> dict[str, float | int | str]:
         """What ``snakeloco world show`` prints."""
@@ -190,7 +189,7 @@ class World(_Part):
         import mujoco
 
         if self.slope_deg != 0.0:
-            spec.option.gravity = self.gravity(robot)
+            spec.option.gravity = self.gravity(robot)  # the robot's spec has its own tilt already
         if self.flat:
             return spec
         world = spec.worldbody
