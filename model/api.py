@@ -28,6 +28,7 @@ from snakeloco.model.vae.network import HierarchicalVAE
 from snakeloco.model.vae.stats import stats_dict
 from snakeloco.model.vae.tracing import Graphs
 from snakeloco.sim.robot.description import DEFAULT_ROBOT
+from snakeloco.sim.world.description import DEFAULT_WORLD
 
 
 class GaitModel(MemberDecoding):
@@ -57,6 +58,8 @@ class GaitModel(MemberDecoding):
         self._stats_mean, self._stats_std = norm["stats_mean"], norm["stats_std"]  # (4,)
         self.robot = config.robot or DEFAULT_ROBOT
         """The robot the checkpoint was trained on (``sim.robot.description.Robot``): its joints, its members."""
+        self.world = config.world or DEFAULT_WORLD
+        """The ground its training data was simulated on (``sim.world``; the flat plane for every shipped one)."""
         g = config.servo_response
         self._servo_response = None if g is None else np.asarray(g, dtype=np.float64)  # (n_joints, L, 2)
         support = config.shape_support

@@ -23,6 +23,7 @@ from snakeloco.model.vae.config import ModelConfig
 from snakeloco.model.vae.network import HierarchicalVAE
 from snakeloco.sim.gaits.structured import StructuredConfig
 from snakeloco.sim.robot.description import Robot
+from snakeloco.sim.world.description import World
 
 SCHEMA_VERSION = 4
 """2: the body-statistics head (signal CNN, MLP, inverse-transform buffers) and its normalisation.
@@ -168,6 +169,10 @@ class CheckpointConfig(BaseModel):
         None,
         description="The robot description the training data was simulated on (``sim.robot.description``); None "
         "(checkpoints of the paper's robot before robots were data): the default robot, sim/snake.xml.",
+    )
+    world: World | None = Field(
+        None,
+        description="The ground the training data was simulated on (``sim.world``); None: the flat plane.",
     )
     mjcf_sha256: str = Field(description="Hash of that robot's MJCF (``Robot.mjcf_sha256``).")
     train: dict = Field(default_factory=dict, description="The resolved training config.")

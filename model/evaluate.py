@@ -192,7 +192,7 @@ def consistency(
         if progress is not None:
             progress(len(modes) * n_prior)
     else:
-        runner = open_backend(backend, workers, robot=model.robot)
+        runner = open_backend(backend, workers, robot=model.robot, world=model.world)
         stored = {}
         try:
             for name, (shapes, _, _) in decoded.items():
@@ -206,7 +206,7 @@ def consistency(
     report = {}
     with ExitStack() as stack:  # one backend for every mode's variation replays
         robust_runner = (
-            stack.enter_context(closing(open_backend(backend, workers, robot=model.robot)))
+            stack.enter_context(closing(open_backend(backend, workers, robot=model.robot, world=model.world)))
             if robustness > 0
             else None
         )
@@ -384,7 +384,7 @@ def evaluate(
     out.update(latent_health(model, z_b, z_j, shape, body_ds, seed=cfg.seed))
     if floor_records > 0:
         n = min(floor_records, len(ds))
-        runner = open_backend(backend, workers, robot=model.robot)
+        runner = open_backend(backend, workers, robot=model.robot, world=model.world)
         try:
             out.update(physics_floor(ds.commands[:n].astype(np.float64), body_ds[:n], runner, cfg.seed))
         finally:

@@ -52,10 +52,10 @@ class Fit:
             self.say(f"warning: {warning}")
         return model, load_dataset(self.data)
 
-    def open_backend(self, robot=None):
-        """The backend the replays run on, on ``robot`` (a checkpoint's ``GaitModel.robot``; None: the
-        default robot); close it when done."""
-        return open_backend(self.backend, self.workers, robot=robot)
+    def open_backend(self, robot=None, world=None):
+        """The backend the replays run on, on ``robot`` and ``world`` (a checkpoint's ``GaitModel.robot``
+        and ``.world``; None: the default robot, the flat plane); close it when done."""
+        return open_backend(self.backend, self.workers, robot=robot, world=world)
 
     def say(self, line: str) -> None:
         """Log ``line`` where the fit has a log."""

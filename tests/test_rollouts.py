@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import snakeloco.sim.physics.simulator as sim_physics
+import snakeloco.sim.physics.ground_contact as sim_physics  # where rollouts reach mujoco.rollout
 from snakeloco.sim import CommandRule, SimulationError
 from snakeloco.sim.physics.simulator import Simulator, replay
 from snakeloco.sim.robot.description import DEFAULT_ROBOT

@@ -376,3 +376,119 @@ def test_design_on_a_world_verifies_its_candidates_there(tmp_path, checkpoint, c
         assert there[1] == pytest.approx(c["simulated"]["sideways"], abs=1e-4)
         moved = max(moved, float(np.hypot(*(end(flat, commands)[:2] - there[:2]))))
     assert moved > 0.01  # the flat ground would have put them elsewhere
+
+
+# --- the designer on a world ------------------------------------------------------------------------
+
+
+def test_the_designer_starts_on_serve_worlds_ground_and_a_tab_switches_world(checkpoint):
+    from snakeloco.app.designer.ground import ground_mesh
+    from snakeloco.sim.world.description import Pegs, World
+
+    from helpers import apply, connect_headless, quiet_server
+
+    own = World(name="my pegs", pegs=Pegs(extent_m=1.5, seed=4))
+    srv = quiet_server(checkpoint, world=own)
+    try:
+        client, d = connect_headless(srv)
+        try:
+            c = d.controls
+            assert c.world.value == "my pegs" and {"flat", "rough", "steps", "pegs", "slope10"} <= set(
+                c.world.options
+            )
+            assert d.session.world == own and d.scene.ground.mesh is not None
+            assert d.session.replay_model.ngeom == DEFAULT_ROBOT.compile().ngeom + len(own.pegs.centres())
+            flat_end = None
+            assert apply(d, c.world, "flat")
+            assert d.session.world == World() and d.scene.ground.mesh is None
+            flat_end = d.simulated.body[-1, 1:3]
+            assert apply(d, c.world, "steps")
+            steps = d.session.replay_model
+            assert d.scene.ground.mesh is not None and len(ground_mesh(steps).faces) == 3 * 12
+            assert d.simulated is not None and not np.allclose(d.simulated.body[-1, 1:3], flat_end)
+            # The ground hangs under the start frame: the start's own world point lands on the origin.
+            p0, yaw0 = d.scene.start
+            frame = d.scene.ground.frame
+            w, z = frame.wxyz[0], frame.wxyz[3]
+            turn = np.arctan2(2 * w * z, 1 - 2 * z * z)
+            assert turn == pytest.approx(-yaw0)
+            rotated = [
+                np.cos(turn) * p0[0] - np.sin(turn) * p0[1],
+                np.sin(turn) * p0[0] + np.cos(turn) * p0[1],
+            ]
+            np.testing.assert_allclose(np.asarray(frame.position[:2]) + rotated, 0.0, atol=1e-9)
+        finally:
+            client.close()
+    finally:
+        srv.stop()
+
+
+@pytest.mark.slow
+def test_bench_terrain_measures_each_world_beside_the_plane(capsys):
+    import json
+
+    from snakeloco.app.cli.main import main
+
+    main(["bench", "terrain", "--repeats", "1", "--no-designer", "--json"])
+    out = capsys.readouterr().out
+    r = json.loads(out.strip().splitlines()[-1])
+    assert set(r["replay"]) == {"rough", "steps", "pegs", "slope10", "rough_numpy", "native"}
+    for name in ("rough", "steps", "pegs", "slope10"):
+        f = r["replay"][name]
+        assert (
+            f["world_s"] > 0 and f["flat_s"] > 0 and f["ratio"] == pytest.approx(f["world_s"] / f["flat_s"])
+        )
+    assert "replay on rough" in out and "first view" not in out
+
+
+# --- the terrain set ---------------------------------------------------------------------------------
+
+
+def test_the_terrain_set_has_each_kind_of_ground_once_and_names_them():
+    from snakeloco.sim.world.sets import TERRAIN_SET
+
+    names = [w.name for w in TERRAIN_SET]
+    assert len(names) == len(set(names)) == 12
+    assert [w.rough.height_m for w in TERRAIN_SET if w.rough] == [0.01, 0.02, 0.03]
+    assert [w.steps.height_m for w in TERRAIN_SET if w.steps] == [0.02, 0.04]
+    assert sorted((w.slope_deg, w.slope_direction_deg) for w in TERRAIN_SET if w.slope_deg) == [
+        (d, a) for d in (5.0, 10.0, 15.0) for a in (0.0, 90.0)
+    ]
+    assert sum(w.pegs is not None for w in TERRAIN_SET) == 1
+
+
+def test_terrain_rows_are_measured_from_the_flat_grounds_end():
+    from snakeloco.sim.gaits.library import PRESETS
+    from snakeloco.sim.physics.simulator import Simulator
+    from snakeloco.sim.scores.robustness import readout_line
+    from snakeloco.sim.scores.terrain import terrain_robustness
+    from snakeloco.sim.world.description import load_world
+
+    commands = PRESETS["undulate"].gait.commands(DEFAULT_ROBOT)
+    worlds = (load_world("steps"), _rough_world(0.02))
+    report = terrain_robustness(commands, Simulator(2), worlds)
+    flat = Simulator().replay(commands).body[-1]
+    assert report["nominal"]["forward"] == pytest.approx(flat[1]) and report["set"] == "terrain"
+    for w, row in zip(worlds, report["variations"], strict=True):
+        on = Simulator(world=w).replay(commands).body[-1]
+        assert row["name"] == w.name and row["forward"] == pytest.approx(on[1])
+        assert row["end_error_m"] == pytest.approx(np.hypot(on[1] - flat[1], on[2] - flat[2]))
+    assert readout_line(report).startswith("on other ground: ends within")
+
+
+@pytest.mark.slow
+def test_robustness_set_terrain_closed_loop_cli(tmp_path, capsys):
+    import json
+
+    from snakeloco.app.cli.main import main
+
+    gait = tmp_path / "undulate.csv"
+    main(["gait", "undulate", "--out", str(gait)])
+    main(["robustness", str(gait), "--set", "terrain", "--closed-loop", "--json"])
+    out = capsys.readouterr().out
+    report = json.loads(out.strip().splitlines()[-1])
+    assert "12 worlds (terrain set)" in out and "flat ground" in out
+    rows = {r["name"]: r for r in report["variations"]}
+    assert len(rows) == 12 and report["nominal"]["rel"] < 0.03
+    # Measured: the loop holds the path on 1 cm of roughness, a 5 deg slope across and the pegs (<= 0.1%).
+    assert rows["rough 1 cm"]["rel"] < 0.03 and rows["pegs"]["rel"] < 0.03

@@ -217,8 +217,19 @@ class BenchLoop(Command):
     json: Json = False
 
 
+class BenchTerrain(Command):
+    """Benchmark what a world costs: a replay on rough ground, steps, pegs and a slope against the same replay on the flat plane (and the numpy step a machine without a C compiler runs), and the designer's first view on rough ground against the plane's (docs/terrain.md)."""
+
+    checkpoint: Checkpoint = None
+    repeats: Annotated[int, Field(ge=1)] = 3
+    """Runs of each replay; the best is kept."""
+    designer: bool = True
+    """Time the designer's first view too (a server per ground)."""
+    json: Json = False
+
+
 class Bench(Command):
-    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design,robust,screen,fit,loop} --help`."""
+    """Benchmarks measured side by side in one run: `snakeloco bench {sim,model,app,load,tabs,scale,design,robust,screen,fit,loop,terrain} --help`."""
 
 
 BENCHES: dict[str, type[Command]] = {
@@ -233,6 +244,7 @@ BENCHES: dict[str, type[Command]] = {
     "screen": BenchScreen,
     "fit": BenchFit,
     "loop": BenchLoop,
+    "terrain": BenchTerrain,
 }
 BENCH_MODULES: dict[str, str] = {name: f"snakeloco.app.bench.{name}" for name in BENCHES} | {
     "sim": "snakeloco.sim.physics.bench",

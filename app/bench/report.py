@@ -348,3 +348,22 @@ def loop(r: dict) -> None:
         print(
             f"designer {name}: closed-loop fan drawn {'never' if s is None else f'{s:.1f} s'} after the replay (goal <= 15 s)"
         )
+
+
+def terrain(r: dict) -> None:
+    """What a world costs (``bench/terrain.py``)."""
+    replay = r["replay"]
+    for name, f in replay.items():
+        if name in ("rough_numpy", "native"):
+            continue
+        print(
+            f"replay on {name:<8} {f['world_s']:6.2f} s, flat {f['flat_s']:6.2f} s: {f['ratio']:.2f}x (goal <= 2)"
+        )
+    step = "native" if replay["native"] else "numpy (no C compiler)"
+    print(
+        f"rough with the numpy step {replay['rough_numpy']['world_s']:.2f} s: {replay['rough_numpy']['ratio']:.2f}x; used: {step}"
+    )
+    for name, f in r.get("first_view", {}).items():
+        print(
+            f"designer on {name}: first view {f['decoded_s']:.2f} s, first replay {f['replayed_s']:.2f} s after connecting (goal <= 5 s)"
+        )

@@ -31,6 +31,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from snakeloco.sim.robot.description import Robot
+from snakeloco.sim.world.description import DEFAULT_WORLD, World
 
 STAGES = ("generate", "train", "calibrate", "evaluate")
 STATE = "build.json"
@@ -71,9 +72,11 @@ def _family(robot: Robot):
     return for_robot(STRUCTURED_PRESETS[DEFAULT_PRESET], robot)
 
 
-def stage_options(stage: str, robot: Robot, cfg: BuildConfig) -> dict:
+def stage_options(stage: str, robot: Robot, cfg: BuildConfig, world: World = DEFAULT_WORLD) -> dict:
     """What a finished ``stage`` was made with: a stage is reused only where these are unchanged."""
     base = {"robot": robot.model_dump(mode="json"), "seed": cfg.seed}
+    if world != DEFAULT_WORLD:  # builds on the plane keep the options they were made with
+        base["world"] = world.model_dump(mode="json")
     sizes = {
         "generate": {"records": cfg.records, "heldout": cfg.heldout},
         "train": {"records": cfg.records, "epochs": cfg.epochs},
@@ -106,8 +109,9 @@ class Build:
         workers: int | None = None,
         backend=None,
         log: Callable[[str], None] = print,
+        world: World = DEFAULT_WORLD,
     ) -> None:
-        self.robot, self.out, self.cfg = robot, Path(out), cfg or BuildConfig()
+        self.robot, self.out, self.cfg, self.world = robot, Path(out), cfg or BuildConfig(), world
         self.workers, self.backend, self.log = workers, backend, log
         self.out.mkdir(parents=True, exist_ok=True)
         self.state = self._read_state()
@@ -152,7 +156,7 @@ class Build:
         entry = self.state.get(stage)
         if entry is None:
             return False
-        wanted = stage_options(stage, self.robot, self.cfg)
+        wanted = stage_options(stage, self.robot, self.cfg, self.world)
         if entry.get("options") != wanted:
             changed = sorted(k for k in wanted if entry.get("options", {}).get(k) != wanted[k])
             raise BuildError(
@@ -163,7 +167,7 @@ class Build:
 
     def _finish(self, stage: str, seconds: float, **figures) -> None:
         self.state[stage] = {
-            "options": stage_options(stage, self.robot, self.cfg),
+            "options": stage_options(stage, self.robot, self.cfg, self.world),
             "seconds": round(seconds, 1),
             **figures,
         }
@@ -199,7 +203,12 @@ class Build:
             (self.heldout, self.cfg.heldout, self.cfg.seed + HELDOUT_SEED_OFFSET),
         ):
             gen = GenerateConfig(
-                num_samples=n, seed=seed, family="structured", structured=family, robot=self.robot
+                num_samples=n,
+                seed=seed,
+                family="structured",
+                structured=family,
+                robot=self.robot,
+                world=self.world,
             )
             if path.exists():
                 self._check_dataset(path, gen)

@@ -15,6 +15,7 @@ def closed_loop_report(cmd, text: str, commands: np.ndarray, robot, variations, 
     from snakeloco.sim.physics.backend import open_backend
     from snakeloco.sim.physics.simulator import Simulator
     from snakeloco.sim.scores.closed_loop import closed_loop_robustness
+    from snakeloco.sim.scores.terrain import terrain_closed_loop
 
     simulator = Simulator(workers=cmd.workers, robot=robot, world=world)
     runner = (
@@ -25,7 +26,12 @@ def closed_loop_report(cmd, text: str, commands: np.ndarray, robot, variations, 
     t0 = time.perf_counter()
     try:
         steering, origin = gait_steering(text, commands, simulator)
-        report = closed_loop_robustness(commands, variations, simulator, steering, end=cmd.end, runner=runner)
+        if variations is None:  # --set terrain: the worlds, each following the flat ground's path
+            report = terrain_closed_loop(commands, simulator, steering, end=cmd.end)
+        else:
+            report = closed_loop_robustness(
+                commands, variations, simulator, steering, end=cmd.end, runner=runner
+            )
     finally:
         simulator.close()
         if runner is not None:
@@ -42,15 +48,18 @@ def closed_loop_report(cmd, text: str, commands: np.ndarray, robot, variations, 
 
 def closed_loop_lines(report: dict, title: str, set_name: str) -> list[str]:
     """The table a person reads: one row per variation."""
-    n = len(report["variations"])
+    n, terrain = len(report["variations"]), report.get("set") == "terrain"
+    kind, nominal, other = (
+        ("worlds", "flat ground", "ground") if terrain else ("variations", "nominal", "robots")
+    )
     lines = [
-        f"{title}, closed loop ({report['end']}), {n} variations ({set_name} set), {report['seconds']:.1f} s",
+        f"{title}, closed loop ({report['end']}), {n} {kind} ({set_name} set), {report['seconds']:.1f} s",
         f"{report['steering_line']} ({report['steering_from']}); path {report['distance_m']:.2f} m to "
         f"({report['reference_end'][0]:.2f}, {report['reference_end'][1]:.2f})",
         f"{'':<28}{'forward m':>10}{'sideways m':>11}{'end error m':>12}{'rel':>7}{'arrival s':>10}"
         f"{'max xtrack m':>13}{'at limit':>9}",
     ]
-    for r in [{"name": "nominal", **report["nominal"]}, *report["variations"]]:
+    for r in [{"name": nominal, **report["nominal"]}, *report["variations"]]:
         if r["failure"] is not None:
             lines.append(f"{r['name']:<28}  broke: {r['failure']}")
             continue
@@ -62,7 +71,7 @@ def closed_loop_lines(report: dict, title: str, set_name: str) -> list[str]:
     if report["worst_end_error_m"] is not None:
         late = f"; did not arrive by the cap: {', '.join(report['late'])}" if report["late"] else ""
         lines.append(
-            f"closed loop on other robots: ends within {report['worst_end_error_m']:.2f} m "
+            f"closed loop on other {other}: ends within {report['worst_end_error_m']:.2f} m "
             f"({100 * report['worst_rel']:.0f}%); worst: {report['worst']}{late}"
         )
     return lines

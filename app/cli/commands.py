@@ -206,6 +206,8 @@ class Serve(Command):
     """Replays per gait for the predictability fan (the gait plus ensemble-1 noisy copies)."""
     robot: Path | None = None
     """Robot description YAML every replay runs on (a fitted robot: `snakeloco fit-robot`); default: the robot the first checkpoint was trained on."""
+    world: WorldName = "flat"
+    """The ground every replay runs on and the scene draws (docs/terrain.md); each tab can pick another in its World dropdown."""
     variations: bool = True
     """Replay each gait on the default physics variations after its ensemble (the Variations fan, at the lowest priority); --no-variations on a slow machine."""
     closed_loop: bool = True
@@ -218,7 +220,7 @@ class Robustness(Command):
     gait: Annotated[Path, tyro.conf.Positional]
     """The gait CSV (Export CSV's format, or `snakeloco gait NAME --out`)."""
     set: str = "default"
-    """default: one change at a time, the reason for each in docs/variations.md; sampled: 16 robots with every change at once; FILE.yaml: a list of variations (name, scale, add, set of the robot's physical and sensing fields)."""
+    """default: one change at a time, the reason for each in docs/variations.md; sampled: 16 robots with every change at once; terrain: 12 worlds (rough 1-3 cm, steps 2 and 4 cm, slopes 5-15 deg ahead and left, pegs: docs/terrain.md), each measured from the flat ground's end; FILE.yaml: a list of variations (name, scale, add, set of the robot's physical and sensing fields)."""
     closed_loop: bool = False
     """Play the gait with its steering loop following its nominal path (the '# steering:' comment's input, else one found by replays; docs/closed-loop.md): end error from the path's end, arrival time, cross-track error, time at the steering limit."""
     end: Literal["arrive", "on_time"] = "arrive"
@@ -322,6 +324,8 @@ class Build(Command):
     workers: Workers = None
     """Simulation threads (default: all cores)."""
     backend: Annotated[BackendConfig, Flat] = BackendConfig()
+    world: WorldName = "flat"
+    """The ground the family is generated, screened and evaluated on (docs/terrain.md); the model remembers it."""
 
 
 class WorldShow(Command):

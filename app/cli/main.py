@@ -226,6 +226,7 @@ def run_figures(cmd: Figures) -> list[Path]:
 
 def run_serve(cmd: Serve) -> None:
     """Serve the designer until Ctrl-C / SIGTERM."""
+    from snakeloco.app.cli.robot_commands import world_option
     from snakeloco.app.server.lifecycle import serve
 
     serve(
@@ -236,6 +237,7 @@ def run_serve(cmd: Serve) -> None:
         robot=None if cmd.robot is None else _robot(cmd.robot),
         variations=cmd.variations,
         closed_loop=cmd.closed_loop,
+        world=None if cmd.world == "flat" else world_option(cmd.world),
     )
 
 

@@ -65,13 +65,14 @@ def run_robustness(cmd: Robustness) -> dict:
     from snakeloco.sim.robot.description import RobotError
     from snakeloco.sim.robot.variations import variation_set
     from snakeloco.sim.scores.robustness import readout_line, robustness
+    from snakeloco.sim.scores.terrain import terrain_robustness
     from snakeloco.sim.world.description import WorldError
 
     robot, world = _robot(cmd.robot), world_option(cmd.world)
     try:
         text = cmd.gait.read_text()
         table = read_gait_csv(text, robot)
-        variations = variation_set(cmd.set)
+        variations = None if cmd.set == "terrain" else variation_set(cmd.set)  # None: the worlds
     except (GaitCSVError, RobotError, ValueError) as exc:
         raise OptionError(
             f"{cmd.gait}: {exc}" if isinstance(exc, GaitCSVError) else f"--set: {exc}"
@@ -83,7 +84,10 @@ def run_robustness(cmd: Robustness) -> dict:
     t0 = time.perf_counter()
     simulator = Simulator(workers=cmd.workers, robot=robot, world=world)
     try:
-        report = robustness(table.commands, variations, simulator)
+        if variations is None:
+            report = terrain_robustness(table.commands, simulator)
+        else:
+            report = robustness(table.commands, variations, simulator)
     except WorldError as exc:
         raise OptionError(f"--world: {exc}") from None
     finally:
@@ -92,10 +96,12 @@ def run_robustness(cmd: Robustness) -> dict:
     report["seconds"] = round(time.perf_counter() - t0, 2)
     nom = report["nominal"]
     lines = [
-        f"{cmd.gait} on {robot.name}{_on(world)} and {len(variations)} variations ({cmd.set} set), "
+        f"{cmd.gait} on {robot.name}{_on(world)} and {len(report['variations'])} "
+        f"{'worlds' if variations is None else 'variations'} ({cmd.set} set), "
         f"{report['seconds']:.1f} s",
         f"{'':<28}{'forward m':>10}{'sideways m':>11}{'direction':>10}  {'heading change':<24}{'end error m':>12}{'rel':>7}",
-        f"{'nominal':<28}{_end_cells(nom)}" + _off_flat(nom),
+        f"{'nominal' if variations is not None else 'on the flat ground':<28}{_end_cells(nom)}"
+        + _off_flat(nom),
     ]
     if "flat" in report:
         lines.insert(2, f"{'on the flat ground':<28}{_end_cells(report['flat'])}")
@@ -213,7 +219,7 @@ def run_build(cmd: Build) -> dict:
     robot = _robot(cmd.robot)
     cfg = QUICK if cmd.quick else BuildConfig(records=cmd.records, epochs=cmd.epochs)
     try:
-        build = Build(robot, cmd.out, cfg, cmd.workers, cmd.backend)
+        build = Build(robot, cmd.out, cfg, cmd.workers, cmd.backend, world=world_option(cmd.world))
         state = build.run()
     except BuildError as exc:
         raise OptionError(str(exc)) from None

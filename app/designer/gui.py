@@ -110,6 +110,7 @@ class Controls:
 
     readout: viser.GuiHtmlHandle
     family: viser.GuiDropdownHandle
+    world: viser.GuiDropdownHandle
     zb_folder: viser.GuiFolderHandle
     component: viser.GuiDropdownHandle | None
     sliders: list[viser.GuiSliderHandle]
@@ -240,6 +241,8 @@ def build_controls(
     wide: bool = False,
     *,
     n_joints: int,
+    worlds: tuple[str, ...] = ("flat",),
+    world: str = "flat",
 ) -> Controls:
     """Add every folder and control of a tab to ``gui``: the readout first, in view without
     scrolling; ``wide`` (a window of at least ``WIDE_PX``): the plots open too."""
@@ -252,6 +255,13 @@ def build_controls(
             hint="The checkpoint this tab designs with: structured (undulation with steering that physics "
             "can predict; Design for target lands its gaits in MuJoCo) or paper (the paper's random-phase "
             "gaits: only their statistics can be promised)",
+        )
+        world_dropdown = gui.add_dropdown(
+            "World",
+            worlds,
+            initial_value=world,
+            hint="The ground this tab replays on and draws (docs/terrain.md): the flat plane, rough ground, "
+            "steps, pegs, a 10° slope, or serve --world's; the model's paths were learnt on the flat plane",
         )
     zb_folder = gui.add_folder("Body latent z_B")
     component, sliders, reset_button, random_button = build_sliders(gui, zb_folder, z_b_dim, components)
@@ -336,6 +346,7 @@ def build_controls(
     return Controls(
         readout=readout,
         family=family_dropdown,
+        world=world_dropdown,
         zb_folder=zb_folder,
         component=component,
         sliders=sliders,

@@ -11,6 +11,7 @@ import numpy as np
 import trimesh
 import viser
 
+from snakeloco.app.designer.ground import GroundView
 from snakeloco.app.designer.scene_geometry import (
     SHAPE_CORNERS,
     SHAPES_AT,
@@ -85,6 +86,7 @@ class TabScene:
         self.start = (np.zeros(3), 0.0)  # the replay's initial body position (m) and heading (rad), world
         scene = client.scene
         self.grid = scene.add_grid("/grid", 20.0, 20.0, cell_size=0.1, section_size=1.0)
+        self.ground = GroundView(scene)  # the world's rough ground, steps and pegs (none on the plane)
         self.snake = None
         self.set_robot(robot)
         self.gen_path = self.band = None
@@ -245,6 +247,7 @@ class TabScene:
     def draw_streaming(self, body: np.ndarray, qpos0: np.ndarray) -> None:
         """The simulated path so far (a streamed replay's first samples)."""
         self.start = self.kinematics.start_frame(qpos0)
+        self.ground.place(self.start)
         self._draw_sim_path(body)
 
     def draw_simulated(self, gait: DecodedGait, sim: SimulatedGait, ensemble: bool) -> None:
@@ -254,6 +257,7 @@ class TabScene:
         and the fan's batches once the ensemble is done, become one node each here, so that the
         next slider move removes two nodes instead of a dozen (the decoded view waits on that)."""
         self.start = self.kinematics.start_frame(sim.qpos[0])
+        self.ground.place(self.start)
         z0 = float(self.start[0][2])
         self._draw_sim_path(sim.body)
         if len(self.sim_parts) > 1 and self._sim_points is not None:

@@ -23,6 +23,7 @@ from snakeloco.sim.physics.simulator import Simulator
 from snakeloco.sim.physics.threads import resolve_workers
 from snakeloco.sim.robot.description import Robot
 from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE, compare, perturbed_commands
+from snakeloco.sim.world.description import World
 
 ZkMode = Literal["zero", "sampled"]
 
@@ -162,7 +163,8 @@ class GaitSession:
             self._owned.append(physics)
         self._simulator, self.physics, self.tab = simulator, physics, tab
         self._nominal = self._server = simulator
-        self._robot_simulators: dict[Robot, Simulator] = {}
+        self._robot_simulators: dict[tuple[Robot, World], Simulator] = {}
+        self._world = simulator.world  # the ground this tab replays on (its World dropdown)
 
     @property
     def robot(self) -> Robot:
@@ -174,17 +176,33 @@ class GaitSession:
         """The robot the session started on (the server's)."""
         return self._nominal.robot
 
+    @property
+    def world(self) -> World:
+        """The ground this session replays on (``sim.world``)."""
+        return self._world
+
+    @property
+    def replay_model(self):
+        """The compiled MuJoCo model this session's replays run on (its robot on its world)."""
+        return self._simulator.model
+
     def set_robot(self, robot: Robot) -> None:
         """Replay from now on on ``robot`` (a fitted robot; the nominal one to go back). Its simulator
         is the session's own, kept while the session lives (a tab offers a few)."""
         self._simulator = self._simulator_of(robot)
 
+    def set_world(self, world: World) -> None:
+        """Replay from now on on ``world`` (the robot stays); its simulator is kept as ``set_robot``'s."""
+        self._world = world
+        self._simulator = self._simulator_of(self._simulator.robot)
+
     def _simulator_of(self, robot: Robot) -> Simulator:
-        if robot == self._nominal.robot:
+        if robot == self._nominal.robot and self._world == self._nominal.world:
             return self._nominal
-        simulator = self._robot_simulators.get(robot)
+        simulator = self._robot_simulators.get((robot, self._world))
         if simulator is None:
-            simulator = self._robot_simulators[robot] = Simulator(workers=1, robot=robot)
+            simulator = Simulator(workers=1, robot=robot, world=self._world)
+            self._robot_simulators[robot, self._world] = simulator
             self._owned.append(simulator)
         return simulator
 
@@ -201,7 +219,7 @@ class GaitSession:
         robot = server_robot if same_joints else model.robot
         if robot == self._nominal.robot:
             return False
-        if robot == self._server.robot:
+        if robot == self._server.robot and self._world == self._server.world:
             self._nominal = self._server
         else:
             self._nominal = self._simulator_of(robot)

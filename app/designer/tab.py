@@ -25,6 +25,7 @@ from snakeloco.app.designer import panel
 from snakeloco.app.designer.design_panel import DesignPanel
 from snakeloco.app.designer.fit_panel import FitPanel
 from snakeloco.app.designer.gait_files import GaitFiles
+from snakeloco.app.designer.ground import TabWorld
 from snakeloco.app.designer.gui import NO_BASELINE, SLIDER_RANGE, WIDE_PX, build_controls
 from snakeloco.app.designer.jobs import TabJobs
 from snakeloco.app.designer.latent_moves import LatentMoves
@@ -109,7 +110,7 @@ class DesignerClient:
         self.variations: tuple[int, dict] | None = None  # (request version, its variations' report)
         self.predicted: tuple[int, dict] | None = None  # (request version, the physics head's report)
         self.jobs, self.files = TabJobs(self), GaitFiles(self)
-        self.moves, self.says = LatentMoves(self), TabReadout(self)
+        self.moves, self.says, self.world = LatentMoves(self), TabReadout(self), TabWorld(self)
         self.timings: deque[Timing] = deque(maxlen=TIMINGS_KEPT)
         self.values_received = 0  # slider values since the tab joined (all, not only those timed)
         self.views_drawn = 0  # decoded views drawn since the tab joined
@@ -132,8 +133,11 @@ class DesignerClient:
             self.moves.component_names(model),
             wide=client.camera.image_width >= WIDE_PX,
             n_joints=self.session.robot.n_joints,
+            worlds=tuple(self.world.worlds),
+            world=self.world.initial,
         )
         self.scene = TabScene(client, self.controls.layers, self.session.robot)
+        self.world.show()
         self.scene.end_spread = END_SPREAD.get(model.family)
         self._wire()
         self.design = DesignPanel(self, self.controls.design)
@@ -178,6 +182,7 @@ class DesignerClient:
         c, g = self.controls, self.guarded
         self.wire_sliders()
         c.family.on_update(g(lambda _e: self.moves.switch_family(c.family.value)))
+        c.world.on_update(g(lambda _e: self.world.choose(c.world.value)))
         c.zk_mode.on_update(g(lambda _e: self.moves.on_zk_changed("mode")))
         c.zk_seed.on_update(g(lambda _e: self.moves.on_zk_changed("seed")))
         c.zk_temperature.on_update(

@@ -37,6 +37,7 @@ from snakeloco.sim.physics.simulator import Simulator
 from snakeloco.sim.physics.threads import resolve_workers
 from snakeloco.sim.robot.description import Robot
 from snakeloco.sim.scores.consistency import ENSEMBLE_SIZE
+from snakeloco.sim.world.description import World
 
 DECODE_THREADS = 1
 """torch intra-op threads of a designer server process: more did not decode faster on 2 cores
@@ -204,6 +205,7 @@ class DesignerServer:
         robot: Robot | None = None,
         variations: bool = True,
         closed_loop: bool = True,
+        world: World | None = None,
     ) -> None:
         check_bindable(host, port)
         self.variations, self.closed_loop = variations, closed_loop
@@ -237,7 +239,7 @@ class DesignerServer:
                 f"--robot {robot.name} has {robot.n_joints} joints, the checkpoint's robot "
                 f"{self.model.robot.name} {self.model.robot.n_joints}: give a description of that robot"
             )
-        self.simulator = Simulator(1, robot=robot or self.model.robot)
+        self.simulator = Simulator(1, robot=robot or self.model.robot, world=world)
         self.robot = self.simulator.robot
         self.clients: dict[int, DesignerClient] = {}
         self.errors: list[str] = []
@@ -306,14 +308,23 @@ def serve(
     robot: Robot | None = None,
     variations: bool = True,
     closed_loop: bool = True,
+    world: World | None = None,
 ) -> None:
     """Run the designer until Ctrl-C or SIGTERM; then stop cleanly (port freed, threads joined);
     ``robot``: the robot every replay runs on (default: the first checkpoint's); ``variations``: replay each
     gait on the default physics variations (the Variations fan); ``closed_loop``: and with its steering
-    loop (the closed-loop fan), where the tab's Closed loop box stays ticked."""
+    loop (the closed-loop fan), where the tab's Closed loop box stays ticked; ``world``: the ground every tab
+    starts on (default: the flat plane; each tab's World dropdown offers the shipped worlds too)."""
     tune_process()
     app = DesignerServer(
-        host, port, checkpoint, ensemble, robot=robot, variations=variations, closed_loop=closed_loop
+        host,
+        port,
+        checkpoint,
+        ensemble,
+        robot=robot,
+        variations=variations,
+        closed_loop=closed_loop,
+        world=world,
     )
     freeze_started()
     stop = threading.Event()

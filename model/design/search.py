@@ -257,6 +257,11 @@ def refine(
     return out
 
 
+def _world(model):
+    """The ground a checkpoint's data was simulated on (a wrapper such as ``OnRobot`` may hide it)."""
+    return getattr(model, "world", None)
+
+
 def design(
     model: GaitModel,
     target: Target,
@@ -295,7 +300,9 @@ def design(
         t0 = time.perf_counter()
         progress.plan(1)
         progress.step("replaying the family's nearest gait (the target is beyond its reach)")
-        runner = runner or open_backend(backend, workers, robot=robot or model.robot, world=world)
+        runner = runner or open_backend(
+            backend, workers, robot=robot or model.robot, world=world or _world(model)
+        )
         try:
             verified = verify(model, [nearest], target, cfg, runner, members=1)
         finally:
@@ -338,7 +345,9 @@ def design(
             what = "replaying" if rnd == 1 else "corrected for what physics did: replaying"
             progress.step(f"{what} {len(proposed)} candidates (round {rnd} of at most {cfg.rounds})")
             t0 = time.perf_counter()
-            runner = runner or open_backend(backend, workers, robot=robot or model.robot, world=world)
+            runner = runner or open_backend(
+                backend, workers, robot=robot or model.robot, world=world or _world(model)
+            )
             verified = rank(verified + verify(model, proposed, target, cfg, runner, members=1), target, cfg)
             physics_s += time.perf_counter() - t0
             replays += len(proposed)

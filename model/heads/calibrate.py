@@ -70,7 +70,7 @@ def replay_prior_gaits(model: GaitModel, cfg: CalibrateConfig, fit: Fit) -> dict
     first_sampled = n + cfg.zero_count
     draws += [(m, z_sampled, first_sampled, seed + SAMPLED_SEED_OFFSET + 1 + m) for m in SAMPLED_MODES]
     temperatures = list(MODES.values())
-    runner = fit.open_backend(model.robot)
+    runner = fit.open_backend(model.robot, model.world)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in GAIT_KEYS if k != "broken"}
     broken = np.zeros(len(MODES), dtype=np.int64)
     try:

@@ -128,7 +128,7 @@ def replay_members_on_physics(
         if not replay:
             todo = []
         elif todo:
-            runner = fit.open_backend(model.robot)
+            runner = fit.open_backend(model.robot, model.world)
 
         rows_of = {  # each chunk's (member, variation) rows, in replay order
             s: [

@@ -59,7 +59,7 @@ def replay_sampler_gaits(model: GaitModel, cfg: SamplerConfig, fit: Fit) -> dict
     Returns, broken replays dropped: z_b (M, Db), mode (M,), z_index (M,) which draw, shape
     (M, n_joints, L, 2) the members' commanded shapes, body (M, 500, 6) their replays at 5 Hz."""
     z = model.sample_z_b(cfg.samples, cfg.seed)
-    runner = fit.open_backend(model.robot)
+    runner = fit.open_backend(model.robot, model.world)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in GAIT_KEYS}
     try:
         for mode, temperature in enumerate((None, ZK_TEMPERATURE)):

@@ -36,6 +36,7 @@ from snakeloco.model.vae.network import HierarchicalVAE
 from snakeloco.model.vae.stats import stats_vector
 from snakeloco.sim import BODY_DOWNSAMPLE, load_dataset, mjcf_sha256, servo_response, synthesis_phase
 from snakeloco.sim.robot.description import DEFAULT_ROBOT
+from snakeloco.sim.world.description import DEFAULT_WORLD
 
 
 class TrainingError(RuntimeError):
@@ -189,6 +190,7 @@ def train(
         ).tolist(),
         shape_support=shape_support(shape_np[train_idx]).tolist(),
         robot=None if robot == DEFAULT_ROBOT else robot,
+        world=None if ds.config.world == DEFAULT_WORLD else ds.config.world,
         mjcf_sha256=ds.meta.get("mjcf_sha256") or mjcf_sha256(),  # what the records were simulated on
         train=cfg.model_dump(mode="json")
         | {"data": str(data), "n_train": len(train_idx), "n_val": len(val_idx)},

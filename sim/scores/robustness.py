@@ -151,12 +151,13 @@ def summarise(
 
 def readout_line(report: dict) -> str:
     """The designer's one line: 'on other robots: ends within 1.3 m (18%); worst: floor friction x0.5'."""
+    other = "on other ground" if report.get("set") == "terrain" else "on other robots"
     if report["worst_end_error_m"] is None:
-        return "on other robots: every variation broke the simulation"
+        return f"{other}: every variation broke the simulation"
     distance = float(np.hypot(report["nominal"]["forward"], report["nominal"]["sideways"]))
     rel = f" ({100 * report['worst_rel']:.0f}%)" if distance >= MIN_DISTANCE else ""
     broken = f"; broke: {', '.join(report['broken'])}" if report["broken"] else ""
-    return f"on other robots: ends within {report['worst_end_error_m']:.1f} m{rel}; worst: {report['worst']}{broken}"
+    return f"{other}: ends within {report['worst_end_error_m']:.1f} m{rel}; worst: {report['worst']}{broken}"
 
 
 def prediction_errors(predicted: dict, replayed: dict) -> np.ndarray:
