@@ -22,6 +22,19 @@ from snakeloco.sim.physics.simulator import replay
 from snakeloco.sim.robot.description import DEFAULT_ROBOT
 
 QUICK = DesignConfig(candidates=2, screen=64, starts=2, generations=15, population=8)
+QUICK_ARGS = [
+    "--screen",
+    "64",
+    "--starts",
+    "2",
+    "--generations",
+    "10",
+    "--population",
+    "8",
+    "--candidates",
+    "2",
+]
+"""A small search for the design command's tests (a few seconds on the tiny checkpoint)."""
 REPORT_KEYS = {"target", "tolerance_m", "met", "candidates", "seconds"}
 CANDIDATE_KEYS = {"csv", "z_b", "predicted", "simulated", "error_m", "ensemble_spread_m"}
 
@@ -133,19 +146,7 @@ def test_design_command_writes_replayable_candidates_and_the_report(tmp_path, ch
         "--checkpoint",
         str(checkpoint),
     ]
-    quick = [
-        "--screen",
-        "64",
-        "--starts",
-        "2",
-        "--generations",
-        "10",
-        "--population",
-        "8",
-        "--candidates",
-        "2",
-    ]
-    main([*argv, *quick, "--out", str(out), "--json", "--workers", "2"])
+    main([*argv, *QUICK_ARGS, "--out", str(out), "--json", "--workers", "2"])
     printed = capsys.readouterr().out.strip().splitlines()
     report = json.loads(printed[-1])
     assert REPORT_KEYS <= set(report) and report == json.loads((out / "report.json").read_text())

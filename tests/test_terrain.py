@@ -338,6 +338,8 @@ def test_a_dataset_on_a_world_says_so_and_the_default_worlds_meta_is_unchanged()
 def test_design_on_a_world_verifies_its_candidates_there(tmp_path, checkpoint, capsys):
     import json
 
+    from test_design import QUICK_ARGS
+
     from snakeloco.app.cli.main import main
     from snakeloco.app.export.gait_csv import read_gait_csv
     from snakeloco.model.design.search import path_end
@@ -346,20 +348,8 @@ def test_design_on_a_world_verifies_its_candidates_there(tmp_path, checkpoint, c
     from snakeloco.sim.world.description import load_world
 
     out = tmp_path / "design"
-    quick = [
-        "--screen",
-        "64",
-        "--starts",
-        "2",
-        "--generations",
-        "6",
-        "--population",
-        "8",
-        "--candidates",
-        "2",
-    ]
     target = ["--forward", "0.5", "--sideways", "0.0", "--checkpoint", str(checkpoint), "--world", "rough"]
-    main(["design", *target, *quick, "--rounds", "1", "--out", str(out), "--json", "--workers", "2"])
+    main(["design", *target, *QUICK_ARGS, "--rounds", "1", "--out", str(out), "--json", "--workers", "2"])
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert report["world"] == "rough"
     rough, flat = Simulator(world=load_world("rough")), Simulator()
@@ -429,7 +419,7 @@ def test_bench_terrain_measures_each_world_beside_the_plane(capsys):
 
     from snakeloco.app.cli.main import main
 
-    main(["bench", "terrain", "--repeats", "1", "--no-designer", "--json"])
+    main(["bench", "terrain", "--repeats", "1", "--sections", "replay", "--json"])
     out = capsys.readouterr().out
     r = json.loads(out.strip().splitlines()[-1])
     assert set(r["replay"]) == {"rough", "steps", "pegs", "slope10", "rough_numpy", "native"}

@@ -208,6 +208,18 @@ def _designer(checkpoint, gaits: tuple[str, ...], log) -> dict:
     return out
 
 
+def travelling_draws(model, sim: Simulator, gaits: int, seed: int, min_distance: float):
+    """4 x ``gaits`` draws of ``model``'s slider density (``seed``), replayed at once: their members,
+    commands and end distances (m), and the first ``gaits`` that travel ``min_distance``, in draw order."""
+    shapes = model.decode_shape(model.sample_z_b(4 * gaits, seed=seed))
+    members, _ = model.project(shapes)
+    commands = model.commands(shapes)
+    result = sim.simulate(commands)
+    ends = np.hypot(result.body[:, -1, 1], result.body[:, -1, 2])
+    ok = [i for i in range(len(commands)) if result.failures[i] is None and ends[i] >= min_distance]
+    return members, commands, ends, ok[:gaits]
+
+
 def _sampler(
     sim: Simulator, gaits: int, seed: int, min_distance: float, checkpoint, out: Path | None, log
 ) -> dict:
@@ -216,15 +228,8 @@ def _sampler(
     model = load_pretrained(checkpoint or "structured")
     done = json.loads(out.read_text())["rows"] if out is not None and out.exists() else []
     rows = list(done)
-    z = model.sample_z_b(4 * gaits, seed=seed)
-    shapes = model.decode_shape(z)
-    members, _ = model.project(shapes)
-    commands = model.commands(shapes)
-    # Where each draw goes, all at once: the ones that travel min_distance are kept, in draw order.
-    result = sim.simulate(commands)
-    ends = np.hypot(result.body[:, -1, 1], result.body[:, -1, 2])
-    travels = [i for i in range(len(z)) if result.failures[i] is None and ends[i] >= min_distance][:gaits]
-    log(f"sampler: {len(travels)} of {len(z)} draws travel >= {min_distance} m (kept the first {gaits})")
+    members, commands, ends, travels = travelling_draws(model, sim, gaits, seed, min_distance)
+    log(f"sampler: {len(travels)} of {4 * gaits} draws travel >= {min_distance} m (kept the first {gaits})")
     seen = {r["draw"] for r in rows}
     for index in travels:
         if index in seen:

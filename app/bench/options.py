@@ -223,8 +223,15 @@ class BenchTerrain(Command):
     checkpoint: Checkpoint = None
     repeats: Annotated[int, Field(ge=1)] = 3
     """Runs of each replay; the best is kept."""
-    designer: bool = True
-    """Time the designer's first view too (a server per ground)."""
+    sections: tuple[Literal["replay", "designer", "library", "sampler"], ...] = ("replay", "designer")
+    """replay: a replay's cost per world; designer: the first view; library, sampler: what crosses what (each gait over the terrain set, open and closed loop)."""
+    gaits: Annotated[int, Field(ge=1)] = 64
+    """Sampler gaits (travelling at least 2 m) over the terrain set."""
+    seed: Seed = 0
+    """Seed of the sampler's draws."""
+    workers: Workers = None
+    out: Path | None = None
+    """Sampler rows written gait by gait to this JSON (a rerun with it skips the gaits done)."""
     json: Json = False
 
 

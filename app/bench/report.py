@@ -351,8 +351,23 @@ def loop(r: dict) -> None:
 
 
 def terrain(r: dict) -> None:
-    """What a world costs (``bench/terrain.py``)."""
-    replay = r["replay"]
+    """What a world costs and what crosses what (``bench/terrain.py``)."""
+    for name, g in r.get("library", {}).items():
+        cells = ", ".join(
+            f"{w} {'y' if f['open']['arrives'] else 'n'}/{'-' if 'closed' not in f else 'y' if f['closed']['arrives'] else 'n'}"
+            for w, f in g["worlds"].items()
+        )
+        print(f"library {name} ({g['distance_m']:.1f} m; {g['steering']}): arrives open/closed: {cells}")
+    for key in ("library_per_world", "sampler"):
+        table = r.get(key, {})
+        table = table.get("per_world", {}) if key == "sampler" else table
+        for w, f in table.items():
+            med = f["closed_rel_median"]
+            print(
+                f"{key.split('_')[0]} on {w}: arrive open {f['open_arrives']}, closed {f['closed_arrives']} of "
+                f"{f['steered']} steered; closed-loop end error median {'-' if med is None else f'{100 * med:.1f}%'}"
+            )
+    replay = r.get("replay", {})
     for name, f in replay.items():
         if name in ("rough_numpy", "native"):
             continue

@@ -39,41 +39,17 @@ def write_design(cmd) -> dict:
         searched, searched_on = OnRobot(model, robot), f"the physics head's paths on {robot.name}"
     if cmd.robust and cmd.closed_loop:
         raise OptionError("--robust and --closed-loop rank candidates two ways: choose one")
+    common = {"backend": cmd.backend, "workers": cmd.workers, "robot": robot, "world": world}
     if cmd.closed_loop:
         from snakeloco.model.design.closed_loop import closed_loop_design
 
-        result = closed_loop_design(
-            searched,
-            cmd.target,
-            cmd.config,
-            backend=cmd.backend,
-            workers=cmd.workers,
-            robot=robot,
-            world=world,
-        )
+        result = closed_loop_design(searched, cmd.target, cmd.config, **common)
     elif cmd.robust:
         from snakeloco.model.design.robust import robust_design
 
-        result = robust_design(
-            searched,
-            cmd.target,
-            cmd.config,
-            backend=cmd.backend,
-            workers=cmd.workers,
-            robot=robot,
-            score=cmd.robust_score,
-            world=world,
-        )
+        result = robust_design(searched, cmd.target, cmd.config, score=cmd.robust_score, **common)
     else:
-        result = design(
-            searched,
-            cmd.target,
-            cmd.config,
-            backend=cmd.backend,
-            workers=cmd.workers,
-            robot=robot,
-            world=world,
-        )
+        result = design(searched, cmd.target, cmd.config, **common)
     robust = result.extra.get("robust")
     cmd.out.mkdir(parents=True, exist_ok=True)
     candidates = []

@@ -12,7 +12,8 @@ from snakeloco.sim.data.chunks import draw_sample, simulate_samples
 from snakeloco.sim.physics.simulator import Simulator, replay
 
 
-def _best(fn, repeats: int) -> float:
+def best_time(fn, repeats: int) -> float:
+    """The shortest of ``repeats`` timed calls of ``fn`` (s)."""
     best = float("inf")
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -51,8 +52,8 @@ def bench_sim(samples: int | None = None, workers: int | None = None, repeats: i
 
     raw_t, gen_t = float("inf"), float("inf")
     for _ in range(repeats):
-        raw_t = min(raw_t, _best(lambda: simulator.rollout(ctrl), 1))
-        gen_t = min(gen_t, _best(generator, 1))
+        raw_t = min(raw_t, best_time(lambda: simulator.rollout(ctrl), 1))
+        gen_t = min(gen_t, best_time(generator, 1))
 
     model = load_model()
     data = mujoco.MjData(model)
@@ -67,8 +68,8 @@ def bench_sim(samples: int | None = None, workers: int | None = None, repeats: i
     replay(commands[0])  # build the cached single-thread simulator outside the timing
     bare_t, replay_t = float("inf"), float("inf")
     for _ in range(repeats):
-        bare_t = min(bare_t, _best(bare, 1))
-        replay_t = min(replay_t, _best(lambda: replay(commands[0]), 1))
+        bare_t = min(bare_t, best_time(bare, 1))
+        replay_t = min(replay_t, best_time(lambda: replay(commands[0]), 1))
     return {
         "workers": workers,
         "samples": samples,
