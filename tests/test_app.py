@@ -277,7 +277,8 @@ def test_decoding_never_waits_for_physics_and_stale_replays_are_not_drawn(server
 
         d.session.replay_streamed = gated_replay
         d.sliders[0].value = 1.0
-        assert wait_until(lambda: decoded(1.0), 30)
+        # The view is drawn, then its timing stamped: wait for both (a loaded machine parts them).
+        assert wait_until(lambda: decoded(1.0) and np.isfinite(d.timings[-1].decoded), 30)
         first = d.timings[-1]
         assert np.isfinite(first.decoded) and not np.isfinite(first.replayed)  # physics is held
         for v in (1.2, 1.4, 1.6):

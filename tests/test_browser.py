@@ -183,3 +183,24 @@ def test_a_design_beside_the_ensemble_leaves_the_page_answering_and_cancels(chec
         page.wait_for_timeout(1000)
         page.screenshot(path=str(shots / "design-verdict.png"))
         assert srv.errors == []
+
+
+def test_the_designer_draws_each_world_under_the_snake(checkpoint, tmp_path):
+    """Issue 70: the page offers the World dropdown and draws rough ground, steps and pegs; screenshots
+    of each go to $SNAKELOCO_SCREENSHOTS (else the test's own folder)."""
+    import os
+    from pathlib import Path
+
+    from helpers import apply
+
+    shots = Path(os.environ.get("SNAKELOCO_SCREENSHOTS", tmp_path))
+    shots.mkdir(parents=True, exist_ok=True)
+    with designer_page(checkpoint) as (sync_api, _srv, page, d):
+        sync_api.expect(page.locator("label").filter(has_text="World")).to_be_visible(timeout=30_000)
+        for name in ("rough", "steps", "pegs"):
+            assert apply(d, d.controls.world, name, 120), name
+            assert d.scene.ground.mesh is not None and d.session.world.name == name
+            d.scene.frame(force=True)
+            page.wait_for_timeout(4000)  # software WebGL: a few frames
+            page.screenshot(path=str(shots / f"world-{name}.png"))
+            assert (shots / f"world-{name}.png").stat().st_size > 10_000
