@@ -482,3 +482,14 @@ def test_robustness_set_terrain_closed_loop_cli(tmp_path, capsys):
     assert len(rows) == 12 and report["nominal"]["rel"] < 0.03
     # Measured: the loop holds the path on 1 cm of roughness, a 5 deg slope across and the pegs (<= 0.1%).
     assert rows["rough 1 cm"]["rel"] < 0.03 and rows["pegs"]["rel"] < 0.03
+
+
+def test_bench_terrain_prints_a_run_without_the_replay_section(capsys):
+    """The printer reads only the sections that ran (it once needed the replay figures)."""
+    from snakeloco.app.bench import report
+
+    row = {"open": {"arrives": True, "speed": 0.3, "rel": 0.05}}
+    report.terrain(
+        {"library": {"undulate": {"distance_m": 32.6, "steering": "steers", "worlds": {"pegs": row}}}}
+    )
+    assert "library undulate (32.6 m; steers): arrives open/closed: pegs y/-" in capsys.readouterr().out

@@ -374,6 +374,8 @@ def terrain(r: dict) -> None:
         print(
             f"replay on {name:<8} {f['world_s']:6.2f} s, flat {f['flat_s']:6.2f} s: {f['ratio']:.2f}x (goal <= 2)"
         )
+    if not replay:  # --sections without replay
+        return
     step = "native" if replay["native"] else "numpy (no C compiler)"
     print(
         f"rough with the numpy step {replay['rough_numpy']['world_s']:.2f} s: {replay['rough_numpy']['ratio']:.2f}x; used: {step}"

@@ -75,10 +75,9 @@ def run_generate(cmd: Generate) -> Path:
             cfg = cfg.model_copy(update={"robot": load_robot(cmd.robot)})
         except RobotError as exc:
             raise OptionError(str(exc)) from None
-    if cmd.world != "flat":
-        from snakeloco.app.cli.robot_commands import world_option
+    from snakeloco.app.cli.robot_commands import world_option
 
-        cfg = cfg.model_copy(update={"world": world_option(cmd.world)})
+    cfg = cfg.model_copy(update={"world": world_option(cmd.world)})
     t0 = time.perf_counter()
     progress = Progress(cfg.num_samples, "generate", unit="sample")
     try:
@@ -237,7 +236,7 @@ def run_serve(cmd: Serve) -> None:
         robot=None if cmd.robot is None else _robot(cmd.robot),
         variations=cmd.variations,
         closed_loop=cmd.closed_loop,
-        world=None if cmd.world == "flat" else world_option(cmd.world),
+        world=world_option(cmd.world),
     )
 
 
