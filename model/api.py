@@ -21,17 +21,19 @@ import numpy as np
 import torch
 
 from snakeloco.model.checkpoint import WEIGHTS, CheckpointConfig, load_checkpoint, load_member_head
-from snakeloco.model.heads.member_decoding import MemberDecoding, _finite
+from snakeloco.model.heads.density import draw_z_b
+from snakeloco.model.heads.member_decoding import MemberHeads, _finite
 from snakeloco.model.heads.member_path import MemberPathHead
 from snakeloco.model.heads.physics_head import load_physics_head
 from snakeloco.model.vae.network import HierarchicalVAE
 from snakeloco.model.vae.stats import stats_dict
 from snakeloco.model.vae.tracing import Graphs
+from snakeloco.sim.gaits.members import Member
 from snakeloco.sim.robot.description import DEFAULT_ROBOT
 from snakeloco.sim.world.description import DEFAULT_WORLD
 
 
-class GaitModel(MemberDecoding):
+class GaitModel:
     """A loaded checkpoint ready for encoding and decoding. Thread-safe (calls are serialised)."""
 
     def __init__(
@@ -66,6 +68,11 @@ class GaitModel(MemberDecoding):
         self._support = None if support is None else np.asarray(support, bool)[..., None]  # (n_joints, L, 1)
         self._lock = threading.Lock()
         self._graphs = Graphs(net)  # one-z_B graphs, made on first use
+        heads, body_norm = (member_head, physics_head), (self._body_mean, self._body_std)
+        self.members = MemberHeads(
+            config, self.robot, heads, body_norm, self._check_shape, self._lock, self._graphs
+        )
+        """Projection onto the family's members and the paths its heads predict (``model.heads.member_decoding``)."""
 
     @property
     def family(self) -> str:
@@ -106,7 +113,7 @@ class GaitModel(MemberDecoding):
                 shape, self.freqs, response=self._servo_response, limit=self.robot.command_limit
             )
         shape = np.asarray(shape, np.float64)
-        members, _ = self.project(shape.reshape(-1, *shape.shape[-3:]))
+        members, _ = self.members.project(shape.reshape(-1, *shape.shape[-3:]))
         out = np.stack([m.commands(self.robot) for m in members])
         return out.reshape(*shape.shape[:-3], *out.shape[1:])
 
@@ -126,7 +133,7 @@ class GaitModel(MemberDecoding):
             if self.config.mjcf_sha256 == DEFAULT_ROBOT.mjcf_sha256
             else f"robot {self.robot.name} (MJCF sha256 {self.config.mjcf_sha256[:12]})"
         )
-        if self.projects and self.covers(robot):
+        if self.projects and self.members.covers(robot):
             return (
                 f"checkpoint {self.path or ''} was trained on {trained}; replays run on {robot.name} "
                 f"(MJCF sha256 {here[:12]}): the model's path is its physics head's prediction for this "
@@ -242,6 +249,54 @@ class GaitModel(MemberDecoding):
         with self._lock, torch.inference_mode():
             shape = (traced or self.net.generate_shape)(torch.as_tensor(z_b), zj)
         return self._phys_shape(shape)
+
+    @property
+    def projects(self) -> bool:
+        """Whether decodes are projected onto exact members of the structured family."""
+        return self.config.members is not None
+
+    def sample_z_b(self, n: int, seed: int = 0, component: int | None = None) -> np.ndarray:
+        """n slider positions (n, Db) from the shipped sampler (``model.heads.density.draw_z_b``; one
+        ``component`` of it, or all), deterministic in ``seed``; N(0, I) where there is no density."""
+        return draw_z_b(self.config.density, self.z_b_dim, n, seed, component)
+
+    def off_data(self, z_b: np.ndarray) -> np.ndarray:
+        """Whether each z_B (B, Db) lies off the data (less dense than 99% of the training records'
+        posteriors): (B,) bool. All False without a density."""
+        z = self._check_z_b(z_b).astype(np.float64)
+        return np.zeros(len(z), bool) if self.config.density is None else self.config.density.off_data(z)
+
+    def decode_members(
+        self, z_b: np.ndarray, z_j: np.ndarray | None = None, with_stats: bool = True
+    ) -> tuple[list[Member], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray] | None]:
+        """Decode, project and predict: the members (B), the projections' residuals (B,), the
+        members' measured shapes (B, n_joints, L, 2), the paths predicted for them (B, 500, 6) (the
+        network's own body decode where the checkpoint has no member head) and the statistics the
+        model predicts for the members' shapes {name: (B,)} (``predict_stats``; None without
+        ``with_stats``, which saves half a batch's time where only paths count: inverse design)."""
+        if self.member_head is None:
+            shape, body, stats = self.decode_raw(z_b, z_j, with_stats=True)
+            members, residuals = self.members.project(shape)
+            return (
+                members,
+                residuals,
+                self.members.member_shapes(members),
+                body,
+                stats if with_stats else None,
+            )
+        # The network's own path and statistics would be thrown away: its joint decoder alone.
+        members, residuals = self.members.project(self.decode_shape(z_b, z_j))
+        # The statistics head judges the member's own shape: the predicted path's 5 Hz steps carry the
+        # head's small ripple, which a path length summed over 500 steps would count 3x over.
+        measured = self.members.member_shapes(members)
+        stats = self.predict_stats(measured) if with_stats else None
+        return (
+            members,
+            residuals,
+            measured,
+            self.members.predict_paths(members, np.reshape(z_b, (len(members), -1))),
+            stats,
+        )
 
     def _check_shape(self, shape: np.ndarray) -> np.ndarray:
         """Joint shapes as float64 (B, n_joints, L, 2); a ValueError names a wrong shape or a non-finite value."""

@@ -181,7 +181,7 @@ def test_100hz_commands_replay_where_the_20hz_ones_do():
     samples = np.vstack([traj.positions, SIDEWIND[:1]])
     ctrl100 = np.stack([np.interp(t_step, times, samples[:, k]) for k in range(8)], axis=1)
     _, sens = sim.rollout(np.stack([ctrl20, ctrl100]))
-    pos = sim._pos_cols
+    pos = sim.columns.pos
     assert np.linalg.norm(sens[0, -1, pos] - sens[1, -1, pos]) < 0.01
     assert np.linalg.norm(sens[0, -1, pos[:2]] - sens[0, 0, pos[:2]]) > 10  # it went somewhere
 

@@ -108,7 +108,7 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     model = load_pretrained(out)
     assert model.physics_head is not None and load_pretrained(checkpoint).physics_head is None
     member = model.decode_members(model.sample_z_b(1, 0))[0][0]
-    paths = model.predict_variation_paths(member, [v.apply(model.robot) for v in DEFAULT_SET])
+    paths = model.members.predict_variation_paths(member, [v.apply(model.robot) for v in DEFAULT_SET])
     assert paths.shape == (len(DEFAULT_SET), 500, 6) and np.isfinite(paths).all()
 
     # A robot inside the physics it was trained on (a fitted robot, say) is covered; far outside, not.
@@ -118,7 +118,9 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
         model.robot
     )
     icy = Variation(name="icy", scale={"friction_along": 0.05, "friction_across": 0.05}).apply(model.robot)
-    assert model.covers(model.robot) and model.covers(slippery) and not model.covers(icy)
+    assert (
+        model.members.covers(model.robot) and model.members.covers(slippery) and not model.members.covers(icy)
+    )
     assert "physics head's prediction" in model.robot_warning(slippery)
     assert "physics head" not in model.robot_warning(icy)
 
@@ -128,7 +130,7 @@ def test_a_physics_head_is_fitted_resumed_loaded_and_its_fan_drawn_and_checked_i
     try:
         assert d.predicted[0] == d.version and d.scene.predicted_fan.visible
         assert d.variations[0] == d.version
-        on_it = model.predict_variation_paths(d.decoded.member, [slippery])[0]
+        on_it = model.members.predict_variation_paths(d.decoded.member, [slippery])[0]
         assert np.allclose(d.decoded.body_ds, on_it, atol=1e-5)
         assert "physics head" in d.controls.readout.content
         text = d.controls.readout.content.replace("&#x27;", "'")
@@ -190,7 +192,7 @@ def test_robust_design_searches_with_the_predicted_fan_and_reports_it_beside_the
     assert fan.cost(ends, target) == pytest.approx(fan.misses(ends, target).max(axis=1))
     # The fan's ends are the physics head's paths' ends, member by member.
     member = model.decode_members(z[:1])[0][0]
-    paths = model.predict_variation_paths(member, fan.robots)
+    paths = model.members.predict_variation_paths(member, fan.robots)
     assert ends[0] == pytest.approx(paths[:, -1, 1:3] - paths[:, 0, 1:3])
     cfg = DesignConfig(screen=32, starts=2, generations=3, population=6, candidates=1, rounds=1)
     result = robust_design(model, target, cfg, workers=2)
@@ -259,7 +261,7 @@ def test_design_on_a_covered_robot_searches_on_the_physics_heads_paths_for_it(
     shape, body = on.decode(z)
     members = model.decode_members(z)[0]
     assert np.allclose(
-        body[1], model.predict_variation_paths(members[1], [slippery])[0], atol=1e-4
+        body[1], model.members.predict_variation_paths(members[1], [slippery])[0], atol=1e-4
     )  # batch of 2 vs 1
     assert np.array_equal(shape, model.decode(z)[0]) and on.z_b_dim == model.z_b_dim
     (tmp_path / "slippery.yaml").write_text(slippery.to_yaml())

@@ -179,17 +179,19 @@ def test_a_checkpoint_with_a_sampler_decodes_exact_members_and_the_paths_predict
     s2, b2 = m.decode(z)
     np.testing.assert_array_equal(s2, shape)
     np.testing.assert_array_equal(b2, body)
-    np.testing.assert_allclose(body, m.predict_paths(members, z))  # the member's path, not a second decode
+    np.testing.assert_allclose(
+        body, m.members.predict_paths(members, z)
+    )  # the member's path, not a second decode
     assert m.config.member_head.z_b_dim == m.z_b_dim  # the head reads the slider position too
     with pytest.raises(ValueError, match="reads each member's z_B"):
-        m.predict_paths(members)
+        m.members.predict_paths(members)
     raw_shape, raw_body = m.decode_raw(z)
     assert not np.allclose(raw_body, body)
     # the shape-only decode (the slider's path on such a checkpoint) is the network's own, to the bit
     np.testing.assert_array_equal(m.decode_shape(z), raw_shape)
     np.testing.assert_array_equal(m.decode_shape(z[:1]), m.decode_raw(z[:1])[0])  # traced
     for member, s in zip(members, shape, strict=True):
-        again, _ = m.project(s[None])
+        again, _ = m.members.project(s[None])
         np.testing.assert_allclose(
             again[0].shape(DEFAULT_ROBOT), member.shape(DEFAULT_ROBOT), atol=1e-12
         )  # an exact member
@@ -387,7 +389,7 @@ def test_the_shipped_structured_path_of_a_members_own_gait_beats_the_path_of_ano
     assert all(f is None for f in result.failures)
     replays = result.body[:, ::BODY_DOWNSAMPLE].astype(np.float64)
     z_b = np.repeat(m.sample_z_b(1, seed=99), 6, axis=0) if m.config.member_head.z_b_dim else None
-    predicted = m.predict_paths(members, z_b)
+    predicted = m.members.predict_paths(members, z_b)
     ends = replays[:, -1, 1:3]
     for i in range(6):
         own = xy_r2(predicted[i], replays[i])

@@ -212,7 +212,7 @@ def travelling_draws(model, sim: Simulator, gaits: int, seed: int, min_distance:
     """4 x ``gaits`` draws of ``model``'s slider density (``seed``), replayed at once: their members,
     commands and end distances (m), and the first ``gaits`` that travel ``min_distance``, in draw order."""
     shapes = model.decode_shape(model.sample_z_b(4 * gaits, seed=seed))
-    members, _ = model.project(shapes)
+    members, _ = model.members.project(shapes)
     commands = model.commands(shapes)
     result = sim.simulate(commands)
     ends = np.hypot(result.body[:, -1, 1], result.body[:, -1, 2])

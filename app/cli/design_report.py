@@ -33,7 +33,7 @@ def write_design(cmd) -> dict:
     if warning := model.robot_warning(robot):
         print(f"snakeloco: warning: {warning}", file=sys.stderr)
     searched, searched_on = model, "the checkpoint's robot"
-    if robot.mjcf_sha256 != model.robot.mjcf_sha256 and model.projects and model.covers(robot):
+    if robot.mjcf_sha256 != model.robot.mjcf_sha256 and model.projects and model.members.covers(robot):
         from snakeloco.model.heads.physics_head import OnRobot
 
         searched, searched_on = OnRobot(model, robot), f"the physics head's paths on {robot.name}"

@@ -78,9 +78,9 @@ class TabJobs:
         robot = self.tab.session.robot
         if decoded.member is None or robot.mjcf_sha256 == self.tab.model.robot.mjcf_sha256:
             return decoded
-        if not self.tab.model.covers(robot):
+        if not self.tab.model.members.covers(robot):
             return decoded
-        body = self.tab.model.predict_variation_paths(decoded.member, [robot])[0]
+        body = self.tab.model.members.predict_variation_paths(decoded.member, [robot])[0]
         return dataclasses.replace(decoded, body_ds=body)
 
     def _predict_variations(self, version: int, decoded: DecodedGait) -> None:
@@ -91,7 +91,7 @@ class TabJobs:
         robot = self.tab.session.robot
         if self._varied_robots is None or self._varied_robots[0] != robot:
             self._varied_robots = (robot, [v.apply(robot) for v in DEFAULT_SET])
-        bodies = self.tab.model.predict_variation_paths(decoded.member, self._varied_robots[1])
+        bodies = self.tab.model.members.predict_variation_paths(decoded.member, self._varied_robots[1])
         report = summarise(decoded.body_ds, DEFAULT_SET, list(bodies), [None] * len(bodies))
         with self.tab.draw_lock:
             if not self.tab.is_current(version):

@@ -345,7 +345,7 @@ class GaitSession:
         ``GaitModel.decode_members`` predicts them."""
         if gait.stats is not None or gait.member is None or not self.model.projects:
             return gait.stats
-        predicted = self.model.predict_stats(self.model.member_shapes([gait.member]))
+        predicted = self.model.predict_stats(self.model.members.member_shapes([gait.member]))
         return {k: float(v[0]) for k, v in predicted.items()}
 
     def encode_replay(self, sim: SimulatedGait) -> np.ndarray:

@@ -56,7 +56,9 @@ class PredictedFan:
         feats = np.tile(self.features, (len(members), 1))
         out = np.zeros((len(rows), 2))
         for s in range(0, len(rows), PREDICT_ROWS):
-            paths = self.model.predict_physics_paths(rows[s : s + PREDICT_ROWS], feats[s : s + PREDICT_ROWS])
+            paths = self.model.members.predict_physics_paths(
+                rows[s : s + PREDICT_ROWS], feats[s : s + PREDICT_ROWS]
+            )
             out[s : s + PREDICT_ROWS] = paths[:, -1, 1:3] - paths[:, 0, 1:3]
         return out.reshape(len(members), v, 2)
 

@@ -126,6 +126,18 @@ class LatentDensity(BaseModel):
         return z, comps
 
 
+def draw_z_b(
+    density: LatentDensity | None, z_b_dim: int, n: int, seed: int = 0, component: int | None = None
+) -> np.ndarray:
+    """n slider positions (n, z_b_dim) from ``density`` (one ``component`` of it, or all),
+    deterministic in ``seed``; without a density, from the N(0, I) prior."""
+    if density is None:
+        if component is not None:
+            raise ValueError("this checkpoint has no density, so no components to draw from")
+        return np.random.default_rng(seed).standard_normal((n, z_b_dim))
+    return density.sample(n, seed, component)[0]
+
+
 def fit_density(
     z_b: np.ndarray, max_components: int = 6, seed: int = 0, names: list[str] | None = None
 ) -> LatentDensity:

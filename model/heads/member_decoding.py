@@ -1,18 +1,19 @@
-"""The slider density and the structured family's members, as a part of ``GaitModel``: slider
-positions drawn from the shipped sampler, decoded shapes projected onto exact members, and the
-paths the member path head predicts for them (``model.heads.member_path``).
-
-``MemberDecoding`` is a mixin: it uses the ``GaitModel`` it is part of (config, servo gain, traced
-graphs, lock, decoders).
+"""The structured family's members, as a part ``GaitModel`` holds (``GaitModel.members``): decoded
+shapes projected onto exact members, the shapes the servos measure for members, and the paths the
+member path head (``model.heads.member_path``) and the physics head predict for them.
 """
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
-from snakeloco.model.heads.member_path import member_inputs
+from snakeloco.model.heads.member_path import MemberPathHead, member_inputs
 from snakeloco.model.heads.physics_head import physics_features
+from snakeloco.model.vae.tracing import Graphs
 from snakeloco.sim.gaits.members import Member
 from snakeloco.sim.gaits.projection import project_many
 
@@ -25,53 +26,48 @@ def _finite(name: str, a: np.ndarray) -> np.ndarray:
     return a
 
 
-class MemberDecoding:
-    """``GaitModel``'s slider density and member decoding."""
+class MemberHeads:
+    """A checkpoint's members and path heads: built by ``GaitModel`` from its config, with the model's
+    lock and traced graphs (calls are serialised with the network's), its body normalisation (mean,
+    std) and its shape check."""
 
-    @property
-    def projects(self) -> bool:
-        """Whether decodes are projected onto exact members of the structured family."""
-        return self.config.members is not None
-
-    def sample_z_b(self, n: int, seed: int = 0, component: int | None = None) -> np.ndarray:
-        """n slider positions (n, Db) from the shipped sampler: the density over the training
-        records' posterior z_B (``model.heads.density``; one ``component`` of it, or all), deterministic in
-        ``seed``. A checkpoint without a density draws from the N(0, I) prior."""
-        if self.config.density is None:
-            if component is not None:
-                raise ValueError("this checkpoint has no density, so no components to draw from")
-            return np.random.default_rng(seed).standard_normal((n, self.z_b_dim))
-        return self.config.density.sample(n, seed, component)[0]
-
-    def off_data(self, z_b: np.ndarray) -> np.ndarray:
-        """Whether each z_B (B, Db) lies off the data (less dense than 99% of the training records'
-        posteriors): (B,) bool. All False without a density."""
-        z = self._check_z_b(z_b).astype(np.float64)
-        if self.config.density is None:
-            return np.zeros(len(z), bool)
-        return self.config.density.off_data(z)
-
-    def _gain(self) -> np.ndarray | None:
-        g = self._servo_response
-        return None if g is None else g[..., 0] + 1j * g[..., 1]  # (n_joints, L)
+    def __init__(
+        self,
+        config,
+        robot,
+        heads: tuple[MemberPathHead | None, MemberPathHead | None],
+        body_norm: tuple[np.ndarray, np.ndarray],
+        check_shape: Callable[[np.ndarray], np.ndarray],
+        lock: threading.Lock,
+        graphs: Graphs,
+    ) -> None:
+        self.family = config.members
+        """The structured family's members the decodes project onto (None: the checkpoint has none)."""
+        self.head_config, self.robot = config.member_head, robot
+        self.member_head, self.physics_head = heads
+        """The member path head and the physics head (``model.heads.physics_head``), where fitted."""
+        g = config.servo_response  # (n_joints, L, 2): the servos' measured / commanded coefficient
+        self._gain = None if g is None else np.asarray(g, np.float64) @ np.array([1.0, 1j])
+        self._body_mean, self._body_std = body_norm
+        self._check_shape, self._lock, self._graphs = check_shape, lock, graphs
 
     def project(self, shape: np.ndarray) -> tuple[list[Member], np.ndarray]:
         """Measured joint shapes (B, n_joints, L, 2) -> the members they project onto (their commanded
         coefficients fitted, ``sim.gaits.projection.project``) and the fits' relative residuals (B,)."""
-        if not self.projects:
+        if self.family is None:
             raise ValueError("this checkpoint's family has no members to project onto")
         shape = self._check_shape(shape)
         c = shape[..., 0] + 1j * shape[..., 1]
-        if (g := self._gain()) is not None:
-            c = c / g
-        return project_many(np.stack([c.real, c.imag], axis=-1), self.config.members, self.robot)
+        if self._gain is not None:
+            c = c / self._gain
+        return project_many(np.stack([c.real, c.imag], axis=-1), self.family, self.robot)
 
     def member_shapes(self, members: list[Member]) -> np.ndarray:
         """The joint shapes (B, n_joints, L, 2) the servos measure for members (commanded x servo gain)."""
         c = np.stack([m.shape(self.robot) for m in members])
         c = c[..., 0] + 1j * c[..., 1]
-        if (g := self._gain()) is not None:
-            c = c * g
+        if self._gain is not None:
+            c = c * self._gain
         return np.stack([c.real, c.imag], axis=-1)
 
     def predict_paths(self, members: list[Member], z_b: np.ndarray | None = None) -> np.ndarray:
@@ -79,7 +75,7 @@ class MemberDecoding:
         ``z_b`` (B, Db): the slider positions they were decoded from, for a head that reads them."""
         if self.member_head is None:
             raise ValueError("this checkpoint has no member path head")
-        head_cfg = self.config.member_head
+        head_cfg = self.head_config
         if head_cfg.z_b_dim and (z_b is None or np.shape(z_b) != (len(members), head_cfg.z_b_dim)):
             raise ValueError(
                 f"this checkpoint's member path head reads each member's z_B: pass z_b of shape "
@@ -134,29 +130,3 @@ class MemberDecoding:
         """The body series (V, 500, 6) the physics head predicts for one member on each of ``robots``
         (``sim.robot.description.Robot``, of this checkpoint's geometry)."""
         return self.predict_physics_paths([member] * len(robots), physics_features(robots, self.robot))
-
-    def decode_members(
-        self, z_b: np.ndarray, z_j: np.ndarray | None = None, with_stats: bool = True
-    ) -> tuple[list[Member], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray] | None]:
-        """Decode, project and predict: the members (B), the projections' residuals (B,), the
-        members' measured shapes (B, n_joints, L, 2), the paths predicted for them (B, 500, 6) (the
-        network's own body decode where the checkpoint has no member head) and the statistics the
-        model predicts for the members' shapes {name: (B,)} (``predict_stats``; None without
-        ``with_stats``, which saves half a batch's time where only paths count: inverse design)."""
-        if self.member_head is None:
-            shape, body, stats = self.decode_raw(z_b, z_j, with_stats=True)
-            members, residuals = self.project(shape)
-            return members, residuals, self.member_shapes(members), body, stats if with_stats else None
-        # The network's own path and statistics would be thrown away: its joint decoder alone.
-        members, residuals = self.project(self.decode_shape(z_b, z_j))
-        # The statistics head judges the member's own shape: the predicted path's 5 Hz steps carry the
-        # head's small ripple, which a path length summed over 500 steps would count 3x over.
-        measured = self.member_shapes(members)
-        stats = self.predict_stats(measured) if with_stats else None
-        return (
-            members,
-            residuals,
-            measured,
-            self.predict_paths(members, np.reshape(z_b, (len(members), -1))),
-            stats,
-        )

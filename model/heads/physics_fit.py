@@ -208,8 +208,8 @@ def score(model, replays: dict, rows: np.ndarray, z_b: np.ndarray) -> dict:
     ``z_b``: the draws the replays' members were decoded from (for a member head that reads them)."""
     members = [replays["members"][i] for i in replays["member"][rows]]
     true = replays["body"][rows].astype(np.float64)
-    pred = model.predict_physics_paths(members, replays["features"][rows])
-    nominal = model.predict_paths(members, np.asarray(z_b)[replays["z_index"][rows]])
+    pred = model.members.predict_physics_paths(members, replays["features"][rows])
+    nominal = model.members.predict_paths(members, np.asarray(z_b)[replays["z_index"][rows]])
     err, base = end_errors(pred, true), end_errors(nominal, true)
     kinds = np.array([m.kind for m in members])
     names = replays["variation"][rows]
@@ -359,7 +359,7 @@ def _fit(model, train: dict, tr_rows: np.ndarray, va_rows: np.ndarray, z: np.nda
         "fit_s": time.perf_counter() - t0,
         "config": cfg.model_dump(),
         "broken": int((~train["ok"]).sum()),
-        # The physics it was trained on, per feature (``GaitModel.covers``); mirrored pairs add -slope_left.
+        # The physics it was trained on, per feature (``GaitModel.members.covers``); mirrored pairs add -slope_left.
         "feature_range": {
             "low": np.minimum(feats.min(0), mirror_features(feats).min(0)).tolist(),
             "high": np.maximum(feats.max(0), mirror_features(feats).max(0)).tolist(),

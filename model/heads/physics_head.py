@@ -95,11 +95,11 @@ def load_physics_head(
 
 class OnRobot:
     """A ``GaitModel`` whose decoded paths are its physics head's prediction on ``robot`` (a fitted
-    robot, say, that ``GaitModel.covers``): what inverse design searches on for that robot. Every
+    robot, say, that ``GaitModel.members.covers``): what inverse design searches on for that robot. Every
     other attribute is the model's own."""
 
     def __init__(self, model, robot: Robot) -> None:
-        if not model.projects or not model.covers(robot):
+        if not model.projects or not model.members.covers(robot):
             raise ValueError(f"the checkpoint's physics head does not cover {robot.name}")
         self._model, self.on = model, robot
         self._features = physics_features([robot], model.robot)
@@ -110,4 +110,6 @@ class OnRobot:
     def decode(self, z_b: np.ndarray, z_j: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The members' shapes (B, J, L, 2) and their paths on ``self.on`` (B, 500, 6)."""
         members, _, shape, _, _ = self._model.decode_members(z_b, z_j, with_stats=False)
-        return shape, self._model.predict_physics_paths(members, np.repeat(self._features, len(members), 0))
+        return shape, self._model.members.predict_physics_paths(
+            members, np.repeat(self._features, len(members), 0)
+        )

@@ -227,10 +227,10 @@ def fit_sampler(fit: Fit, cfg: SamplerConfig | None = None) -> dict:
         model = GaitModel(
             model.net, model.config.model_copy(update={"member_head": head.cfg}), model.path, head
         )
-        pred = model.predict_paths(g_va_members, z_g_val)
+        pred = model.members.predict_paths(g_va_members, z_g_val)
         head_fit["held_out_xy_r2_median"] = float(np.median(_path_r2(pred, gaits["body"][g_val])))
         head_fit["held_out_by_kind"] = by_kind(g_va_members, pred, gaits["body"][g_val])
-        pred = model.predict_paths(rec_va, z_va)
+        pred = model.members.predict_paths(rec_va, z_va)
         head_fit["val_records_xy_r2_median"] = float(np.median(_path_r2(pred, ds.body_ds[va_idx])))
         head_cfg = head.cfg.model_copy(update={"summary": head_fit})
         summary["member_head"] = head_fit

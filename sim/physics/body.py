@@ -5,11 +5,14 @@ middle link's frame (site ``body_frame`` at the centre of link 5: where an IMU o
 of the real robot would be), expressed in the frame of that link's position and heading at t = 0:
 positions are R_z(-yaw_0) (p(t) - p(0)), angles are the Z-Y-X (yaw, pitch, roll) Euler angles of
 R_z(-yaw_0) R(t). Yaw and roll are unwrapped over time (the snake may roll over and over).
-Numpy only.
+Numpy only, but for where the sensors sit in a compiled model (``SensorColumns``).
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+import mujoco
 import numpy as np
 
 BODY_CHANNELS = ("vertical", "forward", "sideways", "roll", "pitch", "yaw")
@@ -103,3 +106,23 @@ def travel(body: np.ndarray) -> dict[str, float]:
         "heading_change_deg": wrap_deg(net),
         "turns": net / 360.0,
     }
+
+
+class SensorColumns(NamedTuple):
+    """Where each measurement sits in a sensordata row: joint angles (n_joints,), the body frame's
+    position (3,) and quaternion (4,), the centre of mass's position (3,) and velocity (3,)."""
+
+    q: np.ndarray
+    pos: np.ndarray
+    quat: np.ndarray
+    com: np.ndarray
+    vel: np.ndarray
+
+    @classmethod
+    def of(cls, model: mujoco.MjModel, n_joints: int) -> SensorColumns:
+        adr = {model.sensor(i).name: model.sensor_adr[i] for i in range(model.nsensor)}
+        q = np.array([adr[f"q{k + 1}"] for k in range(n_joints)])
+        return cls(q, *(adr[name] + np.arange(n) for name, n in BODY_SENSORS))
+
+
+BODY_SENSORS = (("body_pos", 3), ("body_quat", 4), ("com_pos", 3), ("com_vel", 3))

@@ -17,7 +17,7 @@ import numpy as np
 
 from snakeloco.sim.gaits.excitation import ExcitationConfig
 from snakeloco.sim.physics import ground_contact
-from snakeloco.sim.physics.body import body_states
+from snakeloco.sim.physics.body import SensorColumns, body_states
 from snakeloco.sim.physics.command_rule import CommandRule, expand_commands, why_broken
 from snakeloco.sim.physics.results import (
     BatchResult,
@@ -28,7 +28,7 @@ from snakeloco.sim.physics.results import (
 )
 from snakeloco.sim.physics.scheduler import FairRunner
 from snakeloco.sim.physics.stream import STATE_SPEC as _STATE_SPEC
-from snakeloco.sim.physics.stream import Streaming
+from snakeloco.sim.physics.stream import stream
 from snakeloco.sim.physics.threads import FifoLock, RolloutThreads, resolve_workers
 from snakeloco.sim.robot.description import BODY_SITE, Robot, resolve_robot
 from snakeloco.sim.world.description import DEFAULT_WORLD, World
@@ -37,7 +37,7 @@ VARIATION_MODELS_KEPT = 64
 """Compiled variation models a simulator keeps (the default set is 12; a fit's candidates come and go)."""
 
 
-class Simulator(Streaming):
+class Simulator:
     """Batched open-loop rollouts of the snake on ``workers`` threads (``RolloutThreads``: MuJoCo's
     rollout with the GIL released), on ``world`` (default: the flat plane; off the plane the ground
     contacts keep the links' anisotropic friction, ``sim.physics.ground_contact``).
@@ -83,14 +83,16 @@ class Simulator(Streaming):
         data = mujoco.MjData(self.model)  # reset state: straight snake resting on the floor
         self.initial_state = np.empty(mujoco.mj_stateSize(self.model, _STATE_SPEC))
         mujoco.mj_getState(self.model, data, self.initial_state, _STATE_SPEC)
-        sensor = {self.model.sensor(i).name: i for i in range(self.model.nsensor)}
-        adr = self.model.sensor_adr
-        self._q_cols = np.array([adr[sensor[f"q{k + 1}"]] for k in range(self.robot.n_joints)])
-        self._pos_cols = adr[sensor["body_pos"]] + np.arange(3)
-        self._quat_cols = adr[sensor["body_quat"]] + np.arange(4)
-        self._com_cols = adr[sensor["com_pos"]] + np.arange(3)
-        self._vel_cols = adr[sensor["com_vel"]] + np.arange(3)
+        self.columns = SensorColumns.of(self.model, self.robot.n_joints)
         assert self.model.site(BODY_SITE).id >= 0
+
+    stream = stream
+    """``sim.physics.stream.stream``: one record replayed in chunks, each yielded as it is done."""
+
+    @property
+    def closed(self) -> bool:
+        """Whether ``close`` was called (no more rollouts)."""
+        return self._closed
 
     def rollout(
         self,
@@ -159,9 +161,9 @@ class Simulator(Streaming):
     def poses(self, sens: np.ndarray) -> np.ndarray:
         """The body frame's world pose (..., 3): x, y (m) and yaw (rad), from sensordata rows (..., n)."""
         if sens.ndim == 1:  # one row, each control period of a closed loop: plain floats are faster
-            (px, py, _), (w, x, y, z) = sens[self._pos_cols].tolist(), sens[self._quat_cols].tolist()
+            (px, py, _), (w, x, y, z) = sens[self.columns.pos].tolist(), sens[self.columns.quat].tolist()
             return np.array([px, py, math.atan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z)])
-        pos, q = sens[..., self._pos_cols], sens[..., self._quat_cols]
+        pos, q = sens[..., self.columns.pos], sens[..., self.columns.quat]
         w, x, y, z = np.moveaxis(q, -1, 0)  # yaw of R(q) is scale-free: no normalising needed
         yaw = np.arctan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z)
         return np.stack([pos[..., 0], pos[..., 1], yaw], axis=-1)
@@ -173,8 +175,8 @@ class Simulator(Streaming):
         return bool(
             np.isfinite(state[-1]).all()
             and abs(state[-1, 0] - (first + len(state)) * dt) <= 0.5 * dt
-            and sens[:, self._com_cols[2]].max() <= self.config.max_com_height
-            and (sens[:, self._vel_cols] ** 2).sum(axis=1).max() <= self.config.max_com_speed**2
+            and sens[:, self.columns.com[2]].max() <= self.config.max_com_height
+            and (sens[:, self.columns.vel] ** 2).sum(axis=1).max() <= self.config.max_com_speed**2
         )
 
     def initial_sensors(self) -> np.ndarray:
@@ -321,7 +323,8 @@ class Simulator(Streaming):
         if rolled is None:
             return None
         state, sens = rolled
-        failures = self._diagnose(state, sens, first=begin)
+        dt = self.model.opt.timestep
+        failures = [self.diagnose_steps(st, se, dt, first=begin) for st, se in zip(state, sens, strict=True)]
         # Sample n is measured at the start of step record[n]; rows here are steps from `begin`.
         record = self.config.lead_in * self.substeps + self.substeps * np.arange(first, samples) - begin
         sampled = sens[:, record]  # (B, T, nsensordata), measured at the start of step `record`
@@ -330,9 +333,9 @@ class Simulator(Streaming):
         if start is not None:
             before[:, record == 0] = start.state[:, None]
         qpos = before[..., 1 : 1 + self.model.nq]
-        joint_angles = sampled[..., self._q_cols]
-        pos = sampled[..., self._pos_cols]
-        quat = sampled[..., self._quat_cols]
+        joint_angles = sampled[..., self.columns.q]
+        pos = sampled[..., self.columns.pos]
+        quat = sampled[..., self.columns.quat]
         quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True).clip(min=1e-12)
         if start is not None:  # the whole series from the record's start: its frame, its unwrapping
             joint_angles, pos, quat, qpos = (
@@ -347,18 +350,14 @@ class Simulator(Streaming):
             paused = Paused(samples, state[:, -1].copy(), warm_out, (joint_angles, pos, quat, qpos), failures)
         return BatchResult(joint_angles=joint_angles, body=body, failures=failures, qpos=qpos, paused=paused)
 
-    def _diagnose(self, state: np.ndarray, sens: np.ndarray, first: int = 0) -> list[str | None]:
-        dt = self.model.opt.timestep
-        return [self.diagnose_steps(state[b], sens[b], dt, first) for b in range(state.shape[0])]
-
     def diagnose_steps(self, state: np.ndarray, sens: np.ndarray, dt: float, first: int = 0) -> str | None:
         """Why a rollout's steps (``state``/``sens`` rows are steps ``first``, ``first`` + 1, ...)
         broke the simulation, or None. A stream checks each chunk's new steps once (``first``)."""
         return why_broken(
             self.config,
             state,
-            sens[:, self._com_cols[2]],
-            np.linalg.norm(sens[:, self._vel_cols], axis=1),
+            sens[:, self.columns.com[2]],
+            np.linalg.norm(sens[:, self.columns.vel], axis=1),
             dt,
             first,
             t0=self.config.lead_in / self.excitation.sample_rate,
