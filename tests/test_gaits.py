@@ -50,38 +50,38 @@ def test_library_has_the_gaits_the_designer_offers():
 
 
 @pytest.mark.slow
-def test_presets_reproduce_their_documented_figures():
+@pytest.mark.parametrize("name", list(PRESETS))
+def test_presets_reproduce_their_documented_figures(name):
     """Replayed as the library was measured (4-member ensemble, seed 0): displacement within 5% or
     5 cm, heading within 10 deg, net roll and yaw within 5% or 0.3 rad, spread within 0.05."""
     simulator = Simulator(None)
     try:
-        for name, p in PRESETS.items():
-            got, want = measure_gait(p.gait, simulator), p.measured
-            assert got.displacement == pytest.approx(want.displacement, rel=0.05, abs=0.05), name
-            assert abs(got.direction_deg - want.direction_deg) < 10, name
-            assert got.net_roll == pytest.approx(want.net_roll, rel=0.05, abs=0.3), name
-            assert got.net_yaw == pytest.approx(want.net_yaw, rel=0.05, abs=0.3), name
-            assert abs(got.spread - want.spread) < 0.05, name
+        got, want = measure_gait(PRESETS[name].gait, simulator), PRESETS[name].measured
     finally:
         simulator.close()
+    assert got.displacement == pytest.approx(want.displacement, rel=0.05, abs=0.05)
+    assert abs(got.direction_deg - want.direction_deg) < 10
+    assert got.net_roll == pytest.approx(want.net_roll, rel=0.05, abs=0.3)
+    assert got.net_yaw == pytest.approx(want.net_yaw, rel=0.05, abs=0.3)
+    assert abs(got.spread - want.spread) < 0.05
 
 
 @pytest.mark.slow
-def test_presets_worst_cases_reproduce_over_the_default_variation_set():
+@pytest.mark.parametrize("name", list(PRESETS))
+def test_presets_worst_cases_reproduce_over_the_default_variation_set(name):
     """``gait --list``'s worst case of each library gait, replayed: the same variation, the same end
     error within 2% (the figures were measured with MuJoCo 4.0.1)."""
     from snakeloco.sim.robot.variations import DEFAULT_SET
     from snakeloco.sim.scores.robustness import robustness
 
-    simulator = Simulator(None)
+    p, simulator = PRESETS[name], Simulator(None)
     try:
-        for name, p in PRESETS.items():
-            got = robustness(p.gait.commands(DEFAULT_ROBOT), DEFAULT_SET, simulator)
-            assert got["worst"] == p.worst.variation, name
-            assert got["worst_end_error_m"] == pytest.approx(p.worst.end_error_m, rel=0.02), name
-            assert got["worst_rel"] == pytest.approx(p.worst.rel, rel=0.02), name
+        got = robustness(p.gait.commands(DEFAULT_ROBOT), DEFAULT_SET, simulator)
     finally:
         simulator.close()
+    assert got["worst"] == p.worst.variation
+    assert got["worst_end_error_m"] == pytest.approx(p.worst.end_error_m, rel=0.02)
+    assert got["worst_rel"] == pytest.approx(p.worst.rel, rel=0.02)
 
 
 def test_gait_command_writes_and_lists_the_library(tmp_path, capsys):

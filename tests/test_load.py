@@ -88,13 +88,14 @@ def test_bench_load_protocol_clients_with_a_page_beside_them(checkpoint, capsys)
 
 def test_bench_load_held_pattern_times_every_move(checkpoint, capsys):
     """Issue 59's own client: z_B 1 jumps, the client waits for that replay, rests; 8 moves each, two
-    of them to the value held, which start no replay and are timed to the panel's next "· replay"."""
-    r = _bench_load(capsys, checkpoint, "--pattern", "held", "--no-browser-page")
+    of them to the value held, which start no replay and are timed to the panel's next "· replay"
+    (or 5 s: with an ensemble of 2 and no fans, often nothing comes)."""
+    r = _bench_load(capsys, checkpoint, "--pattern", "held", "--held-wait", "5", "--no-browser-page")
     assert r["pattern"] == "held" and r["server_exceptions"] == 0, r["exception_messages"]
     assert r["single_replays_drawn"] == 6 and r["replays_drawn"] == [6, 6]  # every real jump's replay came
     assert np.isfinite([r["single_replay_p95_ms"], *r["multi_replay_p95_ms"], r["replay_p95_ratio"]]).all()
     for held in [r["single_held_ms"], *r["multi_held_ms"]]:
-        assert len(held) == 2 and all(0 < t <= 60e3 for t in held), held
+        assert len(held) == 2 and all(0 < t <= 5e3 for t in held), held
     assert r["stale_draws"] == 0, r["stale_details"]
 
 

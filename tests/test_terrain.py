@@ -10,6 +10,7 @@ import pytest
 from snakeloco.sim.physics.anisotropy_probe import GROUNDS, ground_flags, ground_model, replay_end
 from snakeloco.sim.physics.ground_contact import realign, staged_step
 from snakeloco.sim.robot.description import DEFAULT_ROBOT, FLOOR
+from snakeloco.sim.world.sets import TERRAIN_SET
 
 ALONG, ACROSS = 0.15, 0.6
 
@@ -407,6 +408,47 @@ def test_the_designer_starts_on_serve_worlds_ground_and_a_tab_switches_world(che
                 np.sin(turn) * p0[0] + np.cos(turn) * p0[1],
             ]
             np.testing.assert_allclose(np.asarray(frame.position[:2]) + rotated, 0.0, atol=1e-9)
+        finally:
+            client.close()
+    finally:
+        srv.stop()
+
+
+@pytest.mark.slow
+def test_the_designers_fan_over_other_ground_replays_the_terrain_set(checkpoint):
+    """Fan over "other ground": the Variations fan is the gait on each world of the terrain set, each
+    row's end the world's own replay's, measured from the tab's replay; the line says "on other
+    ground". Back to "other robots": the physics variations again."""
+    from snakeloco.sim.physics.simulator import Simulator
+    from snakeloco.sim.robot.variations import DEFAULT_SET
+    from snakeloco.sim.scores.robustness import end_point
+
+    from helpers import apply, connect_headless, quiet_server
+
+    srv = quiet_server(checkpoint, variations=True)
+    try:
+        client, d = connect_headless(srv)
+        try:
+            assert d.variations is not None and d.variations[1].get("set") != "terrain"
+            assert apply(d, d.controls.fan, "other ground", timeout=180)
+            version, report = d.variations
+            assert version == d.version and report["set"] == "terrain"
+            assert [r["name"] for r in report["variations"]] == [w.name for w in TERRAIN_SET]
+            assert "on other ground" in d.readout.variations
+            assert len(d.scene.variation_fan) == len(TERRAIN_SET) - len(report["broken"])
+            steps = next(i for i, w in enumerate(TERRAIN_SET) if w.steps is not None)
+            on = Simulator(1, robot=DEFAULT_ROBOT, world=TERRAIN_SET[steps])
+            try:
+                end = end_point(on.replay(d.decoded.commands).body)
+            finally:
+                on.close()
+            row = report["variations"][steps]
+            assert (row["forward"], row["sideways"]) == pytest.approx(
+                (end["forward"], end["sideways"]), abs=1e-9
+            )
+            assert apply(d, d.controls.fan, "other robots", timeout=180)
+            assert [r["name"] for r in d.variations[1]["variations"]] == [v.name for v in DEFAULT_SET]
+            assert "on other robots" in d.readout.variations
         finally:
             client.close()
     finally:

@@ -105,6 +105,7 @@ def bench_load(
     browser_page: bool = True,
     pattern: str = "drags",
     variations: bool = False,
+    held_wait: float = 60.0,
 ) -> dict:
     """Run the single-client and ``clients``-client phases and summarise them (see module docstring).
     ``driver``: "protocol" (``bench.users.protocol`` clients; ``browser_page``: one Chromium page beside
@@ -150,7 +151,7 @@ def bench_load(
                 if driver == "protocol":
                     with_page = browser_page and n == clients and clients > 1
                     phases[n] = protocol_phase(
-                        server, n, length, rng, Path(tmp), log, pages, with_page, seed, pattern
+                        server, n, length, rng, Path(tmp), log, pages, with_page, seed, pattern, held_wait
                     )
                 else:
                     phases[n] = browser_phase(server, n, length, rng, Path(tmp), log, pages)

@@ -57,6 +57,8 @@ class BenchLoad(Command):
     """protocol: each user is an asyncio websocket client speaking viser's protocol (next to no CPU, as users' browsers on their own machines), with one real Chromium page beside the multi-client phase's; browser: a Chromium page each (for machines with spare cores: --pin-cpus)."""
     pattern: Literal["drags", "jumps", "held"] = "drags"
     """With --driver protocol: drags (a random slider dragged in 10-30 sends, then a rest of --dwell), jumps (z_B 1 jumps to a random value, the client waits for that gait's replay, rests 0.5-1.5 s; 8 moves; clients join 1-4 s apart; playback running and full rendering, as a newcomer's tab: issue 59's client) or held (the jumps, two of them sending the value z_B 1 holds, timed until the Consistency panel next says "· replay": how issue 59's client saw one client starve; held_p95_ms). The replay-ready ratio (worst client / one alone) is reported for each."""
+    held_wait: Annotated[float, Field(gt=0)] = 60.0
+    """With --pattern held: how long a move to the value held waits for the panel's next "· replay" (s); such a move starts nothing, so what comes is the previous gait's ensemble or fan finishing, or nothing (then it counts this long)."""
     variations: bool = False
     """Serve with the Variations fan, as `snakeloco serve` does by default (each gait replayed on 12 physics variations after its ensemble, at the pool's lowest turn but design and fits); off by default so the figures stay comparable with docs/load.md."""
     browser_page: bool = True

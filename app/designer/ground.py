@@ -109,10 +109,13 @@ class GroundView:
 
 class TabWorld:
     """A tab's World dropdown: the shipped worlds plus the server's (``serve --world``); choosing one
-    replays the current gait there and draws its ground."""
+    replays the current gait there and draws its ground. And its Fan over dropdown: whether the
+    Variations fan replays each gait on other robots or on other ground (``terrain_fan``)."""
 
     def __init__(self, tab) -> None:
         self.tab = tab
+        self.terrain_fan = False
+        """The Variations fan replays on the terrain set (``sim.world.sets``), not the physics variations."""
         self.worlds = shipped_worlds()
         here = tab.session.world
         self.initial = next((name for name, w in self.worlds.items() if w == here), None)
@@ -131,11 +134,22 @@ class TabWorld:
             return None
         self.tab.session.set_world(world)
         self.show()
+        return self._again(f"World: {name}")
+
+    def choose_fan(self, label: str) -> int | None:
+        """The Variations fan over other ground (``label`` "other ground") or other robots: the current
+        gait replayed again, its fan over the new set; its request version (None: nothing to do)."""
+        terrain = label == "other ground"
+        if terrain == self.terrain_fan:
+            return None
+        self.terrain_fan = terrain
+        return self._again(f"Fan over {label}")
+
+    def _again(self, label: str) -> int | None:
+        """Replay the current gait again, as ``label`` (the model's gait: decoded again, its path kept)."""
         gait = self.tab.decoded
         if gait is None:
             return None
-        if gait.latents is not None:  # the model's gait: decoded again (its path kept), replayed there
+        if gait.latents is not None:
             return self.tab.request_decode()
-        return self.tab.submit(
-            self.tab.physics, ("load", gait.source, f"World: {name}", gait.commands, gait.no_model)
-        )
+        return self.tab.submit(self.tab.physics, ("load", gait.source, label, gait.commands, gait.no_model))

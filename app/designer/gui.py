@@ -50,6 +50,9 @@ COMMAND_PLOT_TIMES = RECORD.times[: int(COMMAND_PLOT_SECONDS * RECORD.sample_rat
 WIDE_PX = 1200
 """A window at least this wide has room for the plots below the readout: they open by default."""
 
+FAN_SETS = ("other robots", "other ground")
+"""The Variations fan's choices (``Fan over``): the default physics variations or the terrain set."""
+
 
 def hex_color(rgb: tuple[int, int, int]) -> str:
     return "#{:02x}{:02x}{:02x}".format(*rgb)
@@ -111,6 +114,7 @@ class Controls:
     readout: viser.GuiHtmlHandle
     family: viser.GuiDropdownHandle
     world: viser.GuiDropdownHandle
+    fan: viser.GuiDropdownHandle
     zb_folder: viser.GuiFolderHandle
     component: viser.GuiDropdownHandle | None
     sliders: list[viser.GuiSliderHandle]
@@ -263,6 +267,13 @@ def build_controls(
             hint="The ground this tab replays on and draws (docs/terrain.md): the flat plane, rough ground, "
             "steps, pegs, a 10° slope, or serve --world's; the model's paths were learnt on the flat plane",
         )
+        fan_dropdown = gui.add_dropdown(
+            "Fan over",
+            FAN_SETS,
+            initial_value=FAN_SETS[0],
+            hint="What the Variations fan replays each gait on: other robots (12 physics variations, "
+            "docs/variations.md) or other ground (the terrain set's 12 worlds, docs/terrain.md)",
+        )
     zb_folder = gui.add_folder("Body latent z_B")
     component, sliders, reset_button, random_button = build_sliders(gui, zb_folder, z_b_dim, components)
     with gui.add_folder("Joint latents z_k"):
@@ -347,6 +358,7 @@ def build_controls(
         readout=readout,
         family=family_dropdown,
         world=world_dropdown,
+        fan=fan_dropdown,
         zb_folder=zb_folder,
         component=component,
         sliders=sliders,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -19,6 +20,8 @@ from snakeloco.sim import SimulationError
 from snakeloco.sim.physics.scheduler import Turn
 from snakeloco.sim.robot.variations import DEFAULT_SET
 from snakeloco.sim.scores.robustness import summarise
+from snakeloco.sim.scores.terrain import WorldRow
+from snakeloco.sim.world.sets import TERRAIN_SET
 
 SETTLED_S = 0.5
 """A slider value the tab has held this long (no newer one) is one the user has let go of."""
@@ -86,7 +89,12 @@ class TabJobs:
     def _predict_variations(self, version: int, decoded: DecodedGait) -> None:
         """Draw the physics head's predicted Variations fan and say its line (a checkpoint with a
         physics head, a gait that is a family member); the replays check it (``_variations``)."""
-        if not self.tab.show_variations or decoded.member is None or self.tab.model.physics_head is None:
+        if (
+            not self.tab.show_variations
+            or self.tab.world.terrain_fan  # the physics head predicts other robots, not other ground
+            or decoded.member is None
+            or self.tab.model.physics_head is None
+        ):
             return
         robot = self.tab.session.robot
         if self._varied_robots is None or self._varied_robots[0] != robot:
@@ -196,18 +204,15 @@ class TabJobs:
             self._variations(version, decoded, sim, is_current)
 
     def _variations(self, version: int, decoded: DecodedGait, sim: SimulatedGait, is_current) -> dict | None:
-        """Replay the gait on the default variation set (``sim.robot.variations``), a batch a physics thread
-        at a time on the pool's variations turn (after every tab's replays and ensembles), drawing
-        each batch as it comes (the Variations fan) and, at the end, the readout's line. Dropped
-        unrun once the gait changes."""
+        """Replay the gait on the default variation set (``sim.robot.variations``; or, with the fan over
+        other ground, on each world of the terrain set, ``sim.world.sets``), a batch a physics thread at
+        a time on the pool's variations turn (after every tab's replays and ensembles), drawing each
+        batch as it comes (the Variations fan) and, at the end, the readout's line. Dropped unrun
+        once the gait changes."""
         t0 = time.perf_counter()
-        robot = self.tab.session.robot
-        robots = [v.apply(robot) for v in DEFAULT_SET]
-        simulator = self.tab.session.simulator_for(Turn.VARIATIONS, is_current)
+        rows, batches = self._fan(decoded, is_current)
         bodies, failures = [], []
-        for i in range(0, len(robots), simulator.workers):
-            part = robots[i : i + simulator.workers]
-            result = simulator.simulate(np.repeat(decoded.commands[None], len(part), axis=0), robots=part)
+        for result in batches:
             if result is None:
                 return None
             bodies += list(result.body)
@@ -219,14 +224,29 @@ class TabJobs:
                     self.tab.scene.draw_variations(
                         [b for b, f in zip(result.body, result.failures, strict=True) if f is None]
                     )
-        report = summarise(sim.body, DEFAULT_SET, bodies, failures)
+        report = summarise(sim.body, rows, bodies, failures)
         report["seconds"] = time.perf_counter() - t0
+        if self.tab.world.terrain_fan:
+            report["set"] = "terrain"  # the readout says "on other ground"
         with self.tab.draw_lock:
             if not is_current():
                 return None
             self.tab.variations = (version, report)
             self.tab.says.show_readout(decoded, "done", sim.body)
         return report
+
+    def _fan(self, decoded: DecodedGait, is_current) -> tuple[list, Iterator]:
+        """The fan's rows (variations or worlds) and its batches' results, simulated as they are read."""
+        session, commands = self.tab.session, decoded.commands[None]
+        if self.tab.world.terrain_fan:
+            on = (session.simulator_on(w, Turn.VARIATIONS, is_current) for w in TERRAIN_SET)
+            return [WorldRow(w) for w in TERRAIN_SET], (s.simulate(commands) for s in on)
+        robots = [v.apply(session.robot) for v in DEFAULT_SET]
+        simulator = session.simulator_for(Turn.VARIATIONS, is_current)
+        parts = (robots[i : i + simulator.workers] for i in range(0, len(robots), simulator.workers))
+        return list(DEFAULT_SET), (
+            simulator.simulate(np.repeat(commands, len(p), 0), robots=p) for p in parts
+        )
 
     def _draw_members(self, bodies: np.ndarray, is_current) -> bool:
         """Draw the ensemble members in so far; whether the ensemble is still wanted."""

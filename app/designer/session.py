@@ -196,15 +196,23 @@ class GaitSession:
         self._world = world
         self._simulator = self._simulator_of(self._simulator.robot)
 
-    def _simulator_of(self, robot: Robot) -> Simulator:
-        if robot == self._nominal.robot and self._world == self._nominal.world:
+    def _simulator_of(self, robot: Robot, world: World | None = None) -> Simulator:
+        world = self._world if world is None else world
+        if robot == self._nominal.robot and world == self._nominal.world:
             return self._nominal
-        simulator = self._robot_simulators.get((robot, self._world))
+        simulator = self._robot_simulators.get((robot, world))
         if simulator is None:
-            simulator = Simulator(workers=1, robot=robot, world=self._world)
-            self._robot_simulators[robot, self._world] = simulator
+            simulator = Simulator(workers=1, robot=robot, world=world)
+            self._robot_simulators[robot, world] = simulator
             self._owned.append(simulator)
         return simulator
+
+    def simulator_on(self, world: World, turn: Turn, wanted: Callable[[], bool] | None = None) -> OnTurns:
+        """``simulator_for(turn, wanted)`` with this session's robot on ``world`` (kept, as ``set_world``'s):
+        the terrain fan's replays."""
+        return OnTurns(
+            self._simulator_of(self._simulator.robot, world), self.physics.runner(self.tab, turn, wanted)
+        )
 
     def use_model(self, model: GaitModel) -> bool:
         """Design with ``model`` from now on, replaying on the server's robot (``serve --robot``, or

@@ -183,6 +183,7 @@ class DesignerClient:
         self.wire_sliders()
         c.family.on_update(g(lambda _e: self.moves.switch_family(c.family.value)))
         c.world.on_update(g(lambda _e: self.world.choose(c.world.value)))
+        c.fan.on_update(g(lambda _e: self.world.choose_fan(c.fan.value)))
         c.zk_mode.on_update(g(lambda _e: self.moves.on_zk_changed("mode")))
         c.zk_seed.on_update(g(lambda _e: self.moves.on_zk_changed("seed")))
         c.zk_temperature.on_update(

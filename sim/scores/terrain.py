@@ -24,7 +24,7 @@ from snakeloco.sim.world.sets import TERRAIN_SET
 
 
 @dataclass(frozen=True)
-class _Row:
+class WorldRow:
     """A world as a row of the variation tables (their ``name`` and ``params``)."""
 
     world: World
@@ -72,7 +72,7 @@ def terrain_robustness(commands: np.ndarray, simulator, worlds: Sequence[World] 
         return result.body[0], result.failures[0]
 
     rows = _on_each(worlds, simulator, replay)
-    report = summarise(nominal, [_Row(w) for w in worlds], [b for b, _ in rows], [f for _, f in rows])
+    report = summarise(nominal, [WorldRow(w) for w in worlds], [b for b, _ in rows], [f for _, f in rows])
     return report | {"set": "terrain", "on": "the flat ground"}
 
 
@@ -98,7 +98,7 @@ def terrain_closed_loop(
         except SimulationError as exc:  # the world broke the run: a row that says so
             return {"forward": None, "sideways": None, "end_error_m": None, "rel": None, "failure": str(exc)}
 
-    rows = [{"name": w.name, "params": _Row(w).params(), **r} for w, r in zip(worlds, _on_each(worlds, simulator, follow), strict=True)]  # fmt: skip
+    rows = [{"name": w.name, "params": WorldRow(w).params(), **r} for w, r in zip(worlds, _on_each(worlds, simulator, follow), strict=True)]  # fmt: skip
     scored = [r for r in rows if r["failure"] is None]
     worst = max(scored, key=lambda r: r["end_error_m"], default=None)
     report.pop("world", None)

@@ -110,6 +110,7 @@ def protocol_phase(
     with_page: bool,
     gaits_seed: int,
     pattern: str = "drags",
+    held_wait: float = 60.0,
 ) -> dict:
     """``n`` protocol clients drag for ``seconds`` (plus, ``with_page``, one Chromium page); the
     phase in ``bench_load``'s form. ``gaits_seed``: every client drags through the same gaits
@@ -146,6 +147,7 @@ def protocol_phase(
                 SETTLE_S,
                 gaits_seed,
                 pattern,
+                held_wait,
             ),
             name="bench-load-protocol",
         )

@@ -233,14 +233,16 @@ class ProtocolClient:
         await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))
         return drag
 
-    async def jump_for(self, jumps: int, join_after: float = 0.0, held: tuple[int, ...] = ()) -> None:
+    async def jump_for(
+        self, jumps: int, join_after: float = 0.0, held: tuple[int, ...] = (), held_wait: float = 60.0
+    ) -> None:
         """Join ``join_after`` s from now (its first load not awaited), then jump ``jumps`` times
-        (those in ``held`` to the value held)."""
+        (those in ``held`` to the value held, each waiting at most ``held_wait`` s)."""
         await asyncio.sleep(join_after)
         await self.join(prepare=False, first_replay=False)
         await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))
         for k in range(jumps):
-            await self.jump(held=k in held)
+            await self.jump(held_wait if k in held else 60.0, held=k in held)
 
     async def drag(self, dwell: float) -> Drag:
         """Drag one random slider to a random value in 10-30 sends 50 ms apart (the last one sent

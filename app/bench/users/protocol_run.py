@@ -28,6 +28,7 @@ async def _run(
     done=None,
     gaits_seed=None,
     pattern: str = "drags",
+    held_wait: float = 60.0,
 ) -> dict:
     """Join ``len(seeds)`` clients, drag for ``seconds``, wait for each last drag's replay; returns the
     clients' summaries and the cores this process used while they dragged. ``gaits_seed``: every
@@ -40,7 +41,9 @@ async def _run(
         gaps = np.cumsum([0.0, *(c.rng.uniform(*JOIN_GAP_S) for c in clients[1:])])
         held = HELD_JUMPS if pattern == "held" else ()
         bytes_before = [0] * len(clients)
-        await asyncio.gather(*(c.jump_for(JUMPS, float(g), held) for c, g in zip(clients, gaps, strict=True)))
+        await asyncio.gather(
+            *(c.jump_for(JUMPS, float(g), held, held_wait) for c, g in zip(clients, gaps, strict=True))
+        )
     else:
         await asyncio.gather(*(c.join() for c in clients))
         bytes_before = [c.bytes for c in clients]
@@ -84,6 +87,7 @@ def main(
     settle_s: float,
     gaits_seed=None,
     pattern: str = "drags",
+    held_wait: float = 60.0,
 ) -> None:
     """Process entry (``bench load``): run the clients (``_run``), send ``("ok", result)`` (or ``("error",
     message)``), and keep them connected until the benchmark sends anything back."""
@@ -97,7 +101,7 @@ def main(
         await asyncio.get_running_loop().run_in_executor(None, conn.poll, 600.0)
 
     try:
-        asyncio.run(_run(url, seeds, seconds, dwell, settle_s, done, gaits_seed, pattern))
+        asyncio.run(_run(url, seeds, seconds, dwell, settle_s, done, gaits_seed, pattern, held_wait))
     except Exception as exc:
         conn.send(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=4)}"))
     finally:
