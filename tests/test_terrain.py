@@ -415,6 +415,53 @@ def test_the_designer_starts_on_serve_worlds_ground_and_a_tab_switches_world(che
 
 
 @pytest.mark.slow
+def test_the_design_panel_verifies_its_candidates_on_the_tabs_world(checkpoint):
+    """A tab on rough ground designs there: each verified candidate's end is its replay's on that
+    ground, where the flat plane would have put it elsewhere."""
+    from snakeloco.model.design.config import DesignConfig
+    from snakeloco.model.design.search import path_end
+    from snakeloco.sim.data.dataset import BODY_DOWNSAMPLE
+    from snakeloco.sim.physics.simulator import Simulator
+    from snakeloco.sim.world.description import load_world
+
+    from helpers import apply, connect_headless, quiet_server
+
+    srv = quiet_server(checkpoint)
+    try:
+        client, d = connect_headless(srv)
+        try:
+            assert apply(d, d.controls.world, "rough")
+            d.design.config = DesignConfig(
+                screen=64, starts=2, generations=10, population=8, candidates=2, rounds=1
+            )
+            d.controls.design.forward.value, d.controls.design.sideways.value = 0.5, 0.0
+            d.design.request()
+            assert d.design.worker.wait_idle(300) and d.design.result is not None
+            verified = [c for c in d.design.result.candidates if c.simulated is not None]
+            assert verified
+            rough, flat = Simulator(1, robot=DEFAULT_ROBOT, world=load_world("rough")), Simulator(1)
+
+            def end(simulator, commands):
+                body = simulator.replay(commands).body[::BODY_DOWNSAMPLE]
+                return path_end(body.astype(np.float32).astype(np.float64))[:2]
+
+            moved = 0.0
+            try:
+                for c in verified:
+                    commands = d.model.commands(c.shape[None])[0]
+                    np.testing.assert_allclose(end(rough, commands), c.simulated[:2], atol=1e-4)
+                    moved = max(moved, float(np.hypot(*(end(flat, commands) - c.simulated[:2]))))
+            finally:
+                rough.close()
+                flat.close()
+            assert moved > 0.01
+        finally:
+            client.close()
+    finally:
+        srv.stop()
+
+
+@pytest.mark.slow
 def test_the_designers_fan_over_other_ground_replays_the_terrain_set(checkpoint):
     """Fan over "other ground": the Variations fan is the gait on each world of the terrain set, each
     row's end the world's own replay's, measured from the tab's replay; the line says "on other
