@@ -5,15 +5,17 @@ middle link's frame (site ``body_frame`` at the centre of link 5: where an IMU o
 of the real robot would be), expressed in the frame of that link's position and heading at t = 0:
 positions are R_z(-yaw_0) (p(t) - p(0)), angles are the Z-Y-X (yaw, pitch, roll) Euler angles of
 R_z(-yaw_0) R(t). Yaw and roll are unwrapped over time (the snake may roll over and over).
-Numpy only, but for where the sensors sit in a compiled model (``SensorColumns``).
+Numpy only (``SensorColumns`` reads a compiled model it is given).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
-import mujoco
 import numpy as np
+
+if TYPE_CHECKING:
+    import mujoco
 
 BODY_CHANNELS = ("vertical", "forward", "sideways", "roll", "pitch", "yaw")
 """Order of the 6 body channels: 3 positions (m), then 3 angles (rad)."""

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from concurrent.futures import wait as wait_futures
-from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
@@ -25,9 +24,6 @@ from snakeloco.sim.physics.results import (
 from snakeloco.sim.physics.scheduler import FairRunner
 from snakeloco.sim.physics.threads import RolloutThreads
 
-if TYPE_CHECKING:
-    from snakeloco.sim.physics.simulator import Simulator
-
 STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
 """The state a rollout records per step (``mujoco.mj_stateSize``)."""
 
@@ -35,14 +31,14 @@ Runner = RolloutThreads | FairRunner | Callable[[int], RolloutThreads | FairRunn
 
 
 def stream(
-    sim: Simulator,
+    sim,
     commands: np.ndarray,
     chunk_samples: int = STREAM_CHUNK,
     first_samples: int = STREAM_FIRST,
     wanted: Callable[[], bool] | None = None,
     runner: Runner = None,
 ) -> Iterator[StreamedReplay]:
-    """Replay one record (T, n_joints) rad in chunks of ``chunk_samples`` record samples, yielding after
+    """Replay one record (T, n_joints) rad on ``sim`` (a ``Simulator``) in chunks of ``chunk_samples`` record samples, yielding after
     each chunk everything simulated so far (the first chunk is the lead-in and ``first_samples``).
 
     The physics state and the solver's warm start carry over from chunk to chunk, so the arrays
