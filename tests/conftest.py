@@ -14,22 +14,6 @@ from helpers import SMALL, quiet_server
 
 TINY = GenerateConfig(num_samples=4, seed=11)
 
-ONE_AT_A_TIME = {"browser": "chromium", "load": "chromium", "one_at_a_time": "chromium"}
-"""Marks whose tests pytest-xdist (``-n``, pyproject's addopts) runs on one worker, one after another:
-a Chromium page renders WebGL in software on about a core, so two at once starve each other; the
-stress tests time a tab's answers. The Ray tests (test_scale.py) are a group of their own: one local
-Ray cluster at a time."""
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        groups = {group for mark, group in ONE_AT_A_TIME.items() if item.get_closest_marker(mark)}
-        if item.path.name == "test_scale.py":
-            groups.add("ray")
-        for group in groups:
-            item.add_marker(pytest.mark.xdist_group(group))
-
 
 @pytest.fixture(scope="session", autouse=True)
 def _work_outside_the_repo(tmp_path_factory):

@@ -108,7 +108,6 @@ def test_a_running_design_shows_its_bar_is_cancelled_and_its_tab_closing_drops_i
 
 
 @pytest.mark.slow
-@pytest.mark.one_at_a_time
 def test_a_tab_answers_sliders_exports_and_cancel_while_it_designs_during_an_ensemble(checkpoint):
     """The freeze of issue 71, repeated: Design pressed while the ensemble runs, then a slider, an
     export and Cancel, each answered, and the tab's messages never stop reaching the page for more
