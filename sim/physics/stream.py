@@ -38,8 +38,9 @@ def stream(
     wanted: Callable[[], bool] | None = None,
     runner: Runner = None,
 ) -> Iterator[StreamedReplay]:
-    """Replay one record (T, n_joints) rad on ``sim`` (a ``Simulator``) in chunks of ``chunk_samples`` record samples, yielding after
-    each chunk everything simulated so far (the first chunk is the lead-in and ``first_samples``).
+    """Replay one record (T, n_joints) rad on ``sim`` (a ``Simulator``) in chunks of ``chunk_samples``
+    record samples, yielding after each chunk everything simulated so far (the first chunk is the
+    lead-in and ``first_samples``).
 
     The physics state and the solver's warm start carry over from chunk to chunk, so the arrays
     are bit-identical to ``replay``'s (prefixes of them until the last part). The chunks run with
