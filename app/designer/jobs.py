@@ -209,8 +209,8 @@ class TabJobs:
         a time on the pool's variations turn (after every tab's replays and ensembles), drawing each
         batch as it comes (the Variations fan) and, at the end, the readout's line. Dropped unrun
         once the gait changes."""
-        t0 = time.perf_counter()
-        rows, batches = self._fan(decoded, is_current)
+        t0, terrain = time.perf_counter(), self.tab.world.terrain_fan
+        rows, batches = self._fan(decoded, is_current, terrain)
         bodies, failures = [], []
         for result in batches:
             if result is None:
@@ -226,7 +226,7 @@ class TabJobs:
                     )
         report = summarise(sim.body, rows, bodies, failures)
         report["seconds"] = time.perf_counter() - t0
-        if self.tab.world.terrain_fan:
+        if terrain:
             report["set"] = "terrain"  # the readout says "on other ground"
         with self.tab.draw_lock:
             if not is_current():
@@ -235,10 +235,11 @@ class TabJobs:
             self.tab.says.show_readout(decoded, "done", sim.body)
         return report
 
-    def _fan(self, decoded: DecodedGait, is_current) -> tuple[list, Iterator]:
-        """The fan's rows (variations or worlds) and its batches' results, simulated as they are read."""
+    def _fan(self, decoded: DecodedGait, is_current, terrain: bool) -> tuple[list, Iterator]:
+        """The fan's rows (the physics variations, or with ``terrain`` the worlds) and its batches'
+        results, simulated as they are read."""
         session, commands = self.tab.session, decoded.commands[None]
-        if self.tab.world.terrain_fan:
+        if terrain:
             on = (session.simulator_on(w, Turn.VARIATIONS, is_current) for w in TERRAIN_SET)
             return [WorldRow(w) for w in TERRAIN_SET], (s.simulate(commands) for s in on)
         robots = [v.apply(session.robot) for v in DEFAULT_SET]

@@ -257,11 +257,6 @@ def refine(
     return out
 
 
-def _world(model):
-    """The ground a checkpoint's data was simulated on (a wrapper such as ``OnRobot`` may hide it)."""
-    return getattr(model, "world", None)
-
-
 def design(
     model: GaitModel,
     target: Target,
@@ -301,7 +296,7 @@ def design(
         progress.plan(1)
         progress.step("replaying the family's nearest gait (the target is beyond its reach)")
         runner = runner or open_backend(
-            backend, workers, robot=robot or model.robot, world=world or _world(model)
+            backend, workers, robot=robot or model.robot, world=world or model.world
         )
         try:
             verified = verify(model, [nearest], target, cfg, runner, members=1)
@@ -346,7 +341,7 @@ def design(
             progress.step(f"{what} {len(proposed)} candidates (round {rnd} of at most {cfg.rounds})")
             t0 = time.perf_counter()
             runner = runner or open_backend(
-                backend, workers, robot=robot or model.robot, world=world or _world(model)
+                backend, workers, robot=robot or model.robot, world=world or model.world
             )
             verified = rank(verified + verify(model, proposed, target, cfg, runner, members=1), target, cfg)
             physics_s += time.perf_counter() - t0

@@ -242,7 +242,7 @@ class ProtocolClient:
         await self.join(prepare=False, first_replay=False)
         await asyncio.sleep(float(self.rng.uniform(*JUMP_REST_S)))
         for k in range(jumps):
-            await self.jump(held_wait if k in held else 60.0, held=k in held)
+            await (self.jump(held_wait, held=True) if k in held else self.jump())
 
     async def drag(self, dwell: float) -> Drag:
         """Drag one random slider to a random value in 10-30 sends 50 ms apart (the last one sent
